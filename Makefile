@@ -1,0 +1,106 @@
+# sync4d developer entry points.
+#
+#   make setup   create .venv, install the Python requirements (only when they changed), build and
+#                install the Rust extension sync4d._core in release mode (only when sources changed)
+#   make test    setup + cargo test (release) + pytest
+#   make lint    cargo fmt --check, clippy -D warnings, ruff
+#   make bench   setup + python -m sync4d bench raster $(BENCH_ARGS)
+#   make clean   drop build outputs and stamps (keeps .venv and its packages)
+#
+# Stamps live inside .venv, so deleting .venv resets everything.
+
+SHELL := bash
+.SHELLFLAGS := -euo pipefail -c
+.DEFAULT_GOAL := test
+.DELETE_ON_ERROR:
+MAKEFLAGS += --no-builtin-rules
+
+PYTHON ?= python3
+VENV := .venv
+VENV_ABS := $(abspath $(VENV))
+VPY := $(VENV)/bin/python
+
+# Host-side digest of the requirement set (runtime deps + `test` extra + build backend) declared in
+# pyproject.toml. The install stamp is named after it: a changed set means a missing stamp, hence
+# one reinstall; an unchanged pyproject.toml edit (or touch) installs nothing.
+REQS_HASH := $(shell $(PYTHON) scripts/dev_requirements.py --hash)
+ifeq ($(strip $(REQS_HASH)),)
+$(error could not compute the requirement hash: is '$(PYTHON)' (>= 3.11) on PATH and pyproject.toml valid?)
+endif
+DEPS_STAMP := $(VENV)/.sync4d-deps-$(REQS_HASH).stamp
+EXT_STAMP := $(VENV)/.sync4d-ext.stamp
+
+# Everything that can change the compiled extension.
+RUST_SOURCES := Cargo.toml Cargo.lock pyproject.toml \
+	$(shell find rust -type f \( -name '*.rs' -o -name 'Cargo.toml' \) -not -path '*/target/*')
+# If the built module was deleted by hand, rebuild even though the stamp is newer than the sources.
+EXT_SO := $(wildcard sync4d/_core*.so)
+
+# pyo3's build script re-runs (recompiling pyo3, numpy and sync4d-py) whenever PYO3_PYTHON or
+# PYO3_ENVIRONMENT_SIGNATURE differ from the previous build. maturin sets both (venv interpreter,
+# "cpython-3.11-64bit"); give cargo test/clippy the same values so that `maturin develop` and
+# `cargo test` do not invalidate each other's artifacts in target/release on every alternation.
+export PYO3_PYTHON := $(VENV_ABS)/bin/python
+export PYO3_ENVIRONMENT_SIGNATURE := $(shell $(PYTHON) -c "import struct, sys; v = sys.version_info; \
+	print(f'{sys.implementation.name}-{v.major}.{v.minor}-{struct.calcsize(\"P\") * 8}bit')")
+ifeq ($(strip $(PYO3_ENVIRONMENT_SIGNATURE)),)
+$(error could not compute PYO3_ENVIRONMENT_SIGNATURE with '$(PYTHON)')
+endif
+
+PIP_FLAGS := --disable-pip-version-check $(if $(CI),--progress-bar off --no-input)
+
+.PHONY: setup test lint bench clean distclean FORCE
+
+setup: $(EXT_STAMP)
+
+$(VPY):
+	@echo ">>> creating $(VENV) with $$(command -v $(PYTHON)) ($$($(PYTHON) --version 2>&1))"
+	rm -rf $(VENV)
+	if $(PYTHON) -c 'import ensurepip' 2>/dev/null; then \
+		$(PYTHON) -m venv $(VENV); \
+	else \
+		echo ">>> $(PYTHON) has no ensurepip (Debian without python3-venv?); bootstrapping pip with the host pip"; \
+		$(PYTHON) -m venv --without-pip $(VENV); \
+		$(PYTHON) -m pip --python $(VPY) install $(PIP_FLAGS) pip; \
+	fi
+	$(VPY) -m pip --version
+
+$(DEPS_STAMP): $(VPY) scripts/dev_requirements.py
+	@echo ">>> installing Python requirements (set $(REQS_HASH))"
+	$(PYTHON) scripts/dev_requirements.py > $@.tmp
+	$(VPY) -m pip install $(PIP_FLAGS) -r $@.tmp
+	rm -f $(VENV)/.sync4d-deps-*.stamp
+	mv $@.tmp $@
+
+$(EXT_STAMP): $(DEPS_STAMP) $(RUST_SOURCES) $(if $(EXT_SO),,FORCE)
+	@echo ">>> building sync4d._core (release) and installing it into $(VENV)"
+	VIRTUAL_ENV=$(VENV_ABS) PATH="$(VENV_ABS)/bin:$$PATH" $(VENV)/bin/maturin develop --release
+	$(VPY) -c 'import sync4d._core'
+	touch $@
+
+FORCE:
+
+# Deterministic thread counts for the test suite (2-core CI machines); exported to every recipe
+# this target runs, including its prerequisites.
+test: export OMP_NUM_THREADS := 2
+test: export MKL_NUM_THREADS := 2
+test: export RAYON_NUM_THREADS := 2
+test: setup
+	cargo test --workspace --release
+	$(VPY) -m pytest -q
+
+lint: $(DEPS_STAMP)
+	cargo fmt --all --check
+	cargo clippy --workspace --all-targets -- -D warnings
+	$(VENV)/bin/ruff check .
+
+BENCH_ARGS ?=
+bench: setup
+	$(VPY) -m sync4d bench raster $(BENCH_ARGS)
+
+clean:
+	rm -f $(EXT_STAMP) sync4d/_core*.so
+	cargo clean
+
+distclean: clean
+	rm -rf $(VENV)

@@ -1,0 +1,668 @@
+//! Thin pyo3 bindings: `sync4d._core`. Arrays come in as NumPy views of torch tensors (no copies;
+//! flat C-contiguous), the GIL is released while Rust works, `RasterError`s become `ValueError`s
+//! naming the argument, and a Rust panic becomes a `RuntimeError` instead of crossing into Python.
+//! Shapes are checked on the Python side (`sync4d/raster.py`); lengths again here by the core.
+
+use numpy::{Element, PyArray1, PyArrayMethods, PyReadonlyArrayDyn};
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use std::collections::HashMap;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::{Arc, Mutex, OnceLock};
+use sync4d_raster::real::Real;
+use sync4d_raster::{self as core, RasterError};
+
+/// Rayon pools by thread count, built once and reused (0 = rayon's global pool).
+fn pool(threads: usize) -> PyResult<Option<Arc<rayon::ThreadPool>>> {
+    if threads == 0 {
+        return Ok(None);
+    }
+    static POOLS: OnceLock<Mutex<HashMap<usize, Arc<rayon::ThreadPool>>>> = OnceLock::new();
+    let mut pools = POOLS
+        .get_or_init(|| Mutex::new(HashMap::new()))
+        .lock()
+        .map_err(|_| PyRuntimeError::new_err("sync4d: thread-pool registry poisoned"))?;
+    if let Some(p) = pools.get(&threads) {
+        return Ok(Some(p.clone()));
+    }
+    let p = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| {
+            PyRuntimeError::new_err(format!("sync4d: cannot start {threads} threads: {e}"))
+        })?;
+    let p = Arc::new(p);
+    pools.insert(threads, p.clone());
+    Ok(Some(p))
+}
+
+/// Run `f` without the GIL on a pool of `threads` threads, mapping errors and panics.
+fn run<T: Send>(
+    py: Python<'_>,
+    threads: usize,
+    f: impl FnOnce() -> core::Result<T> + Send,
+) -> PyResult<T> {
+    let pool = pool(threads)?;
+    let out = py.allow_threads(move || {
+        catch_unwind(AssertUnwindSafe(move || match pool {
+            Some(p) => p.install(f),
+            None => f(),
+        }))
+    });
+    match out {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(e)) => Err(to_py(e)),
+        Err(panic) => {
+            let msg = panic
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "unknown panic".into());
+            Err(PyRuntimeError::new_err(format!(
+                "sync4d rasterizer internal error (please report with the inputs that caused it): {msg}"
+            )))
+        }
+    }
+}
+
+fn to_py(e: RasterError) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+/// Borrow a contiguous array as a flat slice, or fail naming `arg`.
+fn flat<'a, T: Element>(arr: &'a PyReadonlyArrayDyn<'_, T>, arg: &str) -> PyResult<&'a [T]> {
+    arr.as_slice()
+        .map_err(|_| PyValueError::new_err(format!("{arg}: must be C-contiguous")))
+}
+
+/// A new 1-D array of `len` zeros.
+fn zeros<'py, T: Element>(py: Python<'py>, len: usize) -> Bound<'py, PyArray1<T>> {
+    PyArray1::zeros(py, len, false)
+}
+
+fn slice_mut<'a, T: Element>(a: &'a Bound<'_, PyArray1<T>>) -> &'a mut [T] {
+    // SAFETY: the array was just created by us and is not shared with Python yet.
+    unsafe { a.as_slice_mut().expect("fresh array is contiguous") }
+}
+
+fn camera(
+    viewmat: Vec<f64>,
+    intr: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+) -> PyResult<core::Camera> {
+    core::Camera::new(&viewmat, intr.0, intr.1, intr.2, intr.3, width, height).map_err(to_py)
+}
+
+type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
+type Out<'py, T> = Bound<'py, PyArray1<T>>;
+
+#[allow(clippy::too_many_arguments)]
+fn project_fwd<'py, T: Real + Element>(
+    py: Python<'py>,
+    means: Arr<'py, T>,
+    quats: Arr<'py, T>,
+    scales: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+    viewmat: Vec<f64>,
+    intrinsics: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+    settings: (f64, f64, f64, bool),
+    threads: usize,
+) -> PyResult<(
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, i32>,
+    usize,
+)> {
+    let cam = camera(viewmat, intrinsics, width, height)?;
+    let ps = core::ProjectSettings {
+        near: settings.0,
+        far: settings.1,
+        eps2d: settings.2,
+        antialiased: settings.3,
+    };
+    let g = core::Gaussians {
+        means: flat(&means, "means")?,
+        quats: flat(&quats, "quats")?,
+        scales: flat(&scales, "scales")?,
+        opacities: flat(&opacities, "opacities")?,
+    };
+    let n = g.len();
+    let (m2, co, de, op, ra) = (
+        zeros::<T>(py, 2 * n),
+        zeros::<T>(py, 3 * n),
+        zeros::<T>(py, n),
+        zeros::<T>(py, n),
+        zeros::<i32>(py, 2 * n),
+    );
+    let out = core::ProjectionMut {
+        means2d: slice_mut(&m2),
+        conics: slice_mut(&co),
+        depths: slice_mut(&de),
+        opacities: slice_mut(&op),
+        radii: slice_mut(&ra),
+    };
+    let visible = run(py, threads, || core::project_forward(&g, &cam, &ps, out))?;
+    Ok((m2, co, de, op, ra, visible))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn project_bwd<'py, T: Real + Element>(
+    py: Python<'py>,
+    means: Arr<'py, T>,
+    quats: Arr<'py, T>,
+    scales: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+    viewmat: Vec<f64>,
+    intrinsics: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+    settings: (f64, f64, f64, bool),
+    grads: (Arr<'py, T>, Arr<'py, T>, Arr<'py, T>, Arr<'py, T>),
+    threads: usize,
+) -> PyResult<(Out<'py, T>, Out<'py, T>, Out<'py, T>, Out<'py, T>)> {
+    let cam = camera(viewmat, intrinsics, width, height)?;
+    let ps = core::ProjectSettings {
+        near: settings.0,
+        far: settings.1,
+        eps2d: settings.2,
+        antialiased: settings.3,
+    };
+    let g = core::Gaussians {
+        means: flat(&means, "means")?,
+        quats: flat(&quats, "quats")?,
+        scales: flat(&scales, "scales")?,
+        opacities: flat(&opacities, "opacities")?,
+    };
+    let v = core::ProjectionGrads {
+        means2d: flat(&grads.0, "grad_means2d")?,
+        conics: flat(&grads.1, "grad_conics")?,
+        depths: flat(&grads.2, "grad_depths")?,
+        opacities: flat(&grads.3, "grad_opacities")?,
+    };
+    let n = g.len();
+    let (gm, gq, gs, go) = (
+        zeros::<T>(py, 3 * n),
+        zeros::<T>(py, 4 * n),
+        zeros::<T>(py, 3 * n),
+        zeros::<T>(py, n),
+    );
+    let out = core::GaussianGradsMut {
+        means: slice_mut(&gm),
+        quats: slice_mut(&gq),
+        scales: slice_mut(&gs),
+        opacities: slice_mut(&go),
+    };
+    run(py, threads, || {
+        core::project_backward(&g, &cam, &ps, &v, out)
+    })?;
+    Ok((gm, gq, gs, go))
+}
+
+/// Project Gaussians (float32). Returns (means2d, conics, depths, opacities, radii, visible) as
+/// flat arrays.
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn project_forward_f32<'py>(
+    py: Python<'py>,
+    means: Arr<'py, f32>,
+    quats: Arr<'py, f32>,
+    scales: Arr<'py, f32>,
+    opacities: Arr<'py, f32>,
+    viewmat: Vec<f64>,
+    intrinsics: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+    settings: (f64, f64, f64, bool),
+    threads: usize,
+) -> PyResult<(
+    Out<'py, f32>,
+    Out<'py, f32>,
+    Out<'py, f32>,
+    Out<'py, f32>,
+    Out<'py, i32>,
+    usize,
+)> {
+    project_fwd(
+        py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, threads,
+    )
+}
+
+/// Project Gaussians (float64, for gradient checks). Same outputs as `project_forward_f32`.
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn project_forward_f64<'py>(
+    py: Python<'py>,
+    means: Arr<'py, f64>,
+    quats: Arr<'py, f64>,
+    scales: Arr<'py, f64>,
+    opacities: Arr<'py, f64>,
+    viewmat: Vec<f64>,
+    intrinsics: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+    settings: (f64, f64, f64, bool),
+    threads: usize,
+) -> PyResult<(
+    Out<'py, f64>,
+    Out<'py, f64>,
+    Out<'py, f64>,
+    Out<'py, f64>,
+    Out<'py, i32>,
+    usize,
+)> {
+    project_fwd(
+        py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, threads,
+    )
+}
+
+/// Backward of the projection (float32): returns dL/d(means, quats, scales, opacities).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn project_backward_f32<'py>(
+    py: Python<'py>,
+    means: Arr<'py, f32>,
+    quats: Arr<'py, f32>,
+    scales: Arr<'py, f32>,
+    opacities: Arr<'py, f32>,
+    viewmat: Vec<f64>,
+    intrinsics: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+    settings: (f64, f64, f64, bool),
+    grads: (Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>),
+    threads: usize,
+) -> PyResult<(Out<'py, f32>, Out<'py, f32>, Out<'py, f32>, Out<'py, f32>)> {
+    project_bwd(
+        py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, grads,
+        threads,
+    )
+}
+
+/// Backward of the projection (float64).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn project_backward_f64<'py>(
+    py: Python<'py>,
+    means: Arr<'py, f64>,
+    quats: Arr<'py, f64>,
+    scales: Arr<'py, f64>,
+    opacities: Arr<'py, f64>,
+    viewmat: Vec<f64>,
+    intrinsics: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+    settings: (f64, f64, f64, bool),
+    grads: (Arr<'py, f64>, Arr<'py, f64>, Arr<'py, f64>, Arr<'py, f64>),
+    threads: usize,
+) -> PyResult<(Out<'py, f64>, Out<'py, f64>, Out<'py, f64>, Out<'py, f64>)> {
+    project_bwd(
+        py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, grads,
+        threads,
+    )
+}
+
+/// Splat inputs borrowed from NumPy.
+fn splats_of<'a, T: Element>(
+    a: &'a (
+        Arr<'_, T>,
+        Arr<'_, T>,
+        Arr<'_, T>,
+        Arr<'_, T>,
+        Arr<'_, i32>,
+        Arr<'_, T>,
+    ),
+    channels: usize,
+) -> PyResult<core::Splats<'a, T>> {
+    Ok(core::Splats {
+        means2d: flat(&a.0, "means2d")?,
+        conics: flat(&a.1, "conics")?,
+        depths: flat(&a.2, "depths")?,
+        opacities: flat(&a.3, "opacities")?,
+        radii: flat(&a.4, "radii")?,
+        features: flat(&a.5, "features")?,
+        channels,
+    })
+}
+
+fn counters_dict<'py>(py: Python<'py>, c: core::Counters) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("visible", c.visible)?;
+    d.set_item("intersections", c.intersections)?;
+    d.set_item("evaluated", c.evaluated)?;
+    d.set_item("blended", c.blended)?;
+    Ok(d)
+}
+
+type SplatArrs<'py, T> = (
+    Arr<'py, T>,
+    Arr<'py, T>,
+    Arr<'py, T>,
+    Arr<'py, T>,
+    Arr<'py, i32>,
+    Arr<'py, T>,
+);
+type ImageOut<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>);
+type SplatGradOut<'py, T> = (
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+);
+
+fn alloc_splat_grads<'py, T: Element>(
+    py: Python<'py>,
+    n: usize,
+    ch: usize,
+) -> SplatGradOut<'py, T> {
+    (
+        zeros(py, 2 * n),
+        zeros(py, 3 * n),
+        zeros(py, n),
+        zeros(py, n),
+        zeros(py, n * ch),
+    )
+}
+
+fn splat_grads_mut<'a, T: Element>(o: &'a SplatGradOut<'_, T>) -> core::SplatGradsMut<'a, T> {
+    core::SplatGradsMut {
+        means2d: slice_mut(&o.0),
+        conics: slice_mut(&o.1),
+        depths: slice_mut(&o.2),
+        opacities: slice_mut(&o.3),
+        features: slice_mut(&o.4),
+    }
+}
+
+/// The fast (float32) compositor with its reusable buffers: one per in-flight render. Keep it
+/// from forward to backward; reuse it across iterations so large buffers are touched once.
+#[pyclass(module = "sync4d._core")]
+struct RasterContext {
+    state: Mutex<core::RasterState>,
+}
+
+#[pymethods]
+impl RasterContext {
+    #[new]
+    fn new() -> Self {
+        RasterContext {
+            state: Mutex::new(core::RasterState::new()),
+        }
+    }
+
+    /// Composite splats (float32). `splats` = (means2d, conics, depths, opacities, radii,
+    /// features) flat arrays; returns (features H*W*C, alpha H*W, depth_accum H*W, counters).
+    #[allow(clippy::too_many_arguments)]
+    fn forward<'py>(
+        &self,
+        py: Python<'py>,
+        splats: SplatArrs<'py, f32>,
+        channels: usize,
+        background: Arr<'py, f32>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        threads: usize,
+    ) -> PyResult<(
+        Out<'py, f32>,
+        Out<'py, f32>,
+        Out<'py, f32>,
+        Bound<'py, PyDict>,
+    )> {
+        let sp = splats_of(&splats, channels)?;
+        let bg = flat(&background, "background")?;
+        let npix = width as usize * height as usize;
+        let (f, a, d) = (
+            zeros::<f32>(py, npix * channels),
+            zeros::<f32>(py, npix),
+            zeros::<f32>(py, npix),
+        );
+        let out = core::ImageMut {
+            features: slice_mut(&f),
+            alpha: slice_mut(&a),
+            depth: slice_mut(&d),
+        };
+        let bs = core::BlendSettings { alpha_max };
+        let state = &self.state;
+        let counters = run(py, threads, || {
+            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            core::rasterize_forward(&sp, width, height, bg, &bs, &mut st, out)
+        })?;
+        Ok((f, a, d, counters_dict(py, counters)?))
+    }
+
+    /// Backward of `forward` (float32): returns dL/d(means2d, conics, depths, opacities,
+    /// features). Inputs must be the forward's.
+    #[allow(clippy::too_many_arguments)]
+    fn backward<'py>(
+        &self,
+        py: Python<'py>,
+        splats: SplatArrs<'py, f32>,
+        channels: usize,
+        background: Arr<'py, f32>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        grads: (Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>),
+        threads: usize,
+    ) -> PyResult<SplatGradOut<'py, f32>> {
+        let sp = splats_of(&splats, channels)?;
+        let bg = flat(&background, "background")?;
+        let v = core::ImageGrads {
+            features: flat(&grads.0, "grad_features")?,
+            alpha: flat(&grads.1, "grad_alpha")?,
+            depth: flat(&grads.2, "grad_depth")?,
+        };
+        let out = alloc_splat_grads::<f32>(py, sp.len(), channels);
+        let g = splat_grads_mut(&out);
+        let bs = core::BlendSettings { alpha_max };
+        let state = &self.state;
+        run(py, threads, || {
+            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            core::rasterize_backward(&sp, width, height, bg, &bs, &mut st, &v, g)
+        })?;
+        Ok(out)
+    }
+
+    /// Bytes held by this context's reusable buffers.
+    fn nbytes(&self) -> usize {
+        self.state.lock().map(|s| s.bytes()).unwrap_or(0)
+    }
+}
+
+/// Reference compositor (float64, brute force per pixel): same outputs as
+/// `RasterContext.forward`.
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn rasterize_forward_f64<'py>(
+    py: Python<'py>,
+    splats: SplatArrs<'py, f64>,
+    channels: usize,
+    background: Arr<'py, f64>,
+    width: u32,
+    height: u32,
+    alpha_max: f64,
+    threads: usize,
+) -> PyResult<(
+    Out<'py, f64>,
+    Out<'py, f64>,
+    Out<'py, f64>,
+    Bound<'py, PyDict>,
+)> {
+    let sp = splats_of(&splats, channels)?;
+    let bg = flat(&background, "background")?;
+    let npix = width as usize * height as usize;
+    let out: ImageOut<'py, f64> = (zeros(py, npix * channels), zeros(py, npix), zeros(py, npix));
+    let img = core::ImageMut {
+        features: slice_mut(&out.0),
+        alpha: slice_mut(&out.1),
+        depth: slice_mut(&out.2),
+    };
+    let bs = core::BlendSettings { alpha_max };
+    let c = run(py, threads, || {
+        core::rasterize_forward_reference(&sp, width, height, bg, &bs, img)
+    })?;
+    Ok((out.0, out.1, out.2, counters_dict(py, c)?))
+}
+
+/// Backward of the reference compositor (float64).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn rasterize_backward_f64<'py>(
+    py: Python<'py>,
+    splats: SplatArrs<'py, f64>,
+    channels: usize,
+    background: Arr<'py, f64>,
+    width: u32,
+    height: u32,
+    alpha_max: f64,
+    grads: (Arr<'py, f64>, Arr<'py, f64>, Arr<'py, f64>),
+    threads: usize,
+) -> PyResult<SplatGradOut<'py, f64>> {
+    let sp = splats_of(&splats, channels)?;
+    let bg = flat(&background, "background")?;
+    let v = core::ImageGrads {
+        features: flat(&grads.0, "grad_features")?,
+        alpha: flat(&grads.1, "grad_alpha")?,
+        depth: flat(&grads.2, "grad_depth")?,
+    };
+    let out = alloc_splat_grads::<f64>(py, sp.len(), channels);
+    let g = splat_grads_mut(&out);
+    let bs = core::BlendSettings { alpha_max };
+    run(py, threads, || {
+        core::rasterize_backward_reference(&sp, width, height, bg, &bs, &v, g)
+    })?;
+    Ok(out)
+}
+
+fn sh_fwd<'py, T: Real + Element>(
+    py: Python<'py>,
+    degree: u32,
+    dirs: Arr<'py, T>,
+    coeffs: Arr<'py, T>,
+    bases: usize,
+    channels: usize,
+    threads: usize,
+) -> PyResult<Out<'py, T>> {
+    let d = flat(&dirs, "dirs")?;
+    let c = flat(&coeffs, "coeffs")?;
+    let out = zeros::<T>(py, (d.len() / 3) * channels);
+    let o = slice_mut(&out);
+    run(py, threads, || {
+        core::sh_forward(degree, d, c, bases, channels, o)
+    })?;
+    Ok(out)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn sh_bwd<'py, T: Real + Element>(
+    py: Python<'py>,
+    degree: u32,
+    dirs: Arr<'py, T>,
+    coeffs: Arr<'py, T>,
+    bases: usize,
+    channels: usize,
+    grad_out: Arr<'py, T>,
+    threads: usize,
+) -> PyResult<(Out<'py, T>, Out<'py, T>)> {
+    let d = flat(&dirs, "dirs")?;
+    let c = flat(&coeffs, "coeffs")?;
+    let v = flat(&grad_out, "grad_out")?;
+    let (vd, vc) = (zeros::<T>(py, d.len()), zeros::<T>(py, c.len()));
+    let (vds, vcs) = (slice_mut(&vd), slice_mut(&vc));
+    run(py, threads, || {
+        core::sh_backward(degree, d, c, bases, channels, v, vds, vcs)
+    })?;
+    Ok((vd, vc))
+}
+
+/// Spherical-harmonics colours (float32): dirs N*3, coeffs N*K*C → N*C.
+#[pyfunction]
+fn sh_forward_f32<'py>(
+    py: Python<'py>,
+    degree: u32,
+    dirs: Arr<'py, f32>,
+    coeffs: Arr<'py, f32>,
+    bases: usize,
+    channels: usize,
+    threads: usize,
+) -> PyResult<Out<'py, f32>> {
+    sh_fwd(py, degree, dirs, coeffs, bases, channels, threads)
+}
+
+/// Spherical-harmonics colours (float64).
+#[pyfunction]
+fn sh_forward_f64<'py>(
+    py: Python<'py>,
+    degree: u32,
+    dirs: Arr<'py, f64>,
+    coeffs: Arr<'py, f64>,
+    bases: usize,
+    channels: usize,
+    threads: usize,
+) -> PyResult<Out<'py, f64>> {
+    sh_fwd(py, degree, dirs, coeffs, bases, channels, threads)
+}
+
+/// Backward of the SH evaluation (float32): returns (dL/d dirs, dL/d coeffs).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn sh_backward_f32<'py>(
+    py: Python<'py>,
+    degree: u32,
+    dirs: Arr<'py, f32>,
+    coeffs: Arr<'py, f32>,
+    bases: usize,
+    channels: usize,
+    grad_out: Arr<'py, f32>,
+    threads: usize,
+) -> PyResult<(Out<'py, f32>, Out<'py, f32>)> {
+    sh_bwd(py, degree, dirs, coeffs, bases, channels, grad_out, threads)
+}
+
+/// Backward of the SH evaluation (float64).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn sh_backward_f64<'py>(
+    py: Python<'py>,
+    degree: u32,
+    dirs: Arr<'py, f64>,
+    coeffs: Arr<'py, f64>,
+    bases: usize,
+    channels: usize,
+    grad_out: Arr<'py, f64>,
+    threads: usize,
+) -> PyResult<(Out<'py, f64>, Out<'py, f64>)> {
+    sh_bwd(py, degree, dirs, coeffs, bases, channels, grad_out, threads)
+}
+
+/// Number of threads rayon's global pool uses.
+#[pyfunction]
+fn default_threads() -> usize {
+    rayon::current_num_threads()
+}
+
+/// The compiled core of sync4d.
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<RasterContext>()?;
+    m.add_function(wrap_pyfunction!(project_forward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(project_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(project_backward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(project_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(sh_forward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(sh_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(sh_backward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(sh_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(default_threads, m)?)?;
+    m.add("TILE_SIZE", core::TILE_SIZE)?;
+    Ok(())
+}
