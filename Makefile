@@ -56,11 +56,11 @@ setup: $(EXT_STAMP)
 $(VPY):
 	@echo ">>> creating $(VENV) with $$(command -v $(PYTHON)) ($$($(PYTHON) --version 2>&1))"
 	rm -rf $(VENV)
-	if $(PYTHON) -c 'import ensurepip' 2>/dev/null; then \
-		$(PYTHON) -m venv $(VENV); \
+	@if $(PYTHON) -c 'import ensurepip' 2>/dev/null; then \
+		set -x; $(PYTHON) -m venv $(VENV); \
 	else \
 		echo ">>> $(PYTHON) has no ensurepip (Debian without python3-venv?); bootstrapping pip with the host pip"; \
-		$(PYTHON) -m venv --without-pip $(VENV); \
+		set -x; $(PYTHON) -m venv --without-pip $(VENV); \
 		$(PYTHON) -m pip --python $(VPY) install $(PIP_FLAGS) pip; \
 	fi
 	$(VPY) -m pip --version
@@ -75,7 +75,8 @@ $(DEPS_STAMP): $(VPY) scripts/dev_requirements.py
 $(EXT_STAMP): $(DEPS_STAMP) $(RUST_SOURCES) $(if $(EXT_SO),,FORCE)
 	@echo ">>> building sync4d._core (release) and installing it into $(VENV)"
 	VIRTUAL_ENV=$(VENV_ABS) PATH="$(VENV_ABS)/bin:$$PATH" $(VENV)/bin/maturin develop --release
-	$(VPY) -c 'import sync4d._core'
+	@# Import from outside the tree: proves the editable install (.pth) works, not just the cwd.
+	cd / && $(VENV_ABS)/bin/python -c 'import sync4d._core'
 	touch $@
 
 FORCE:

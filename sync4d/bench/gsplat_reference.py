@@ -28,6 +28,19 @@ gsplat's compositing conventions, as implemented by its CUDA kernels
 * per-tile order: ascending ``isect_id`` = (image, tile, float32 depth bits), ties in Gaussian
   index order (CUDA uses a stable radix sort of ids written in index order).
 
+Where gsplat's CUDA pipeline and its torch reference (followed here and by sync4d) differ:
+
+* CUDA ``fully_fused_projection`` given opacities (as ``gsplat.rasterization`` does) uses an
+  opacity-aware extent ``min(3.33, sqrt(2 ln(255 o)))`` for the radii and culls
+  ``o < 1/255``; the torch path always uses 3.33. Images agree (the extra pixels have
+  ``alpha < 1/255``), radii and tile counts do not.
+* CUDA culls ``z < near`` or ``z > far`` (keeps ``z == near``), torch keeps ``near < z < far``;
+  CUDA culls ``det(cov2d + eps2d I) <= 0``, torch clamps det to 1e-10 and never culls on it.
+* gsplat's torch ``_rasterize_to_pixels`` composites in rounds of ``batch_per_iter`` tile
+  batches and carries only the transmittance between rounds, so a pixel that terminated can
+  take more Gaussians in a later round; with one round (the default of
+  :func:`gsplat_rasterize`) it equals the single-pass CUDA kernel.
+
 Helpers for parity tests live here too: :func:`make_random_scene` and
 :func:`ambiguous_pixels` (pixels whose result is ill-conditioned under float rounding).
 """
@@ -58,6 +71,7 @@ __all__ = [
     "cpu_substitutes",
     "gsplat_project",
     "gsplat_rasterize",
+    "gsplat_rasterize_full",
     "gsplat_render",
     "gsplat_render_full",
     "isect_tiles_fast",
@@ -232,16 +246,22 @@ def accumulate_along_rays(
 
 
 @dataclass
-class _Candidates:
-    """A block of (pixel, Gaussian) candidate pairs, pixel-major, in per-tile list order."""
+class _Block:
+    """Candidate (pixel, Gaussian) pairs of whole tiles, as dense ``[P, K]`` arrays.
 
-    pix: Tensor  # [M] int64 global pixel id (image * H * W + y * W + x)
-    gid: Tensor  # [M] int64 flat Gaussian id in [images * N]
-    sigma: Tensor  # [M] input dtype
-    raw_alpha: Tensor  # [M] opacity * exp(-sigma), input dtype (before the clamp)
+    Rows are the ``P = tile_size**2`` pixel slots of a tile (row-major inside the tile); columns
+    are the selected entries of the tiles' sorted Gaussian lists, tile after tile, front to back
+    within a tile. Pixel slots outside the image have ``inside == False``.
+    """
+
+    gid: Tensor  # [K] int64 flat Gaussian id in [images * N]
+    pix: Tensor  # [P, K] int64 global pixel id (image * H * W + y * W + x); 0 where outside
+    inside: Tensor  # [P, K] bool
+    sigma: Tensor  # [P, K] input dtype
+    raw_alpha: Tensor  # [P, K] opacity * exp(-sigma), before the clamp
 
 
-def _iter_candidates(
+def _iter_blocks(
     range_start: int,
     range_end: int,
     means2d: Tensor,
@@ -252,11 +272,9 @@ def _iter_candidates(
     tile_size: int,
     isect_offsets: Tensor,
     flatten_ids: Tensor,
-    pixel_mask: Tensor | None = None,
-) -> Iterator[_Candidates]:
-    """Yield blocks of whole pixels' candidate lists for the tile batches in [start, end)."""
-    n = means2d.shape[-2]
-    n_images = means2d.numel() // (2 * n) if n > 0 else int(math.prod(means2d.shape[:-2]))
+) -> Iterator[_Block]:
+    """Yield the candidate pairs of tile batches [range_start, range_end), whole tiles per
+    block, at most about ``_PAIR_BUDGET`` pairs per block."""
     tile_h, tile_w = isect_offsets.shape[-2:]
     device = means2d.device
     n_isects = flatten_ids.numel()
@@ -270,75 +288,91 @@ def _iter_candidates(
     hi = torch.minimum(ends, offsets + block * torch.clamp(num_batches, max=r_end))
     length = torch.clamp(hi - lo, min=0)
 
-    hw = image_height * image_width
-    n_pix = n_images * hw
-    q = torch.arange(n_pix, device=device)
-    img, rem = q // hw, q % hw
-    py, px = rem // image_width, rem % image_width
-    tile = img * (tile_h * tile_w) + (py // tile_size) * tile_w + (px // tile_size)
-    lq = length[tile]
-    if pixel_mask is not None:
-        lq = lq * pixel_mask.reshape(-1).long()
-    aq = lo[tile]
-    cum = torch.cumsum(lq, 0)
-    total = int(cum[-1]) if n_pix > 0 else 0
-    if total == 0:
+    tiles = torch.nonzero(length > 0).flatten()
+    if tiles.numel() == 0:
         return
+    counts = length[tiles]
+    tile_cum = torch.cumsum(counts, 0)
+    total = int(tile_cum[-1])
+    which = torch.repeat_interleave(torch.arange(tiles.numel(), device=device), counts)
+    tile_of = tiles[which]
+    k_all = lo[tile_of] + (torch.arange(total, device=device) - (tile_cum - counts)[which])
+    per_image = tile_h * tile_w
+    img_of = tile_of // per_image
+    ty_of = (tile_of % per_image) // tile_w
+    tx_of = (tile_of % per_image) % tile_w
 
+    slot = torch.arange(block, device=device)
+    ly = (slot // tile_size)[:, None]
+    lx = (slot % tile_size)[:, None]
+    hw = image_height * image_width
     flat_means = means2d.reshape(-1, 2)
     flat_conics = conics.reshape(-1, 3)
     flat_opac = opacities.reshape(-1)
     fids = flatten_ids.long()
+    budget_cols = max(1, _PAIR_BUDGET // block)
 
-    q0 = 0
-    while q0 < n_pix:
-        done_before = int(cum[q0 - 1]) if q0 > 0 else 0
-        q1 = int(torch.searchsorted(cum, done_before + _PAIR_BUDGET, right=True))
-        q1 = max(q1, q0 + 1)
-        q1 = min(q1, n_pix)
-        counts = lq[q0:q1]
-        m = int(counts.sum())
-        if m > 0:
-            rep = torch.repeat_interleave(torch.arange(q0, q1, device=device), counts)
-            seg_start = torch.cumsum(counts, 0) - counts
-            k = aq[rep] + (torch.arange(m, device=device) - seg_start[rep - q0])
-            g = fids[k]
-            mean = flat_means[g]
-            con = flat_conics[g]
-            dx = mean[:, 0] - (px[rep].to(mean.dtype) + 0.5)
-            dy = mean[:, 1] - (py[rep].to(mean.dtype) + 0.5)
-            sigma = 0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) + con[:, 1] * dx * dy
-            raw = flat_opac[g] * torch.exp(-sigma)
-            yield _Candidates(rep, g, sigma, raw)
-        q0 = q1
+    t0 = 0
+    while t0 < tiles.numel():
+        e0 = int(tile_cum[t0 - 1]) if t0 > 0 else 0
+        t1 = int(torch.searchsorted(tile_cum, e0 + budget_cols, right=True))
+        t1 = min(max(t1, t0 + 1), tiles.numel())
+        e1 = int(tile_cum[t1 - 1])
+        g = fids[k_all[e0:e1]]
+        x = (tx_of[e0:e1] * tile_size)[None, :] + lx
+        y = (ty_of[e0:e1] * tile_size)[None, :] + ly
+        inside = (x < image_width) & (y < image_height)
+        pix = torch.where(inside, img_of[e0:e1][None, :] * hw + y * image_width + x, 0)
+        mean = flat_means[g]
+        con = flat_conics[g]
+        dx = mean[:, 0][None, :] - (x.to(mean.dtype) + 0.5)
+        dy = mean[:, 1][None, :] - (y.to(mean.dtype) + 0.5)
+        sigma = 0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) + con[:, 1] * dx * dy
+        raw = flat_opac[g][None, :] * torch.exp(-sigma)
+        yield _Block(g, pix, inside, sigma, raw)
+        t0 = t1
 
 
-def _select_blended(
-    cands: _Candidates, transmittances: Tensor, alpha_max: float
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Apply gsplat's skip and termination rules to one block of candidates.
+@dataclass
+class _Blended:
+    """Outcome of gsplat's per-pixel rules on one :class:`_Block` (all ``[P, K]``)."""
 
-    Returns ``(keep [M] bool, alpha [M], next_T [M] float64 (valid only where blended/done))``.
-    """
-    alpha = torch.clamp_max(cands.raw_alpha, alpha_max)
-    valid = (cands.sigma >= 0) & (alpha >= ALPHA_THRESHOLD)
-    vidx = torch.nonzero(valid).flatten()
-    keep = torch.zeros_like(valid)
-    next_t = torch.full_like(cands.sigma, float("nan"), dtype=torch.float64)
-    if vidx.numel() == 0:
-        return keep, alpha, next_t
-    pv = cands.pix[vidx]
+    keep: Tensor  # bool: the pair is blended
+    alpha: Tensor  # clamped alpha, input dtype
+    next_t: Tensor  # float64 T (1 - alpha) for evaluated pairs (blended + terminating), NaN else
+    terminating: Tensor  # bool: the pair that stopped its pixel (not blended)
+
+
+def _apply_rules(
+    blk: _Block, transmittances: Tensor, alpha_max: float, with_next_t: bool = False
+) -> _Blended:
+    """Skip rule (``sigma < 0`` or ``alpha < 1/255``) and termination (``T (1 - alpha) <= 1e-4``,
+    exclusive), evaluated per pixel front to back starting from ``transmittances``.
+    ``next_t`` is only filled when ``with_next_t`` (it is empty otherwise)."""
+    alpha = torch.clamp_max(blk.raw_alpha, alpha_max)
+    valid = blk.inside & (blk.sigma >= 0) & (alpha >= ALPHA_THRESHOLD)
+    shape = valid.shape
+    keep = torch.zeros(shape, dtype=torch.bool)
+    term = torch.zeros(shape, dtype=torch.bool)
+    next_t = torch.full(shape if with_next_t else (0,), float("nan"), dtype=torch.float64)
+    # Row-major nonzero: pixel slot major, then column; a pixel's pairs are contiguous.
+    flat = torch.nonzero(valid.reshape(-1)).flatten()
+    if flat.numel() == 0:
+        return _Blended(keep, alpha, next_t, term)
+    pv = blk.pix.reshape(-1)[flat]
     segs = _Segments.from_sorted_keys(pv)
     t0 = transmittances.reshape(-1)[pv].double()
-    tn = t0 * _segmented_cumprod(1.0 - alpha[vidx].double(), segs, exclusive=False)
+    tn = t0 * _segmented_cumprod(1.0 - alpha.reshape(-1)[flat].double(), segs, exclusive=False)
     done = (tn <= TRANSMITTANCE_MIN).long()
-    stopped = _segmented_cumsum_int(done, segs) > 0  # this pair or an earlier one ended it
-    keep[vidx[~stopped]] = True
-    # Report next_T up to and including the terminating pair (the pairs that were evaluated).
-    first_done = stopped & (_segmented_cumsum_int(stopped.long(), segs) == 1)
-    live = ~stopped | first_done
-    next_t[vidx[live]] = tn[live]
-    return keep, alpha, next_t
+    n_done = _segmented_cumsum_int(done, segs)  # > 0: this pair or an earlier one ended it
+    blended = n_done == 0
+    first = (n_done == 1) & (done == 1)
+    keep.view(-1)[flat[blended]] = True
+    term.view(-1)[flat[first]] = True
+    if with_next_t:
+        live = blended | first
+        next_t.view(-1)[flat[live]] = tn[live]
+    return _Blended(keep, alpha, next_t, term)
 
 
 @torch.no_grad()
@@ -361,7 +395,8 @@ def rasterize_to_indices_in_range(
     ``tile_size ** 2``, batches ``[range_start, range_end)`` only, starting from the given
     per-pixel transmittances, and returns the (Gaussian, pixel) pairs that would be blended:
     ``alpha = min(0.999, o exp(-sigma)) >= 1/255`` and ``sigma >= 0``; a pixel stops at the
-    first Gaussian with ``T (1 - alpha) <= 1e-4``, which is itself excluded.
+    first Gaussian with ``T (1 - alpha) <= 1e-4``, which is itself excluded. (Transmittance
+    products are taken in float64.)
 
     Args:
         range_start, range_end: batch range (inclusive, exclusive), as in gsplat.
@@ -381,7 +416,7 @@ def rasterize_to_indices_in_range(
     assert tile_h * tile_size >= image_height and tile_w * tile_size >= image_width
     hw = image_height * image_width
     gs, ps = [], []
-    for cands in _iter_candidates(
+    for blk in _iter_blocks(
         range_start,
         range_end,
         means2d,
@@ -393,15 +428,25 @@ def rasterize_to_indices_in_range(
         isect_offsets,
         flatten_ids,
     ):
-        keep, _, _ = _select_blended(cands, transmittances, ALPHA_MAX)
-        gs.append(cands.gid[keep] % n)
-        ps.append(cands.pix[keep])
+        res = _apply_rules(blk, transmittances, ALPHA_MAX)
+        rows, cols = torch.nonzero(res.keep, as_tuple=True)
+        gs.append(blk.gid[cols] % n)
+        ps.append(blk.pix[rows, cols])
     if not gs:
         empty = torch.zeros(0, dtype=torch.long, device=means2d.device)
         return empty, empty.clone(), empty.clone()
     g = torch.cat(gs)
     p = torch.cat(ps)
-    return g, p % hw, p // hw
+    # Reorder pixel-major without a sort: each pixel's pairs are already contiguous and front to
+    # back, so place them at (start of the pixel's run) + (rank inside its run).
+    rank = _Segments.from_sorted_keys(p).pos
+    counts = torch.bincount(p, minlength=transmittances.numel())
+    dest = (torch.cumsum(counts, 0) - counts)[p] + rank
+    g_out = torch.empty_like(g)
+    p_out = torch.empty_like(p)
+    g_out[dest] = g
+    p_out[dest] = p
+    return g_out, p_out % hw, p_out // hw
 
 
 # --------------------------------------------------------------------------------------------
@@ -608,7 +653,7 @@ def gsplat_rasterize(
     background: Tensor | None = None,
     tile_size: int = TILE_SIZE,
     fast_isect: bool = True,
-    batch_per_iter: int = 100,
+    batch_per_iter: int | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
     """gsplat's tiling and compositing (``isect`` + ``_isect_offset_encode`` +
     ``_rasterize_to_pixels``) on projected Gaussians, run through :func:`cpu_substitutes`.
@@ -617,7 +662,11 @@ def gsplat_rasterize(
         means2d ``[N, 2]``, conics ``[N, 3]``, opacities ``[N]`` (effective), colors ``[N, C]``,
         depths ``[N]`` (sort key only), radii ``[N, 2]`` int, background ``[C]`` or None.
         fast_isect: use :func:`isect_tiles_fast` instead of gsplat's per-Gaussian Python loop.
-        batch_per_iter: gsplat's tile-batches per compositing round.
+        batch_per_iter: gsplat's tile-batches per compositing round. None (default) takes
+            enough batches to composite every tile in one round, which is what gsplat's CUDA
+            rasterizer computes. With several rounds gsplat's torch path differs from it on
+            terminated pixels: the kernel only sees the carried transmittance, not that the
+            pixel was done, so a later round can blend more Gaussians into it.
 
     Returns:
         ``(image [H, W, C], alpha [H, W, 1], isect)`` with ``isect`` holding
@@ -633,6 +682,10 @@ def gsplat_rasterize(
         means2d[None].detach(), radii[None], depths[None].detach(), tile_size, tile_w, tile_h
     )
     isect_offsets = _isect_offset_encode(isect_ids, 1, tile_w, tile_h)
+    if batch_per_iter is None:
+        bounds = torch.cat([isect_offsets.flatten().long(), isect_ids.new_tensor([len(isect_ids)])])
+        longest = int(torch.diff(bounds).max()) if len(isect_ids) else 0
+        batch_per_iter = max(1, -(-longest // (tile_size * tile_size)))
     bg = background[None] if background is not None else None
     with cpu_substitutes():
         image, alpha = _rasterize_to_pixels(
@@ -663,6 +716,61 @@ def _retain(t: Tensor) -> Tensor:
     return t
 
 
+def gsplat_rasterize_full(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | None = None,
+    render_depth: bool = False,
+    fast_isect: bool = True,
+    near: float = -math.inf,
+    far: float = math.inf,
+    compensations: Tensor | None = None,
+) -> GsplatRender:
+    """:func:`gsplat_rasterize` on projected Gaussians, returning a :class:`GsplatRender`.
+
+    With ``render_depth`` the depths are composited as an extra channel (background 0), giving
+    ``depth_accum = sum_i z_i a_i T_i`` (differentiable in ``depths`` too). ``near`` / ``far``
+    / ``compensations`` are only recorded (for :func:`ambiguous_pixels`). ``retain_grad`` is
+    set on means2d / conics / opacities / depths when they require grad.
+    """
+    means2d, conics, opacities = _retain(means2d), _retain(conics), _retain(opacities)
+    depths = _retain(depths)
+    feats = colors
+    bg = background
+    if render_depth:
+        feats = torch.cat([colors, depths[:, None].to(colors.dtype)], dim=-1)
+        if bg is not None:
+            bg = torch.cat([bg, bg.new_zeros(1)])
+    image, alpha, isect = gsplat_rasterize(
+        means2d, conics, opacities, feats, depths, radii, width, height, bg, TILE_SIZE, fast_isect
+    )
+    depth_accum = None
+    if render_depth:
+        image, depth_accum = image[..., :-1], image[..., -1:]
+    return GsplatRender(
+        image=image,
+        alpha=alpha,
+        depth_accum=depth_accum,
+        means2d=means2d,
+        conics=conics,
+        depths=depths,
+        opacities=opacities,
+        radii=radii,
+        compensations=compensations,
+        width=width,
+        height=height,
+        near=near,
+        far=far,
+        **isect,
+    )
+
+
 def gsplat_render_full(
     means: Tensor,
     quats: Tensor,
@@ -685,40 +793,27 @@ def gsplat_render_full(
 
     Same inputs as :func:`gsplat_render`. With ``render_depth`` the camera depth is composited
     as an extra channel (background 0), giving ``depth_accum = sum_i z_i a_i T_i``.
-    The projected ``means2d`` / ``conics`` / ``opacities`` in the result have ``retain_grad``
-    set when they require grad.
+    The projected ``means2d`` / ``conics`` / ``opacities`` / ``depths`` in the result have
+    ``retain_grad`` set when they require grad.
     """
     means2d, conics, depths, opac, radii, comp = gsplat_project(
         means, quats, scales, opacities, viewmat, K, width, height, eps2d, near, far, antialiased
     )
-    means2d, conics, opac = _retain(means2d), _retain(conics), _retain(opac)
-    feats = colors
-    bg = background
-    if render_depth:
-        feats = torch.cat([colors, depths[:, None].to(colors.dtype)], dim=-1)
-        if bg is not None:
-            bg = torch.cat([bg, bg.new_zeros(1)])
-    image, alpha, isect = gsplat_rasterize(
-        means2d, conics, opac, feats, depths, radii, width, height, bg, TILE_SIZE, fast_isect
-    )
-    depth_accum = None
-    if render_depth:
-        image, depth_accum = image[..., :-1], image[..., -1:]
-    return GsplatRender(
-        image=image,
-        alpha=alpha,
-        depth_accum=depth_accum,
-        means2d=means2d,
-        conics=conics,
-        depths=depths,
-        opacities=opac,
-        radii=radii,
-        compensations=comp,
-        width=width,
-        height=height,
+    return gsplat_rasterize_full(
+        means2d,
+        conics,
+        opac,
+        colors,
+        depths,
+        radii,
+        width,
+        height,
+        background,
+        render_depth=render_depth,
+        fast_isect=fast_isect,
         near=near,
         far=far,
-        **isect,
+        compensations=comp,
     )
 
 
@@ -979,7 +1074,8 @@ def make_random_scene(
     ``cluster_fraction`` of them are packed around ``n_clusters`` centres with high opacity so
     pixels terminate (T < 1e-4); ``n_frustum_edge`` large ones sit just beyond gsplat's
     frustum clamp (|x/z| > lim) yet reach into the image; ``n_culled`` lie behind the camera or
-    before the near plane. ``full_opacity_fraction`` of them get opacity exactly 1 (alpha clamp).
+    before the near plane. ``full_opacity_fraction`` of them get opacity exactly 1, half of
+    those centred on a pixel centre so the 0.999 alpha clamp is reached.
     """
     gen = torch.Generator().manual_seed(seed)
     f64 = torch.float64
@@ -1032,7 +1128,15 @@ def make_random_scene(
 
     n_full = int(full_opacity_fraction * n_main)
     if n_full > 0:
-        opac[torch.randperm(n_main, generator=gen)[:n_full]] = 1.0
+        full = torch.randperm(n_main, generator=gen)[:n_full]
+        opac[full] = 1.0
+        # Half of them project exactly onto a pixel centre, where o exp(-sigma) > 0.999: the
+        # alpha clamp is only reached within ~0.03 sigma of a Gaussian's centre.
+        snap = full[: (n_full + 1) // 2]
+        px = torch.randint(0, width, (snap.numel(),), generator=gen).to(f64) + 0.5
+        py = torch.randint(0, height, (snap.numel(),), generator=gen).to(f64) + 0.5
+        u[snap] = (px - cx) / fx
+        v[snap] = (py - cy) / fy
 
     aniso = torch.exp(uni(-math.log(3.0) / 2, math.log(3.0) / 2, (n_main, 3)))
     aniso[torch.rand(n_main, generator=gen) < 0.4] = 1.0  # some stay isotropic
@@ -1110,20 +1214,23 @@ def ambiguous_pixels(
     :func:`make_random_scene` makes).
 
     Returns:
-        ``(mask [H, W] bool, stats)``; ``stats`` counts flagged pixels per reason and lists the
-        Gaussians with an ambiguous radius (``radius_ambiguous`` [N, 2] bool).
+        ``(mask [H, W] bool, stats)``; ``stats`` counts flagged pixels per reason, the pixels
+        that terminate (``terminated_pixels``) and the evaluated pairs whose alpha is clamped
+        (``clamped_pairs``), and marks the Gaussians with an ambiguous radius
+        (``radius_ambiguous`` [N, 2] bool) or visibility (``visibility_ambiguous`` [N] bool).
     """
     width, height, ts = render.width, render.height, render.tile_size
     means2d = render.means2d.detach()
     conics = render.conics.detach()
     opac = render.opacities.detach()
-    n = means2d.shape[0]
     hw = height * width
     flag_alpha = torch.zeros(hw, dtype=torch.bool)
     flag_trans = torch.zeros(hw, dtype=torch.bool)
     flag_clamp = torch.zeros(hw, dtype=torch.bool)
     ones = torch.ones(1, height, width, dtype=torch.float64)
-    for c in _iter_candidates(
+    terminated = torch.zeros(hw, dtype=torch.bool)
+    n_clamped = 0
+    for blk in _iter_blocks(
         0,
         1 << 40,
         means2d[None],
@@ -1135,25 +1242,21 @@ def ambiguous_pixels(
         render.isect_offsets[None],
         render.flatten_ids,
     ):
-        keep, alpha, next_t = _select_blended(c, ones, alpha_max)
-        evaluated = ~torch.isnan(next_t)  # blended pairs and each pixel's terminating pair
-        # Pairs skipped by the alpha rule before termination also count: a flip there
-        # changes the pixel. Approximate "before termination" by "pixel not stopped earlier":
-        # any pair of a pixel up to its last evaluated pair.
-        last_eval = torch.full((hw,), -1, dtype=torch.long)
-        pos = torch.arange(c.pix.numel())
-        last_eval.scatter_reduce_(0, c.pix[evaluated], pos[evaluated], reduce="amax")
-        stopped_pix = torch.zeros(hw, dtype=torch.bool)
-        stopped_pix[c.pix[evaluated & ~keep]] = True
-        before_end = ~stopped_pix[c.pix] | (pos <= last_eval[c.pix])
-        a64 = alpha.double()
-        near_a = (a64 - ALPHA_THRESHOLD).abs() <= rtol_alpha * ALPHA_THRESHOLD
-        flag_alpha[c.pix[near_a & before_end]] = True
-        near_t = evaluated & ((next_t - TRANSMITTANCE_MIN).abs() <= rtol_trans * TRANSMITTANCE_MIN)
-        flag_trans[c.pix[near_t]] = True
-        raw = c.raw_alpha.double()
-        near_c = evaluated & ((raw - alpha_max).abs() <= rtol_alpha * alpha_max)
-        flag_clamp[c.pix[near_c]] = True
+        res = _apply_rules(blk, ones, alpha_max, with_next_t=True)
+        evaluated = ~torch.isnan(res.next_t)  # blended pairs and each pixel's terminating pair
+        # Every pair up to a pixel's terminating pair was evaluated (skipped ones included).
+        cols = torch.arange(blk.gid.numel())[None, :].expand_as(blk.inside)
+        term_col = torch.full((hw,), 1 << 62, dtype=torch.long)
+        term_col[blk.pix[res.terminating]] = cols[res.terminating]
+        terminated[blk.pix[res.terminating]] = True
+        before_end = blk.inside & (cols <= term_col[blk.pix])
+        near_a = (res.alpha.double() - ALPHA_THRESHOLD).abs() <= rtol_alpha * ALPHA_THRESHOLD
+        flag_alpha[blk.pix[near_a & before_end]] = True
+        near_t = (res.next_t - TRANSMITTANCE_MIN).abs() <= rtol_trans * TRANSMITTANCE_MIN
+        flag_trans[blk.pix[evaluated & near_t]] = True
+        near_c = (blk.raw_alpha.double() - alpha_max).abs() <= rtol_alpha * alpha_max
+        flag_clamp[blk.pix[evaluated & near_c]] = True
+        n_clamped += int((evaluated & (blk.raw_alpha > alpha_max)).sum())
 
     # Tile rectangle / visibility ambiguity.
     m64 = means2d.double()
@@ -1220,8 +1323,10 @@ def ambiguous_pixels(
         "alpha_clamp": int(flag_clamp.sum()),
         "tile_rect": int(flag_rect.sum()),
         "total": int(mask.sum()),
+        "terminated_pixels": int(terminated.sum()),
+        "clamped_pairs": n_clamped,
         "radius_ambiguous": radius_amb,
+        "visibility_ambiguous": vis_hi != vis_lo,
         "rect_ambiguous_gaussians": int(amb.sum()),
     }
-    del n
     return mask, stats

@@ -81,6 +81,9 @@ fn zeros<'py, T: Element>(py: Python<'py>, len: usize) -> Bound<'py, PyArray1<T>
     PyArray1::zeros(py, len, false)
 }
 
+/// Mutable view of an array this module just allocated and has not handed to Python yet, so no
+/// other reference to its data can exist.
+#[allow(clippy::mut_from_ref)]
 fn slice_mut<'a, T: Element>(a: &'a Bound<'_, PyArray1<T>>) -> &'a mut [T] {
     // SAFETY: the array was just created by us and is not shared with Python yet.
     unsafe { a.as_slice_mut().expect("fresh array is contiguous") }
@@ -97,6 +100,19 @@ fn camera(
 
 type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
 type Out<'py, T> = Bound<'py, PyArray1<T>>;
+/// (means2d, conics, depths, opacities, radii, visible count).
+type ProjOut<'py, T> = (
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, i32>,
+    usize,
+);
+/// Four gradient arrays.
+type Grads4<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>, Out<'py, T>);
+/// (features, alpha, depth_accum, counters).
+type ImageResult<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>, Bound<'py, PyDict>);
 
 #[allow(clippy::too_many_arguments)]
 fn project_fwd<'py, T: Real + Element>(
@@ -111,14 +127,7 @@ fn project_fwd<'py, T: Real + Element>(
     height: u32,
     settings: (f64, f64, f64, bool),
     threads: usize,
-) -> PyResult<(
-    Out<'py, T>,
-    Out<'py, T>,
-    Out<'py, T>,
-    Out<'py, T>,
-    Out<'py, i32>,
-    usize,
-)> {
+) -> PyResult<ProjOut<'py, T>> {
     let cam = camera(viewmat, intrinsics, width, height)?;
     let ps = core::ProjectSettings {
         near: settings.0,
@@ -165,7 +174,7 @@ fn project_bwd<'py, T: Real + Element>(
     settings: (f64, f64, f64, bool),
     grads: (Arr<'py, T>, Arr<'py, T>, Arr<'py, T>, Arr<'py, T>),
     threads: usize,
-) -> PyResult<(Out<'py, T>, Out<'py, T>, Out<'py, T>, Out<'py, T>)> {
+) -> PyResult<Grads4<'py, T>> {
     let cam = camera(viewmat, intrinsics, width, height)?;
     let ps = core::ProjectSettings {
         near: settings.0,
@@ -220,14 +229,7 @@ fn project_forward_f32<'py>(
     height: u32,
     settings: (f64, f64, f64, bool),
     threads: usize,
-) -> PyResult<(
-    Out<'py, f32>,
-    Out<'py, f32>,
-    Out<'py, f32>,
-    Out<'py, f32>,
-    Out<'py, i32>,
-    usize,
-)> {
+) -> PyResult<ProjOut<'py, f32>> {
     project_fwd(
         py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, threads,
     )
@@ -248,14 +250,7 @@ fn project_forward_f64<'py>(
     height: u32,
     settings: (f64, f64, f64, bool),
     threads: usize,
-) -> PyResult<(
-    Out<'py, f64>,
-    Out<'py, f64>,
-    Out<'py, f64>,
-    Out<'py, f64>,
-    Out<'py, i32>,
-    usize,
-)> {
+) -> PyResult<ProjOut<'py, f64>> {
     project_fwd(
         py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, threads,
     )
@@ -277,7 +272,7 @@ fn project_backward_f32<'py>(
     settings: (f64, f64, f64, bool),
     grads: (Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>),
     threads: usize,
-) -> PyResult<(Out<'py, f32>, Out<'py, f32>, Out<'py, f32>, Out<'py, f32>)> {
+) -> PyResult<Grads4<'py, f32>> {
     project_bwd(
         py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, grads,
         threads,
@@ -300,7 +295,7 @@ fn project_backward_f64<'py>(
     settings: (f64, f64, f64, bool),
     grads: (Arr<'py, f64>, Arr<'py, f64>, Arr<'py, f64>, Arr<'py, f64>),
     threads: usize,
-) -> PyResult<(Out<'py, f64>, Out<'py, f64>, Out<'py, f64>, Out<'py, f64>)> {
+) -> PyResult<Grads4<'py, f64>> {
     project_bwd(
         py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, grads,
         threads,
@@ -309,14 +304,7 @@ fn project_backward_f64<'py>(
 
 /// Splat inputs borrowed from NumPy.
 fn splats_of<'a, T: Element>(
-    a: &'a (
-        Arr<'_, T>,
-        Arr<'_, T>,
-        Arr<'_, T>,
-        Arr<'_, T>,
-        Arr<'_, i32>,
-        Arr<'_, T>,
-    ),
+    a: &'a SplatArrs<'_, T>,
     channels: usize,
 ) -> PyResult<core::Splats<'a, T>> {
     Ok(core::Splats {
@@ -409,12 +397,7 @@ impl RasterContext {
         height: u32,
         alpha_max: f64,
         threads: usize,
-    ) -> PyResult<(
-        Out<'py, f32>,
-        Out<'py, f32>,
-        Out<'py, f32>,
-        Bound<'py, PyDict>,
-    )> {
+    ) -> PyResult<ImageResult<'py, f32>> {
         let sp = splats_of(&splats, channels)?;
         let bg = flat(&background, "background")?;
         let npix = width as usize * height as usize;
@@ -489,12 +472,7 @@ fn rasterize_forward_f64<'py>(
     height: u32,
     alpha_max: f64,
     threads: usize,
-) -> PyResult<(
-    Out<'py, f64>,
-    Out<'py, f64>,
-    Out<'py, f64>,
-    Bound<'py, PyDict>,
-)> {
+) -> PyResult<ImageResult<'py, f64>> {
     let sp = splats_of(&splats, channels)?;
     let bg = flat(&background, "background")?;
     let npix = width as usize * height as usize;

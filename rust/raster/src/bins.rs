@@ -4,7 +4,7 @@
 //! packed u64 keys; depth > near > 0 so its f32 bits sort like the value). The depth-ordered list
 //! is cut into a fixed number of chunks (a function of N only, never of the thread count): each
 //! chunk counts its splats per tile in parallel, an exclusive prefix sum over (tile, chunk) gives
-//! every chunk a private write cursor per tile, and a second parallel pass scatters splat ids.
+//! every chunk a private write cursor per tile, and a second parallel pass scatters depth ranks.
 //! The result equals a stable counting sort by tile of the depth-ordered list, so it is the same
 //! for any thread count. Alongside, each splat's intersection positions are recorded (CSR), so the
 //! backward can reduce per-intersection gradients per splat without atomics.
@@ -22,7 +22,8 @@ pub struct TileBins {
     pub tiles_y: u32,
     /// `tile_offsets[t]..tile_offsets[t + 1]` indexes `ids` for tile `t` (row-major tiles).
     pub tile_offsets: Vec<u32>,
-    /// Splat index of every intersection, grouped by tile, front to back within a tile.
+    /// Depth rank (index into [`TileBins::splat_of_rank`]) of every intersection, grouped by
+    /// tile, front to back within a tile.
     pub ids: Vec<u32>,
     /// `splat_offsets[g]..splat_offsets[g + 1]` indexes `splat_isects` for splat `g`.
     pub splat_offsets: Vec<u32>,
@@ -210,7 +211,8 @@ impl TileBins {
             .for_each(|(ci, cursors)| {
                 let lo = (ci * chunk_len).min(nv);
                 let hi = ((ci + 1) * chunk_len).min(nv);
-                for key in &order[lo..hi] {
+                for (i, key) in order[lo..hi].iter().enumerate() {
+                    let rank = (lo + i) as u32;
                     let g = (key & 0xffff_ffff) as usize;
                     let r = rects[g];
                     let mut slot = splat_offsets[g] as usize;
@@ -223,7 +225,7 @@ impl TileBins {
                             // tile, and `slot` from this splat's private CSR range: no two tasks
                             // write the same index, and both vectors outlive the scope.
                             unsafe {
-                                ids.write(pos as usize, g as u32);
+                                ids.write(pos as usize, rank);
                                 isects.write(slot, pos);
                             }
                             slot += 1;
@@ -232,6 +234,17 @@ impl TileBins {
                 }
             });
         Ok(())
+    }
+
+    /// Number of splats that touch at least one tile (the depth ranks run over `0..visible()`).
+    pub fn visible(&self) -> usize {
+        self.order.len()
+    }
+
+    /// Splat index of depth rank `rank`.
+    #[inline(always)]
+    pub fn splat_of_rank(&self, rank: usize) -> usize {
+        (self.order[rank] & 0xffff_ffff) as usize
     }
 
     /// Number of tile intersections.

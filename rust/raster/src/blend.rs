@@ -19,6 +19,7 @@
 
 use crate::bins::{SharedMut, TileBins};
 use crate::error::{check_finite, check_len, RasterError, Result};
+use crate::lanes::{self, Limits, RowSplat, LANES, TILE_PIXELS};
 use crate::real::Real;
 use crate::TILE_SIZE;
 use rayon::prelude::*;
@@ -29,7 +30,6 @@ pub const ALPHA_MIN: f64 = 1.0 / 255.0;
 pub const T_MIN: f64 = 1e-4;
 /// Splats gathered per batch.
 const BATCH: usize = 256;
-const TILE_PIXELS: usize = (TILE_SIZE * TILE_SIZE) as usize;
 
 /// Settings of the compositing stage.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -202,6 +202,8 @@ pub struct RasterState {
     last: Vec<u32>,
     /// Per pixel: final transmittance.
     t_final: Vec<f32>,
+    /// Visible splats packed in depth order (see `pack_splats`).
+    packed: Vec<f32>,
     /// Per-intersection gradient slots (backward scratch).
     slots: Vec<f32>,
     width: u32,
@@ -225,12 +227,13 @@ impl RasterState {
             + b.splat_isects.capacity()
             + self.last.capacity()
             + self.t_final.capacity()
+            + self.packed.capacity()
             + self.slots.capacity())
     }
 }
 
-/// A splat gathered into tile scratch: centre, conic, opacity and its pixel box within the tile
-/// (half-open, tile-local; empty when `x0 >= x1`).
+/// A splat gathered into tile scratch: centre, conic, opacity and the rows of the tile its
+/// alpha support reaches (half-open, tile-local; empty when `y0 >= y1`).
 #[derive(Debug, Clone, Copy, Default)]
 struct TileSplat {
     mx: f32,
@@ -239,25 +242,53 @@ struct TileSplat {
     cb: f32,
     cc: f32,
     op: f32,
-    x0: u32,
-    x1: u32,
+    /// Largest sigma with alpha >= 1/255: ln(255 op).
+    smax: f32,
     y0: u32,
     y1: u32,
 }
 
-/// Per-worker scratch, allocated once per rayon job (never per pixel).
+/// Which halves of a tile row (lanes 0-7, 8-15) can hold a pixel where splat `g` has
+/// alpha >= 1/255: the row `dy` cuts the support ellipse `sigma <= smax` in the chord
+/// `dx = (-b dy +- sqrt(2 a smax - det dy^2)) / a`. Conservative (padded) and exact where it
+/// matters: a skipped lane would have been skipped by the alpha test anyway.
+#[inline(always)]
+fn row_halves(g: &TileSplat, dy: f32, px0: u32) -> [bool; 2] {
+    let (a, b, c, s) = (g.ca as f64, g.cb as f64, g.cc as f64, g.smax as f64);
+    let det = a * c - b * b;
+    if !(a > 0.0 && det > 0.0) {
+        return [true, true];
+    }
+    let dy = dy as f64;
+    let disc = 2.0 * a * s - det * dy * dy;
+    let tol = 1e-4 * (2.0 * a * s + det * dy * dy) + 1e-12;
+    if disc < -tol {
+        return [false, false];
+    }
+    let half = disc.max(0.0).sqrt() / a;
+    let centre = g.mx as f64 - b * dy / a;
+    let margin = 1e-2 + 1e-4 * (half + centre.abs());
+    let (lo, hi) = (centre - half - margin, centre + half + margin);
+    let x0 = px0 as f64 + 0.5;
+    [
+        hi >= x0 && lo <= x0 + 7.0,
+        hi >= x0 + 8.0 && lo <= x0 + 15.0,
+    ]
+}
+
+/// Per-worker scratch, allocated once per rayon job (never per pixel). Per-pixel arrays are
+/// structure-of-arrays over the tile's 256 pixels (row-major), channel-major for features.
 struct Scratch {
     splats: Vec<TileSplat>,
     feats: Vec<f32>,
     t: Vec<f32>,
     acc: Vec<f32>,
     last: Vec<u32>,
-    done: Vec<bool>,
+    done: Vec<u32>,
     // Backward only.
     vc: Vec<f32>,
     tail: Vec<f32>,
     vr: Vec<f32>,
-    gf: Vec<f32>,
 }
 
 impl Scratch {
@@ -268,11 +299,10 @@ impl Scratch {
             t: vec![0.0; TILE_PIXELS],
             acc: vec![0.0; TILE_PIXELS * c1],
             last: vec![0; TILE_PIXELS],
-            done: vec![false; TILE_PIXELS],
+            done: vec![0; TILE_PIXELS],
             vc: vec![0.0; TILE_PIXELS * c1],
             tail: vec![0.0; TILE_PIXELS],
             vr: vec![0.0; TILE_PIXELS],
-            gf: vec![0.0; c1],
         }
     }
 }
@@ -299,133 +329,178 @@ impl TileGeom {
             h: TILE_SIZE.min(height - py0),
         }
     }
-}
 
-/// Gather splats `ids` into the scratch (centre, conic, opacity, features + depth channel) and
-/// compute each one's exact alpha-support box clipped to the tile.
-#[inline]
-fn gather(s: &mut Scratch, ids: &[u32], sp: &Splats<'_, f32>, geom: TileGeom, c1: usize) {
-    let ch = sp.channels;
-    for (j, &gid) in ids.iter().enumerate() {
-        let g = gid as usize;
-        let (mx, my) = (sp.means2d[2 * g], sp.means2d[2 * g + 1]);
-        let (ca, cb, cc) = (sp.conics[3 * g], sp.conics[3 * g + 1], sp.conics[3 * g + 2]);
-        let op = sp.opacities[g];
-        let mut ts = TileSplat {
-            mx,
-            my,
-            ca,
-            cb,
-            cc,
-            op,
-            ..Default::default()
-        };
-        // alpha >= 1/255 needs sigma <= ln(255 o); the ellipse sigma <= s spans
-        // |dx| <= sqrt(2 s Sxx), |dy| <= sqrt(2 s Syy) with S = inverse(conic).
-        let smax = (op as f64 * 255.0).ln();
-        if smax >= 0.0 {
-            let det = ca as f64 * cc as f64 - cb as f64 * cb as f64;
-            let (ex, ey) = if det > 0.0 && ca > 0.0 && cc > 0.0 {
-                let ex = (2.0 * smax * cc as f64 / det).sqrt() * (1.0 + 1e-4) + 1e-3;
-                let ey = (2.0 * smax * ca as f64 / det).sqrt() * (1.0 + 1e-4) + 1e-3;
-                (ex, ey)
-            } else {
-                (f64::INFINITY, f64::INFINITY)
-            };
-            let range = |m: f32, e: f64, o: u32, n: u32| -> (u32, u32) {
-                // Pixel p (global) is in range when |p + 0.5 - m| <= e.
-                let lo = (m as f64 - e - 0.5).ceil() - o as f64;
-                let hi = (m as f64 + e - 0.5).floor() - o as f64 + 1.0;
-                (
-                    lo.clamp(0.0, n as f64) as u32,
-                    hi.clamp(0.0, n as f64) as u32,
-                )
-            };
-            let (x0, x1) = range(mx, ex, geom.px0, geom.w);
-            let (y0, y1) = range(my, ey, geom.py0, geom.h);
-            ts.x0 = x0;
-            ts.x1 = x1;
-            ts.y0 = y0;
-            ts.y1 = y1;
-        }
-        s.splats[j] = ts;
-        let f = &mut s.feats[j * c1..(j + 1) * c1];
-        f[..ch].copy_from_slice(&sp.features[g * ch..(g + 1) * ch]);
-        f[ch] = sp.depths[g];
+    /// x of each lane's pixel centre.
+    #[inline(always)]
+    fn lane_x(&self) -> [f32; LANES] {
+        std::array::from_fn(|l| (self.px0 + l as u32) as f32 + 0.5)
     }
 }
 
-/// Composite one tile. Returns (evaluated, blended) pair counts.
+/// Fields of a packed splat record before its channels.
+const REC_HEAD: usize = 8;
+
+/// Pack every visible splat, in depth-rank order, into one contiguous record of
+/// `REC_HEAD + c1` floats: `[mx, my, a, b, c, opacity, smax, ey, features.., depth]`, so a tile
+/// reads one cache line per splat instead of one per input array. `smax = ln(255 o)` bounds
+/// sigma where alpha >= 1/255 (rounded up); the ellipse sigma <= smax spans |dy| <= ey =
+/// sqrt(2 smax Syy), S = conic^-1, padded outwards, infinite when the conic is not positive
+/// definite and negative when the splat can never reach 1/255.
+fn pack_splats(sp: &Splats<'_, f32>, bins: &TileBins, c1: usize, out: &mut Vec<f32>) {
+    let stride = REC_HEAD + c1;
+    let ch = c1 - 1;
+    out.resize(bins.visible() * stride, 0.0);
+    out.par_chunks_mut(1024 * stride)
+        .enumerate()
+        .for_each(|(ci, o)| {
+            for (l, rec) in o.chunks_exact_mut(stride).enumerate() {
+                let g = bins.splat_of_rank(ci * 1024 + l);
+                let op = sp.opacities[g] as f64;
+                let smax = (op * 255.0).ln();
+                let (ca, cb, cc) = (
+                    sp.conics[3 * g] as f64,
+                    sp.conics[3 * g + 1] as f64,
+                    sp.conics[3 * g + 2] as f64,
+                );
+                let det = ca * cc - cb * cb;
+                let ey = if smax.is_nan() || smax < 0.0 {
+                    -1.0
+                } else if det > 0.0 && ca > 0.0 && cc > 0.0 {
+                    ((2.0 * smax * ca / det).sqrt() * (1.0 + 1e-4) + 1e-3) as f32
+                } else {
+                    f32::INFINITY
+                };
+                rec[0] = sp.means2d[2 * g];
+                rec[1] = sp.means2d[2 * g + 1];
+                rec[2..5].copy_from_slice(&sp.conics[3 * g..3 * g + 3]);
+                rec[5] = sp.opacities[g];
+                rec[6] = (smax * (1.0 + 1e-6) + 1e-6) as f32;
+                rec[7] = ey;
+                rec[REC_HEAD..REC_HEAD + ch].copy_from_slice(&sp.features[g * ch..(g + 1) * ch]);
+                rec[REC_HEAD + ch] = sp.depths[g];
+            }
+        });
+}
+
+/// Gather the packed records of depth ranks `ids` into the scratch, with the tile rows their
+/// support reaches.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn forward_tile(
-    s: &mut Scratch,
-    bins: &TileBins,
-    t: usize,
-    sp: &Splats<'_, f32>,
-    geom: TileGeom,
-    c1: usize,
+fn gather(s: &mut Scratch, ids: &[u32], packed: &[f32], geom: TileGeom, c1: usize) {
+    let stride = REC_HEAD + c1;
+    for (j, &rank) in ids.iter().enumerate() {
+        let rec = &packed[rank as usize * stride..(rank as usize + 1) * stride];
+        let (my, e) = (rec[1], rec[7]);
+        let (y0, y1) = if e < 0.0 {
+            (0, 0)
+        } else {
+            // Pixel row y is reached when |y + 0.5 - my| <= e.
+            let lo = (my as f64 - e as f64 - 0.5).ceil() - geom.py0 as f64;
+            let hi = (my as f64 + e as f64 - 0.5).floor() - geom.py0 as f64 + 1.0;
+            let n = geom.h as f64;
+            (lo.clamp(0.0, n) as u32, hi.clamp(0.0, n) as u32)
+        };
+        s.splats[j] = TileSplat {
+            mx: rec[0],
+            my,
+            ca: rec[2],
+            cb: rec[3],
+            cc: rec[4],
+            op: rec[5],
+            smax: rec[6],
+            y0,
+            y1,
+        };
+        s.feats[j * c1..(j + 1) * c1].copy_from_slice(&rec[REC_HEAD..]);
+    }
+}
+
+/// Everything a tile kernel reads besides its scratch.
+#[derive(Clone, Copy)]
+struct TileInputs<'a> {
+    bins: &'a TileBins,
+    packed: &'a [f32],
     alpha_max: f32,
+}
+
+/// Composite one tile (see the module notes). Returns (evaluated, blended) pair counts.
+#[inline(always)]
+fn forward_tile<const K: usize, const AVX: bool>(
+    s: &mut Scratch,
+    inp: TileInputs<'_>,
+    t: usize,
+    geom: TileGeom,
+    c1_dyn: usize,
 ) -> (u64, u64) {
-    let range = bins.tile_range(t);
-    let ids = &bins.ids[range];
+    let c1 = if K > 0 { K } else { c1_dyn };
+    let ids = &inp.bins.ids[inp.bins.tile_range(t)];
     s.t.fill(1.0);
     s.acc.fill(0.0);
     s.last.fill(0);
-    s.done.fill(false);
+    // Pixels outside the image start out done.
+    for py in 0..TILE_SIZE {
+        for px in 0..TILE_SIZE {
+            s.done[(py * TILE_SIZE + px) as usize] = u32::from(px >= geom.w || py >= geom.h);
+        }
+    }
     let active = (geom.w * geom.h) as usize;
     let mut n_done = 0usize;
     let (mut evaluated, mut blended) = (0u64, 0u64);
-    let alpha_min = ALPHA_MIN as f32;
-    let t_min = T_MIN as f32;
+    let lim = Limits {
+        alpha_min: ALPHA_MIN as f32,
+        alpha_max: inp.alpha_max,
+        t_min: T_MIN as f32,
+    };
+    let lane_x = geom.lane_x();
     let mut start = 0;
-    'batches: while start < ids.len() && n_done < active {
+    'batches: while start < ids.len() {
         let end = (start + BATCH).min(ids.len());
-        gather(s, &ids[start..end], sp, geom, c1);
+        gather(s, &ids[start..end], inp.packed, geom, c1);
         for j in 0..end - start {
             let g = s.splats[j];
-            if g.x0 >= g.x1 || g.y0 >= g.y1 {
+            if g.y0 >= g.y1 {
                 continue;
             }
             let k1 = (start + j + 1) as u32;
+            let f = &s.feats[j * c1..(j + 1) * c1];
             for py in g.y0..g.y1 {
-                let dy = (geom.py0 + py) as f32 + 0.5 - g.my;
-                let row = (py * TILE_SIZE) as usize;
-                for px in g.x0..g.x1 {
-                    let p = row + px as usize;
-                    if s.done[p] {
-                        continue;
-                    }
-                    let dx = (geom.px0 + px) as f32 + 0.5 - g.mx;
-                    evaluated += 1;
-                    let sigma = 0.5 * (g.ca * dx * dx + g.cc * dy * dy) + g.cb * dx * dy;
-                    if sigma < 0.0 {
-                        continue;
-                    }
-                    let alpha = (g.op * (-sigma).exp()).min(alpha_max);
-                    if alpha < alpha_min {
-                        continue;
-                    }
-                    let tp = s.t[p];
-                    let next_t = tp * (1.0 - alpha);
-                    if next_t < t_min {
-                        s.done[p] = true;
-                        n_done += 1;
-                        if n_done == active {
-                            break 'batches;
-                        }
-                        continue;
-                    }
-                    let w = alpha * tp;
-                    let f = &s.feats[j * c1..(j + 1) * c1];
-                    let acc = &mut s.acc[p * c1..(p + 1) * c1];
-                    for c in 0..c1 {
-                        acc[c] += f[c] * w;
-                    }
-                    s.t[p] = next_t;
-                    s.last[p] = k1;
-                    blended += 1;
+                let rs = RowSplat {
+                    mx: g.mx,
+                    dy: (geom.py0 + py) as f32 + 0.5 - g.my,
+                    ca: g.ca,
+                    cb: g.cb,
+                    cc: g.cc,
+                    op: g.op,
+                };
+                let halves = row_halves(&g, rs.dy, geom.px0);
+                if !(halves[0] || halves[1]) {
+                    continue;
                 }
+                let row = (py * TILE_SIZE) as usize;
+                let t_row: &mut [f32; LANES] = (&mut s.t[row..row + LANES]).try_into().unwrap();
+                let done: &mut [u32; LANES] = (&mut s.done[row..row + LANES]).try_into().unwrap();
+                let last: &mut [u32; LANES] = (&mut s.last[row..row + LANES]).try_into().unwrap();
+                let (n_eval, n_blend, n_term) = if AVX {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: AVX is only true when AVX2 was detected at run time.
+                    unsafe {
+                        lanes::avx2::forward_row(
+                            c1, &rs, &lim, halves, k1, &lane_x, f, t_row, done, last, &mut s.acc,
+                            row,
+                        )
+                    }
+                    #[cfg(not(target_arch = "x86_64"))]
+                    unreachable!()
+                } else {
+                    lanes::portable::forward_row(
+                        c1, &rs, &lim, halves, k1, &lane_x, f, t_row, done, last, &mut s.acc, row,
+                    )
+                };
+                evaluated += n_eval as u64;
+                blended += n_blend as u64;
+                n_done += n_term as usize;
+            }
+            if n_done >= active {
+                break 'batches;
             }
         }
         start = end;
@@ -433,14 +508,50 @@ fn forward_tile(
     (evaluated, blended)
 }
 
+/// [`forward_tile`] compiled with AVX2 enabled.
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn forward_tile_avx2<const K: usize>(
+    s: &mut Scratch,
+    inp: TileInputs<'_>,
+    t: usize,
+    geom: TileGeom,
+    c1: usize,
+) -> (u64, u64) {
+    forward_tile::<K, true>(s, inp, t, geom, c1)
+}
+
+static SIMD_ENABLED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(true);
+
+/// Allow (default) or forbid the AVX2 row kernels. Both paths give bit-identical results; this
+/// switch exists so tests and benchmarks can compare them.
+pub fn set_simd_enabled(enabled: bool) {
+    SIMD_ENABLED.store(enabled, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// Whether the AVX2 kernels will be used: allowed and supported by this CPU.
+pub fn simd_active() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        SIMD_ENABLED.load(std::sync::atomic::Ordering::Relaxed)
+            && std::is_x86_feature_detected!("avx2")
+            && std::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// Everything one forward needs, shared by all tile tasks.
 struct ForwardJob<'a> {
-    splats: &'a Splats<'a, f32>,
-    bins: &'a TileBins,
+    inp: TileInputs<'a>,
     width: u32,
     height: u32,
     background: &'a [f32],
-    alpha_max: f32,
     c1: usize,
     o_feat: SharedMut<f32>,
     o_alpha: SharedMut<f32>,
@@ -456,15 +567,26 @@ impl ForwardJob<'_> {
         let c1 = if K > 0 { K } else { self.c1 };
         let ch = c1 - 1;
         let (width, height) = (self.width, self.height);
-        let num_tiles = (self.bins.tiles_x * self.bins.tiles_y) as usize;
+        let bins = self.inp.bins;
+        let num_tiles = (bins.tiles_x * bins.tiles_y) as usize;
+        let avx2 = simd_active();
         (0..num_tiles)
             .into_par_iter()
             .map_init(
                 || Scratch::new(c1),
                 |s, t| {
-                    let geom = TileGeom::new(t, self.bins.tiles_x, width, height);
-                    let counts =
-                        forward_tile(s, self.bins, t, self.splats, geom, c1, self.alpha_max);
+                    let geom = TileGeom::new(t, bins.tiles_x, width, height);
+                    let counts = if avx2 {
+                        #[cfg(target_arch = "x86_64")]
+                        // SAFETY: AVX2 and FMA were detected at run time.
+                        unsafe {
+                            forward_tile_avx2::<K>(s, self.inp, t, geom, c1)
+                        }
+                        #[cfg(not(target_arch = "x86_64"))]
+                        unreachable!()
+                    } else {
+                        forward_tile::<K, false>(s, self.inp, t, geom, c1)
+                    };
                     for py in 0..geom.h {
                         for px in 0..geom.w {
                             let p = (py * TILE_SIZE + px) as usize;
@@ -476,11 +598,11 @@ impl ForwardJob<'_> {
                                 for c in 0..ch {
                                     self.o_feat.write(
                                         pix * ch + c,
-                                        s.acc[p * c1 + c] + tf * self.background[c],
+                                        s.acc[c * TILE_PIXELS + p] + tf * self.background[c],
                                     );
                                 }
                                 self.o_alpha.write(pix, 1.0 - tf);
-                                self.o_depth.write(pix, s.acc[p * c1 + ch]);
+                                self.o_depth.write(pix, s.acc[ch * TILE_PIXELS + p]);
                                 self.o_last.write(pix, s.last[p]);
                                 self.o_t.write(pix, tf);
                             }
@@ -515,6 +637,7 @@ pub fn rasterize_forward(
     state
         .bins
         .build(splats.means2d, splats.radii, splats.depths, width, height)?;
+    pack_splats(splats, &state.bins, ch + 1, &mut state.packed);
     state.last.resize(npix, 0);
     state.t_final.resize(npix, 1.0);
     state.width = width;
@@ -523,26 +646,21 @@ pub fn rasterize_forward(
     state.forward_done = true;
 
     let c1 = ch + 1;
-    let alpha_max = settings.alpha_max as f32;
-    let bins = &state.bins;
-    let o_feat = SharedMut::new(out.features);
-    let o_alpha = SharedMut::new(out.alpha);
-    let o_depth = SharedMut::new(out.depth);
-    let o_last = SharedMut::new(&mut state.last);
-    let o_t = SharedMut::new(&mut state.t_final);
     let job = ForwardJob {
-        splats,
-        bins,
+        inp: TileInputs {
+            bins: &state.bins,
+            packed: &state.packed,
+            alpha_max: settings.alpha_max as f32,
+        },
         width,
         height,
         background,
-        alpha_max,
         c1,
-        o_feat,
-        o_alpha,
-        o_depth,
-        o_last,
-        o_t,
+        o_feat: SharedMut::new(out.features),
+        o_alpha: SharedMut::new(out.alpha),
+        o_depth: SharedMut::new(out.depth),
+        o_last: SharedMut::new(&mut state.last),
+        o_t: SharedMut::new(&mut state.t_final),
     };
     let (evaluated, blended) = match c1 {
         2 => job.run::<2>(),
@@ -565,20 +683,18 @@ pub fn rasterize_forward(
 /// Backward of one tile: writes each listed splat's gradient (summed over this tile's pixels)
 /// into its intersection slot.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn backward_tile(
+fn backward_tile<const K: usize, const AVX: bool>(
     s: &mut Scratch,
-    bins: &TileBins,
+    inp: TileInputs<'_>,
     t: usize,
-    sp: &Splats<'_, f32>,
     geom: TileGeom,
-    c1: usize,
-    alpha_max: f32,
+    c1_dyn: usize,
     slots: &SharedMut<f32>,
 ) {
-    let range = bins.tile_range(t);
+    let c1 = if K > 0 { K } else { c1_dyn };
+    let range = inp.bins.tile_range(t);
     let base = range.start;
-    let ids = &bins.ids[range];
+    let ids = &inp.bins.ids[range];
     let stride = 6 + c1;
     let max_last = s.last.iter().copied().max().unwrap_or(0) as usize;
     // Slots of splats behind every pixel's last contributor get zero.
@@ -588,74 +704,72 @@ fn backward_tile(
             unsafe { slots.write((base + k) * stride + q, 0.0) };
         }
     }
-    let alpha_min = ALPHA_MIN as f32;
+    let lim = Limits {
+        alpha_min: ALPHA_MIN as f32,
+        alpha_max: inp.alpha_max,
+        t_min: T_MIN as f32,
+    };
+    let lane_x = geom.lane_x();
+    // Per-lane gradient accumulators: mean x, mean y, conic a, b, c, opacity, then features.
+    let mut gl = [[0.0f32; LANES]; 6];
+    let mut gfl = vec![[0.0f32; LANES]; c1];
     let mut end = max_last;
     while end > 0 {
         let start = end.saturating_sub(BATCH);
-        gather(s, &ids[start..end], sp, geom, c1);
+        gather(s, &ids[start..end], inp.packed, geom, c1);
         for j in (0..end - start).rev() {
-            let k = start + j;
+            let k = (start + j) as u32;
             let g = s.splats[j];
-            let (mut gmx, mut gmy, mut ga, mut gb, mut gc, mut go) =
-                (0f32, 0f32, 0f32, 0f32, 0f32, 0f32);
-            s.gf.fill(0.0);
-            if g.x0 < g.x1 && g.y0 < g.y1 {
-                let f = &s.feats[j * c1..(j + 1) * c1];
-                for py in g.y0..g.y1 {
-                    let dy = (geom.py0 + py) as f32 + 0.5 - g.my;
-                    let row = (py * TILE_SIZE) as usize;
-                    for px in g.x0..g.x1 {
-                        let p = row + px as usize;
-                        if k as u32 >= s.last[p] {
-                            continue;
-                        }
-                        let dx = (geom.px0 + px) as f32 + 0.5 - g.mx;
-                        let sigma = 0.5 * (g.ca * dx * dx + g.cc * dy * dy) + g.cb * dx * dy;
-                        if sigma < 0.0 {
-                            continue;
-                        }
-                        let vis = (-sigma).exp();
-                        let raw = g.op * vis;
-                        let alpha = raw.min(alpha_max);
-                        if alpha < alpha_min {
-                            continue;
-                        }
-                        let one_m = 1.0 - alpha;
-                        let ti = s.t[p] / one_m;
-                        let w = alpha * ti;
-                        let vc = &s.vc[p * c1..(p + 1) * c1];
-                        let mut vf = 0.0f32;
-                        for c in 0..c1 {
-                            vf += vc[c] * f[c];
-                            s.gf[c] += w * vc[c];
-                        }
-                        let v_alpha = ti * vf - (s.vr[p] + s.tail[p]) / one_m;
-                        s.vr[p] += w * vf;
-                        s.t[p] = ti;
-                        if raw <= alpha_max {
-                            go += v_alpha * vis;
-                            let v_sigma = -v_alpha * alpha;
-                            // sigma = 0.5 (a dx^2 + c dy^2) + b dx dy, d = pixel - mean.
-                            ga += 0.5 * v_sigma * dx * dx;
-                            gb += v_sigma * dx * dy;
-                            gc += 0.5 * v_sigma * dy * dy;
-                            gmx -= v_sigma * (g.ca * dx + g.cb * dy);
-                            gmy -= v_sigma * (g.cc * dy + g.cb * dx);
-                        }
+            for a in gl.iter_mut() {
+                *a = [0.0; LANES];
+            }
+            for a in gfl.iter_mut() {
+                *a = [0.0; LANES];
+            }
+            let f = &s.feats[j * c1..(j + 1) * c1];
+            for py in g.y0..g.y1 {
+                let rs = RowSplat {
+                    mx: g.mx,
+                    dy: (geom.py0 + py) as f32 + 0.5 - g.my,
+                    ca: g.ca,
+                    cb: g.cb,
+                    cc: g.cc,
+                    op: g.op,
+                };
+                let halves = row_halves(&g, rs.dy, geom.px0);
+                if !(halves[0] || halves[1]) {
+                    continue;
+                }
+                let row = (py * TILE_SIZE) as usize;
+                let t_row: &mut [f32; LANES] = (&mut s.t[row..row + LANES]).try_into().unwrap();
+                let vr: &mut [f32; LANES] = (&mut s.vr[row..row + LANES]).try_into().unwrap();
+                let tail: &[f32; LANES] = (&s.tail[row..row + LANES]).try_into().unwrap();
+                let last: &[u32; LANES] = (&s.last[row..row + LANES]).try_into().unwrap();
+                if AVX {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: AVX is only true when AVX2 was detected at run time.
+                    unsafe {
+                        lanes::avx2::backward_row(
+                            c1, &rs, &lim, halves, k, &lane_x, f, t_row, vr, tail, last, &s.vc,
+                            row, &mut gl, &mut gfl,
+                        )
                     }
+                } else {
+                    lanes::portable::backward_row(
+                        c1, &rs, &lim, halves, k, &lane_x, f, t_row, vr, tail, last, &s.vc, row,
+                        &mut gl, &mut gfl,
+                    )
                 }
             }
-            let o = (base + k) * stride;
+            let o = (base + k as usize) * stride;
+            let hsum = |a: &[f32; LANES]| a.iter().sum::<f32>();
             // SAFETY: slot `base + k` belongs to this tile only.
             unsafe {
-                slots.write(o, gmx);
-                slots.write(o + 1, gmy);
-                slots.write(o + 2, ga);
-                slots.write(o + 3, gb);
-                slots.write(o + 4, gc);
-                slots.write(o + 5, go);
+                for q in 0..6 {
+                    slots.write(o + q, hsum(&gl[q]));
+                }
                 for c in 0..c1 {
-                    slots.write(o + 6 + c, s.gf[c]);
+                    slots.write(o + 6 + c, hsum(&gfl[c]));
                 }
             }
         }
@@ -663,17 +777,32 @@ fn backward_tile(
     }
 }
 
+/// [`backward_tile`] compiled with AVX2 enabled.
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn backward_tile_avx2<const K: usize>(
+    s: &mut Scratch,
+    inp: TileInputs<'_>,
+    t: usize,
+    geom: TileGeom,
+    c1: usize,
+    slots: &SharedMut<f32>,
+) {
+    backward_tile::<K, true>(s, inp, t, geom, c1, slots)
+}
+
 /// Everything one backward needs, shared by all tile tasks.
 struct BackwardJob<'a> {
-    splats: &'a Splats<'a, f32>,
-    bins: &'a TileBins,
+    inp: TileInputs<'a>,
     last: &'a [u32],
     t_final: &'a [f32],
     v: &'a ImageGrads<'a, f32>,
     width: u32,
     height: u32,
     background: &'a [f32],
-    alpha_max: f32,
     c1: usize,
     slots: &'a SharedMut<f32>,
 }
@@ -684,12 +813,18 @@ impl BackwardJob<'_> {
         let c1 = if K > 0 { K } else { self.c1 };
         let ch = c1 - 1;
         let (width, height, v) = (self.width, self.height, self.v);
-        let num_tiles = (self.bins.tiles_x * self.bins.tiles_y) as usize;
+        let bins = self.inp.bins;
+        let num_tiles = (bins.tiles_x * bins.tiles_y) as usize;
+        let avx2 = simd_active();
         (0..num_tiles).into_par_iter().for_each_init(
             || Scratch::new(c1),
             |s, t| {
-                let geom = TileGeom::new(t, self.bins.tiles_x, width, height);
+                let geom = TileGeom::new(t, bins.tiles_x, width, height);
                 s.last.fill(0);
+                s.t.fill(1.0);
+                s.vr.fill(0.0);
+                s.tail.fill(0.0);
+                s.vc.fill(0.0);
                 for py in 0..geom.h {
                     for px in 0..geom.w {
                         let p = (py * TILE_SIZE + px) as usize;
@@ -697,28 +832,26 @@ impl BackwardJob<'_> {
                         let tf = self.t_final[pix];
                         s.last[p] = self.last[pix];
                         s.t[p] = tf;
-                        s.vr[p] = 0.0;
                         let mut vbg = 0.0f32;
                         for c in 0..ch {
                             let vcv = v.features[pix * ch + c];
-                            s.vc[p * c1 + c] = vcv;
+                            s.vc[c * TILE_PIXELS + p] = vcv;
                             vbg += vcv * self.background[c];
                         }
-                        s.vc[p * c1 + ch] = v.depth[pix];
+                        s.vc[ch * TILE_PIXELS + p] = v.depth[pix];
                         // dL/dalpha_i gains -(T_final (v . bg) - v_alpha T_final) / (1 - alpha_i).
                         s.tail[p] = tf * (vbg - v.alpha[pix]);
                     }
                 }
-                backward_tile(
-                    s,
-                    self.bins,
-                    t,
-                    self.splats,
-                    geom,
-                    c1,
-                    self.alpha_max,
-                    self.slots,
-                );
+                if avx2 {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: AVX2 and FMA were detected at run time.
+                    unsafe {
+                        backward_tile_avx2::<K>(s, self.inp, t, geom, c1, self.slots)
+                    }
+                } else {
+                    backward_tile::<K, false>(s, self.inp, t, geom, c1, self.slots)
+                }
             },
         )
     }
@@ -765,23 +898,22 @@ pub fn rasterize_backward(
     check_len("grad_features", grads.features, n * ch)?;
     let c1 = ch + 1;
     let stride = 6 + c1;
-    let alpha_max = settings.alpha_max as f32;
     let m = state.bins.len();
     state.slots.resize(m * stride, 0.0);
     let slots = SharedMut::new(&mut state.slots);
     let bins = &state.bins;
-    let last = &state.last;
-    let t_final = &state.t_final;
     let job = BackwardJob {
-        splats,
-        bins,
-        last,
-        t_final,
+        inp: TileInputs {
+            bins,
+            packed: &state.packed,
+            alpha_max: settings.alpha_max as f32,
+        },
+        last: &state.last,
+        t_final: &state.t_final,
         v,
         width,
         height,
         background,
-        alpha_max,
         c1,
         slots: &slots,
     };

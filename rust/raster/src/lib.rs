@@ -19,6 +19,7 @@ pub mod bins;
 pub mod blend;
 pub mod camera;
 pub mod error;
+mod lanes;
 pub mod linalg;
 pub mod project;
 pub mod real;
@@ -31,6 +32,7 @@ pub use blend::{
 };
 pub use camera::Camera;
 pub use error::{RasterError, Result};
+pub use lanes::fast_exp;
 pub use project::{
     project_backward, project_forward, GaussianGradsMut, Gaussians, ProjectSettings, Projection,
     ProjectionGrads, ProjectionMut,

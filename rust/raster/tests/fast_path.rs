@@ -264,3 +264,27 @@ fn backward_without_forward_is_an_error() {
     let err = r.expect("no panic").unwrap_err();
     assert_eq!(err.arg(), "state");
 }
+
+/// The AVX2 row kernels and the portable ones are bit-identical, forward and backward.
+#[test]
+fn simd_and_portable_paths_are_bit_identical() {
+    let s = random_scene(2000, 80, 72, 3, 12);
+    let ps = ProjectSettings::default();
+    let bs = BlendSettings::default();
+    let run = || {
+        let mut state = RasterState::new();
+        let (p, img, c) = render_fast(&s, &ps, &bs, &mut state);
+        let w = random_image_grads(80 * 72, 3, 2);
+        let g = fast_backward(&p, &s, &bs, &mut state, &w);
+        (img, c, g)
+    };
+    let with_simd = run();
+    blend::set_simd_enabled(false);
+    let portable = run();
+    blend::set_simd_enabled(true);
+    assert_eq!(with_simd.0, portable.0);
+    assert_eq!(with_simd.1, portable.1);
+    for i in 0..5 {
+        assert_eq!(with_simd.2[i], portable.2[i], "gradient {i}");
+    }
+}
