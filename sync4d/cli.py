@@ -27,6 +27,30 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+    return value
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` (e.g. ``800x800``, ``960x536``) as ``(width, height)``."""
+    parts = text.lower().split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected WIDTHxHEIGHT such as 800x800, got {text!r}"
+        ) from None
+    if not (1 <= width <= 16384 and 1 <= height <= 16384):
+        raise argparse.ArgumentTypeError(f"width and height must lie in 1..16384, got {text!r}")
+    return width, height
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m sync4d",
@@ -46,7 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Time sync4d.raster (forward and backward) on seeded random scenes.",
     )
     raster.add_argument(
-        "--out", metavar="FILE.json", default=None, help="also write the results as JSON here"
+        "--out",
+        metavar="FILE.json",
+        default=None,
+        help="where to write the results as JSON (default: bench-raster.json in the cwd)",
     )
     raster.add_argument(
         "--sizes",
@@ -57,12 +84,44 @@ def build_parser() -> argparse.ArgumentParser:
         help="scene sizes as Gaussian counts, e.g. --sizes 1000 10000 (default: the bench's set)",
     )
     raster.add_argument(
+        "--resolutions",
+        nargs="+",
+        type=_resolution,
+        metavar="WxH",
+        default=None,
+        help="image sizes, e.g. --resolutions 800x800 960x536 (default: 256x256 800x800 960x536)",
+    )
+    raster.add_argument(
         "--threads",
         nargs="+",
         type=_positive_int,
         metavar="T",
         default=None,
-        help="rayon thread counts to time, e.g. --threads 1 2 (default: 1 and all cores)",
+        help="thread counts to time (rayon on the op, torch.set_num_threads for torch), "
+        "e.g. --threads 1 2 (default: 1 2)",
+    )
+    raster.add_argument(
+        "--repeats",
+        type=_positive_int,
+        metavar="K",
+        default=None,
+        help="timed sync4d calls per measurement, median reported "
+        "(default: 5, 3 for N >= 1M, 3 with --quick)",
+    )
+    raster.add_argument(
+        "--reference-max-gb",
+        type=_positive_float,
+        metavar="GB",
+        default=None,
+        help="kill a reference run whose RSS passes this many GiB (default: 18, and never more "
+        "than the memory available minus 1.5 GiB)",
+    )
+    raster.add_argument(
+        "--memory-method",
+        choices=("auto", "clear_refs", "subprocess"),
+        default="auto",
+        help="peak-memory method: reset VmHWM via /proc/self/clear_refs, or run each "
+        "measurement in a child process and read its ru_maxrss (default: auto)",
     )
     raster.add_argument(
         "--no-reference",
@@ -70,7 +129,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="skip the gsplat torch reference timings",
     )
     raster.add_argument(
-        "--quick", action="store_true", help="small sizes and few repeats (smoke run)"
+        "--quick",
+        action="store_true",
+        help="N=10000 at 256x256 only, fewer repeats (smoke run); --sizes/--resolutions win",
     )
     raster.set_defaults(handler="sync4d.bench.raster")
     return parser

@@ -67,7 +67,7 @@ def _check_tensor(name: str, t: object, shape: tuple, dtype: torch.dtype | None 
         raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
     if dtype is None and t.dtype not in _FLOATS:
         raise ValueError(f"{name}: expected float32 or float64, got {t.dtype}")
-    ok = t.dim() == len(shape) and all(s in (-1, d) for s, d in zip(shape, t.shape))
+    ok = t.dim() == len(shape) and all(s in (-1, d) for s, d in zip(shape, t.shape, strict=False))
     if not ok:
         want = "[" + ", ".join("*" if s == -1 else str(s) for s in shape) + "]"
         raise ValueError(f"{name}: expected shape {want}, got {list(t.shape)}")
@@ -288,7 +288,11 @@ class _RasterizeFn(torch.autograd.Function):
         splats = (_np(means2d), _np(conics), _np(depths), _np(opacities), _np(radii), _np(features))
         like_f = features.new_empty(height, width, ch)
         like_1 = features.new_empty(height, width, 1)
-        grads = (_grad_or_zeros(v_f, like_f), _grad_or_zeros(v_a, like_1), _grad_or_zeros(v_d, like_1))
+        grads = (
+            _grad_or_zeros(v_f, like_f),
+            _grad_or_zeros(v_a, like_1),
+            _grad_or_zeros(v_d, like_1),
+        )
         bg = _np(background)
         if features.dtype == torch.float32:
             rc = ctx.raster_context
@@ -336,7 +340,7 @@ def rasterize_to_pixels(
     dtype = features.dtype
     n, ch = features.shape
     if ch < 1:
-        raise ValueError("features: need at least one channel, got shape " f"{list(features.shape)}")
+        raise ValueError(f"features: need at least one channel, got shape {list(features.shape)}")
     _check_tensor("means2d", means2d, (n, 2), dtype)
     _check_tensor("conics", conics, (n, 3), dtype)
     _check_tensor("depths", depths, (n,), dtype)
@@ -353,7 +357,9 @@ def rasterize_to_pixels(
         raise ValueError(f"alpha_max: must lie in [1/255, 1), got {alpha_max}")
     info: dict = {} if counters is None else counters
     opts = (w, h, am, _threads(threads))
-    return _RasterizeFn.apply(means2d, conics, depths, opacities, features, radii, background, opts, info)
+    return _RasterizeFn.apply(
+        means2d, conics, depths, opacities, features, radii, background, opts, info
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -431,7 +437,9 @@ class _ShFn(torch.autograd.Function):
         dirs, coeffs = ctx.saved_tensors
         n, k, c = coeffs.shape
         fn = getattr(_core, f"sh_backward_{_suffix(dirs.dtype)}")
-        vd, vc = fn(ctx.degree, _np(dirs), _np(coeffs), k, c, _np(v_out.to(dirs.dtype)), ctx.threads)
+        vd, vc = fn(
+            ctx.degree, _np(dirs), _np(coeffs), k, c, _np(v_out.to(dirs.dtype)), ctx.threads
+        )
         return None, torch.from_numpy(vd).reshape(n, 3), torch.from_numpy(vc).reshape(n, k, c), None
 
 

@@ -54,12 +54,11 @@ def test_gradcheck_rasterize_to_pixels_inputs() -> None:
     w = torch.rand(14, 18, 5, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     base = [p.means2d.detach(), p.conics.detach(), p.depths.detach(), p.opacities.detach()]
     for i in range(4):
+
         def f(x: torch.Tensor, i: int = i) -> torch.Tensor:
             args = list(base)
             args[i] = x
-            img, alpha, depth = raster.rasterize_to_pixels(
-                *args, p.radii, s["features"], 18, 14
-            )
+            img, alpha, depth = raster.rasterize_to_pixels(*args, p.radii, s["features"], 18, 14)
             return (torch.cat([img, alpha, depth], -1) * w).sum()
 
         x = base[i].clone().requires_grad_(True)
@@ -133,7 +132,9 @@ def test_thread_counts_give_identical_results() -> None:
     results = []
     for threads in (1, 2):
         out = render(s, threads=threads)
-        grads = torch.autograd.grad(out.features.sum() + out.depth.sum(), [s[k] for k in GAUSSIAN_ARGS])
+        grads = torch.autograd.grad(
+            out.features.sum() + out.depth.sum(), [s[k] for k in GAUSSIAN_ARGS]
+        )
         results.append((out.features.detach(), grads))
     assert torch.equal(results[0][0], results[1][0])
     for g1, g2 in zip(results[0][1], results[1][1], strict=True):
@@ -187,8 +188,16 @@ def _bad(scene: dict, **changes) -> dict:
         ("means", [[0.0, 0.0, 1.0]], "means: expected a torch.Tensor"),
         ("viewmat", torch.eye(3), "viewmat: expected shape"),
         ("K", torch.eye(3) * 0, "K"),
-        ("K", torch.tensor([[100.0, 1.0, 5.0], [0.0, 100.0, 5.0], [0.0, 0.0, 1.0]]), "K: expected a pinhole"),
-        ("viewmat", torch.diag(torch.tensor([2.0, 1.0, 1.0, 1.0])), "viewmat: upper 3x3 must be a rotation"),
+        (
+            "K",
+            torch.tensor([[100.0, 1.0, 5.0], [0.0, 100.0, 5.0], [0.0, 0.0, 1.0]]),
+            "K: expected a pinhole",
+        ),
+        (
+            "viewmat",
+            torch.diag(torch.tensor([2.0, 1.0, 1.0, 1.0])),
+            "viewmat: upper 3x3 must be a rotation",
+        ),
         ("width", 0, "width"),
         ("height", 1.5, "height"),
     ],

@@ -9,15 +9,16 @@ fn main() {
         .skip(1)
         .map(|a| a.parse().expect("integer argument"))
         .collect();
-    let (n, w, h, threads) = match args.as_slice() {
-        [n, w, h, t] => (*n, *w as u32, *h as u32, *t),
-        _ => (100_000, 800, 800, 1),
+    let (n, w, h, threads, iters) = match args.as_slice() {
+        [n, w, h, t] => (*n, *w as u32, *h as u32, *t, 6),
+        [n, w, h, t, i] => (*n, *w as u32, *h as u32, *t, *i),
+        _ => (100_000, 800, 800, 1, 6),
     };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
         .unwrap();
-    pool.install(|| run(n, w, h));
+    pool.install(|| run(n, w, h, iters));
 }
 
 /// xorshift for a reproducible scene.
@@ -31,7 +32,7 @@ impl Rng {
     }
 }
 
-fn run(n: usize, w: u32, h: u32) {
+fn run(n: usize, w: u32, h: u32, iters: usize) {
     let mut r = Rng(0x1234_5678_9abc_def1);
     let f = 0.8 * w as f64;
     let (mut means, mut quats, mut scales, mut ops, mut cols) =
@@ -73,7 +74,7 @@ fn run(n: usize, w: u32, h: u32) {
         vec![0f32; 3 * n],
     );
     let (vi, va, vd) = (vec![1f32; 3 * npix], vec![1f32; npix], vec![0f32; npix]);
-    for it in 0..6 {
+    for it in 0..iters {
         let t0 = Instant::now();
         project_forward(
             &Gaussians {
@@ -143,7 +144,7 @@ fn run(n: usize, w: u32, h: u32) {
         .unwrap();
         let t4 = Instant::now();
         let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
-        if it >= 2 {
+        if it >= iters.saturating_sub(4) {
             println!(
                 "project {:.1} ms | bins {:.1} ms | forward (incl. bins) {:.1} ms | backward {:.1} ms | {c:?}",
                 ms(t0, t1),

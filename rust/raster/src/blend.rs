@@ -19,7 +19,9 @@
 
 use crate::bins::{SharedMut, TileBins};
 use crate::error::{check_finite, check_len, RasterError, Result};
-use crate::lanes::{self, Limits, RowSplat, LANES, TILE_PIXELS};
+use crate::lanes::{
+    self, BackwardPixels, ForwardPixels, Limits, RowMasks, RowSplat, LANES, TILE_PIXELS,
+};
 use crate::real::Real;
 use crate::TILE_SIZE;
 use rayon::prelude::*;
@@ -242,38 +244,86 @@ struct TileSplat {
     cb: f32,
     cc: f32,
     op: f32,
-    /// Largest sigma with alpha >= 1/255: ln(255 op).
-    smax: f32,
+    /// Whether the conic is positive definite (else no row culling).
+    chord: bool,
+    /// `2 a smax`, with smax = ln(255 op) the largest sigma where alpha >= 1/255.
+    two_a_s: f64,
+    /// `a c - b^2`.
+    det: f64,
+    /// `1 / a`.
+    inv_a: f64,
+    /// Row halves its support's bounding box reaches (see [`row_halves`]).
+    halves: [bool; 2],
     y0: u32,
     y1: u32,
 }
 
 /// Which halves of a tile row (lanes 0-7, 8-15) can hold a pixel where splat `g` has
-/// alpha >= 1/255: the row `dy` cuts the support ellipse `sigma <= smax` in the chord
-/// `dx = (-b dy +- sqrt(2 a smax - det dy^2)) / a`. Conservative (padded) and exact where it
-/// matters: a skipped lane would have been skipped by the alpha test anyway.
+/// alpha >= 1/255: those its support's bounding box reaches, narrowed for wide splats to the
+/// chord `dx = (-b dy +- sqrt(2 a smax - det dy^2)) / a` the row cuts from the support
+/// ellipse `sigma <= smax`. (Rows outside the ellipse's vertical extent are never visited.)
+/// Conservative (padded): a skipped lane would have been skipped by the alpha test anyway.
 #[inline(always)]
 fn row_halves(g: &TileSplat, dy: f32, px0: u32) -> [bool; 2] {
-    let (a, b, c, s) = (g.ca as f64, g.cb as f64, g.cc as f64, g.smax as f64);
-    let det = a * c - b * b;
-    if !(a > 0.0 && det > 0.0) {
-        return [true, true];
+    if !(g.chord && g.halves[0] && g.halves[1]) {
+        return g.halves;
     }
     let dy = dy as f64;
-    let disc = 2.0 * a * s - det * dy * dy;
-    let tol = 1e-4 * (2.0 * a * s + det * dy * dy) + 1e-12;
-    if disc < -tol {
-        return [false, false];
-    }
-    let half = disc.max(0.0).sqrt() / a;
-    let centre = g.mx as f64 - b * dy / a;
-    let margin = 1e-2 + 1e-4 * (half + centre.abs());
+    let disc = g.two_a_s - g.det * dy * dy;
+    let half = disc.max(0.0).sqrt() * g.inv_a;
+    let centre = g.mx as f64 - g.cb as f64 * dy * g.inv_a;
+    let margin =
+        1e-2 + 1e-4 * (half + centre.abs()) + 1e-2 * (g.two_a_s * g.inv_a * g.inv_a).sqrt();
     let (lo, hi) = (centre - half - margin, centre + half + margin);
     let x0 = px0 as f64 + 0.5;
     [
         hi >= x0 && lo <= x0 + 7.0,
         hi >= x0 + 8.0 && lo <= x0 + 15.0,
     ]
+}
+
+impl TileSplat {
+    /// The fields the row kernels need.
+    #[inline(always)]
+    fn row_splat(&self) -> RowSplat {
+        RowSplat {
+            mx: self.mx,
+            my: self.my,
+            ca: self.ca,
+            cb: self.cb,
+            cc: self.cc,
+            op: self.op,
+        }
+    }
+}
+
+/// Row masks of splat `g` in this tile: for its rows, the halves its support reaches (see
+/// [`row_halves`]); in the backward (`half_last` given) only halves where some pixel's last
+/// contributor lies behind list index `k`.
+#[inline(always)]
+fn row_masks(
+    g: &TileSplat,
+    geom: TileGeom,
+    half_last: Option<&[u32; 2 * LANES]>,
+    k: u32,
+) -> RowMasks {
+    let mut m = [0u8; LANES];
+    for py in g.y0..g.y1 {
+        let dy = (geom.py0 + py) as f32 + 0.5 - g.my;
+        let h = row_halves(g, dy, geom.px0);
+        let mut bits = u8::from(h[0]) | (u8::from(h[1]) << 1);
+        if let Some(hl) = half_last {
+            let i = 2 * py as usize;
+            if k >= hl[i] {
+                bits &= !1;
+            }
+            if k >= hl[i + 1] {
+                bits &= !2;
+            }
+        }
+        m[py as usize] = bits;
+    }
+    m
 }
 
 /// Per-worker scratch, allocated once per rayon job (never per pixel). Per-pixel arrays are
@@ -289,6 +339,8 @@ struct Scratch {
     vc: Vec<f32>,
     tail: Vec<f32>,
     vr: Vec<f32>,
+    gfl: Vec<[f32; LANES]>,
+    gout: Vec<f32>,
 }
 
 impl Scratch {
@@ -303,6 +355,8 @@ impl Scratch {
             vc: vec![0.0; TILE_PIXELS * c1],
             tail: vec![0.0; TILE_PIXELS],
             vr: vec![0.0; TILE_PIXELS],
+            gfl: vec![[0.0; LANES]; c1],
+            gout: vec![0.0; 6 + c1],
         }
     }
 }
@@ -399,6 +453,22 @@ fn gather(s: &mut Scratch, ids: &[u32], packed: &[f32], geom: TileGeom, c1: usiz
             let n = geom.h as f64;
             (lo.clamp(0.0, n) as u32, hi.clamp(0.0, n) as u32)
         };
+        let (a, b, c) = (rec[2] as f64, rec[3] as f64, rec[4] as f64);
+        let det = a * c - b * b;
+        let chord = a > 0.0 && det > 0.0;
+        let smax = rec[6] as f64;
+        // Horizontal half-extent of the support: sqrt(2 smax Sxx), Sxx = c / det, padded.
+        let halves = if chord && e >= 0.0 {
+            let ex = (2.0 * smax * c / det).max(0.0).sqrt() * (1.0 + 1e-4) + 1e-2;
+            let (lo, hi) = (rec[0] as f64 - ex, rec[0] as f64 + ex);
+            let x0 = geom.px0 as f64 + 0.5;
+            [
+                hi >= x0 && lo <= x0 + 7.0,
+                hi >= x0 + 8.0 && lo <= x0 + 15.0,
+            ]
+        } else {
+            [true, true]
+        };
         s.splats[j] = TileSplat {
             mx: rec[0],
             my,
@@ -406,7 +476,11 @@ fn gather(s: &mut Scratch, ids: &[u32], packed: &[f32], geom: TileGeom, c1: usiz
             cb: rec[3],
             cc: rec[4],
             op: rec[5],
-            smax: rec[6],
+            chord,
+            two_a_s: 2.0 * a * smax,
+            det,
+            inv_a: 1.0 / a,
+            halves,
             y0,
             y1,
         };
@@ -461,44 +535,33 @@ fn forward_tile<const K: usize, const AVX: bool>(
                 continue;
             }
             let k1 = (start + j + 1) as u32;
+            let rows = row_masks(&g, geom, None, 0);
+            let rs = g.row_splat();
             let f = &s.feats[j * c1..(j + 1) * c1];
-            for py in g.y0..g.y1 {
-                let rs = RowSplat {
-                    mx: g.mx,
-                    dy: (geom.py0 + py) as f32 + 0.5 - g.my,
-                    ca: g.ca,
-                    cb: g.cb,
-                    cc: g.cc,
-                    op: g.op,
-                };
-                let halves = row_halves(&g, rs.dy, geom.px0);
-                if !(halves[0] || halves[1]) {
-                    continue;
-                }
-                let row = (py * TILE_SIZE) as usize;
-                let t_row: &mut [f32; LANES] = (&mut s.t[row..row + LANES]).try_into().unwrap();
-                let done: &mut [u32; LANES] = (&mut s.done[row..row + LANES]).try_into().unwrap();
-                let last: &mut [u32; LANES] = (&mut s.last[row..row + LANES]).try_into().unwrap();
-                let (n_eval, n_blend, n_term) = if AVX {
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: AVX is only true when AVX2 was detected at run time.
-                    unsafe {
-                        lanes::avx2::forward_row(
-                            c1, &rs, &lim, halves, k1, &lane_x, f, t_row, done, last, &mut s.acc,
-                            row,
-                        )
-                    }
-                    #[cfg(not(target_arch = "x86_64"))]
-                    unreachable!()
-                } else {
-                    lanes::portable::forward_row(
-                        c1, &rs, &lim, halves, k1, &lane_x, f, t_row, done, last, &mut s.acc, row,
+            let mut px = ForwardPixels {
+                t: &mut s.t,
+                done: &mut s.done,
+                last: &mut s.last,
+                acc: &mut s.acc,
+            };
+            let (n_eval, n_blend, n_term) = if AVX {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: AVX is only true when AVX2 was detected at run time.
+                unsafe {
+                    lanes::avx2::forward_splat::<K>(
+                        c1, &rs, &lim, k1, &lane_x, geom.py0, &rows, f, &mut px,
                     )
-                };
-                evaluated += n_eval as u64;
-                blended += n_blend as u64;
-                n_done += n_term as usize;
-            }
+                }
+                #[cfg(not(target_arch = "x86_64"))]
+                unreachable!()
+            } else {
+                lanes::portable::forward_splat::<K>(
+                    c1, &rs, &lim, k1, &lane_x, geom.py0, &rows, f, &mut px,
+                )
+            };
+            evaluated += n_eval as u64;
+            blended += n_blend as u64;
+            n_done += n_term as usize;
             if n_done >= active {
                 break 'batches;
             }
@@ -697,6 +760,11 @@ fn backward_tile<const K: usize, const AVX: bool>(
     let ids = &inp.bins.ids[range];
     let stride = 6 + c1;
     let max_last = s.last.iter().copied().max().unwrap_or(0) as usize;
+    // Per row half: the furthest last contributor, to skip halves a splat cannot affect.
+    let mut half_last = [0u32; 2 * LANES];
+    for (i, hl) in half_last.iter_mut().enumerate() {
+        *hl = s.last[i * 8..i * 8 + 8].iter().copied().max().unwrap_or(0);
+    }
     // Slots of splats behind every pixel's last contributor get zero.
     for k in max_last..ids.len() {
         for q in 0..stride {
@@ -710,9 +778,9 @@ fn backward_tile<const K: usize, const AVX: bool>(
         t_min: T_MIN as f32,
     };
     let lane_x = geom.lane_x();
-    // Per-lane gradient accumulators: mean x, mean y, conic a, b, c, opacity, then features.
-    let mut gl = [[0.0f32; LANES]; 6];
-    let mut gfl = vec![[0.0f32; LANES]; c1];
+    // Per-lane feature-gradient accumulators and one splat's summed gradient.
+    let mut gfl = std::mem::take(&mut s.gfl);
+    let mut out = std::mem::take(&mut s.gout);
     let mut end = max_last;
     while end > 0 {
         let start = end.saturating_sub(BATCH);
@@ -720,61 +788,40 @@ fn backward_tile<const K: usize, const AVX: bool>(
         for j in (0..end - start).rev() {
             let k = (start + j) as u32;
             let g = s.splats[j];
-            for a in gl.iter_mut() {
-                *a = [0.0; LANES];
-            }
-            for a in gfl.iter_mut() {
-                *a = [0.0; LANES];
-            }
+            let rows = row_masks(&g, geom, Some(&half_last), k);
+            let rs = g.row_splat();
             let f = &s.feats[j * c1..(j + 1) * c1];
-            for py in g.y0..g.y1 {
-                let rs = RowSplat {
-                    mx: g.mx,
-                    dy: (geom.py0 + py) as f32 + 0.5 - g.my,
-                    ca: g.ca,
-                    cb: g.cb,
-                    cc: g.cc,
-                    op: g.op,
-                };
-                let halves = row_halves(&g, rs.dy, geom.px0);
-                if !(halves[0] || halves[1]) {
-                    continue;
-                }
-                let row = (py * TILE_SIZE) as usize;
-                let t_row: &mut [f32; LANES] = (&mut s.t[row..row + LANES]).try_into().unwrap();
-                let vr: &mut [f32; LANES] = (&mut s.vr[row..row + LANES]).try_into().unwrap();
-                let tail: &[f32; LANES] = (&s.tail[row..row + LANES]).try_into().unwrap();
-                let last: &[u32; LANES] = (&s.last[row..row + LANES]).try_into().unwrap();
-                if AVX {
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: AVX is only true when AVX2 was detected at run time.
-                    unsafe {
-                        lanes::avx2::backward_row(
-                            c1, &rs, &lim, halves, k, &lane_x, f, t_row, vr, tail, last, &s.vc,
-                            row, &mut gl, &mut gfl,
-                        )
-                    }
-                } else {
-                    lanes::portable::backward_row(
-                        c1, &rs, &lim, halves, k, &lane_x, f, t_row, vr, tail, last, &s.vc, row,
-                        &mut gl, &mut gfl,
+            let mut px = BackwardPixels {
+                t: &mut s.t,
+                vr: &mut s.vr,
+                tail: &s.tail,
+                last: &s.last,
+                vc: &s.vc,
+            };
+            let o = &mut out[..stride];
+            if AVX {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: AVX is only true when AVX2 was detected at run time.
+                unsafe {
+                    lanes::avx2::backward_splat::<K>(
+                        c1, &rs, &lim, k, &lane_x, geom.py0, &rows, f, &mut px, &mut gfl, o,
                     )
                 }
+            } else {
+                lanes::portable::backward_splat::<K>(
+                    c1, &rs, &lim, k, &lane_x, geom.py0, &rows, f, &mut px, &mut gfl, o,
+                )
             }
-            let o = (base + k as usize) * stride;
-            let hsum = |a: &[f32; LANES]| a.iter().sum::<f32>();
-            // SAFETY: slot `base + k` belongs to this tile only.
-            unsafe {
-                for q in 0..6 {
-                    slots.write(o + q, hsum(&gl[q]));
-                }
-                for c in 0..c1 {
-                    slots.write(o + 6 + c, hsum(&gfl[c]));
-                }
+            let base_slot = (base + k as usize) * stride;
+            for (q, v) in o.iter().enumerate() {
+                // SAFETY: slot `base + k` belongs to this tile only.
+                unsafe { slots.write(base_slot + q, *v) };
             }
         }
         end = start;
     }
+    s.gfl = gfl;
+    s.gout = out;
 }
 
 /// [`backward_tile`] compiled with AVX2 enabled.
