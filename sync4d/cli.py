@@ -81,7 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=_positive_int,
         metavar="N",
         default=None,
-        help="scene sizes as Gaussian counts, e.g. --sizes 1000 10000 (default: the bench's set)",
+        help="scene sizes as Gaussian counts, e.g. --sizes 1000 10000 "
+        "(default: 10000 100000 1000000)",
     )
     raster.add_argument(
         "--resolutions",

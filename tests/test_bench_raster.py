@@ -116,5 +116,17 @@ def test_watchdog_kills_a_child_over_its_memory_limit() -> None:
         modes=["forward"], warmup=0, repeats=1, memory_method="subprocess",
     )  # fmt: skip
     outcome = bench.run_child(job, limit_gb=0.05)  # importing torch alone passes 50 MiB
-    assert outcome.status.startswith("aborted (RSS > 0.1 GB")
+    assert outcome.status == "aborted (RSS > 0.05 GB limit)"
     assert outcome.result is None
+
+
+def test_run_job_structure() -> None:
+    """What a child process returns (run here in-process, ru_maxrss flavour)."""
+    res = bench.run_job(
+        impl="sync4d", n=300, width=32, height=24, seed=0, threads=1,
+        modes=["forward_backward"], warmup=0, repeats=2, memory_method="subprocess",
+    )  # fmt: skip
+    t = res["modes"]["forward_backward"]
+    assert set(t) == set(bench.Timing.__dataclass_fields__)
+    assert len(t["times_ms"]) == 2 and t["rss_peak_mb"] > 0
+    assert res["counters"]["visible"] > 0  # counters are filled even without a forward mode

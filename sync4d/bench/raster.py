@@ -505,7 +505,7 @@ def run_child(
                     rss_kb = _proc_status_kb(proc.pid).get("VmRSS", 0) if execed else 0
                     max_rss_kb = max(max_rss_kb, rss_kb)
                     if limit_gb is not None and rss_kb > limit_gb * 1024 * 1024:
-                        status = f"aborted (RSS > {limit_gb:.1f} GB limit)"
+                        status = f"aborted (RSS > {limit_gb:.3g} GB limit)"
                         break
                     if time.monotonic() - t0 > timeout_s:
                         status = f"aborted (timeout {timeout_s:.0f} s)"
