@@ -726,7 +726,8 @@ def format_table(rows: list[dict[str, Any]]) -> str:
         "ref f+b ms",
         "ref peak MB",
         "speed-up",
-        "mem ratio",
+        "op mem ratio",
+        "RSS ratio",
         "visible",
         "isects",
         "evaluated",
@@ -754,6 +755,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
                 _fmt_mb(s4d.get("forward_backward")),
                 *ref_cells,
                 _fmt_ratio(r.get("speedup_forward_backward")),
+                _fmt_ratio(r.get("memory_delta_ratio")),
                 _fmt_ratio(r.get("memory_ratio")),
                 *(_fmt_count(counters.get(k)) for k in ("visible", "intersections")),
                 *(_fmt_count(counters.get(k)) for k in ("evaluated", "blended")),
@@ -1100,9 +1102,11 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     print()
     print(format_table(rows))
     print(
-        "\nms: median wall time; peak MB: peak RSS of the process during fwd+bwd (+ growth over "
-        "the RSS before it);\nspeed-up: reference fwd+bwd / sync4d fwd+bwd; mem ratio: reference "
-        "peak / sync4d peak;\ncounters: sync4d forward work (visible Gaussians, tile "
+        "\nms: median wall time; peak MB: peak RSS of the process during fwd+bwd (+ growth "
+        "over the RSS before it);\nspeed-up: reference fwd+bwd / sync4d fwd+bwd; op mem ratio: "
+        "reference growth / sync4d growth\n(the memory each op adds on top of the Python + torch "
+        "process); RSS ratio: reference peak RSS / sync4d peak RSS;\ncounters: sync4d forward "
+        "work (visible Gaussians, tile "
         "intersections, evaluated and blended pairs)."
     )
     disturbed = [
