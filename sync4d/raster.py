@@ -126,10 +126,6 @@ def _grad_or_zeros(g: Tensor | None, like: Tensor) -> np.ndarray:
     return _np(torch.zeros_like(like) if g is None else g.to(like.dtype))
 
 
-def _suffix(dtype: torch.dtype) -> str:
-    return "f32" if dtype == torch.float32 else "f64"
-
-
 # --------------------------------------------------------------------------------------------
 # Stage 1: projection.
 # --------------------------------------------------------------------------------------------
@@ -151,7 +147,7 @@ class Projection:
 class _ProjectFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, cam: _Camera, settings, threads):  # type: ignore[override]
-        fn = getattr(_core, f"project_forward_{_suffix(means.dtype)}")
+        fn = _core.project_forward
         m2, co, de, op, ra, _visible = fn(
             _np(means), _np(quats), _np(scales), _np(opacities),
             cam.viewmat, cam.intrinsics, cam.width, cam.height, settings, threads,
@@ -177,7 +173,7 @@ class _ProjectFn(torch.autograd.Function):
         like3 = means.new_empty(n, 3)
         like1 = means.new_empty(n)
         cam = ctx.cam
-        fn = getattr(_core, f"project_backward_{_suffix(means.dtype)}")
+        fn = _core.project_backward
         gm, gq, gs, go = fn(
             _np(means), _np(quats), _np(scales), _np(opacities),
             cam.viewmat, cam.intrinsics, cam.width, cam.height, ctx.settings,
@@ -253,24 +249,36 @@ class _ContextPool:
 _POOL = _ContextPool()
 
 
+class _Lease:
+    """Owns one context for the lifetime of an autograd node and returns it to the pool when
+    the node is freed, so a retained graph can run its backward again safely."""
+
+    __slots__ = ("context",)
+
+    def __init__(self, context: _core.RasterContext) -> None:
+        self.context = context
+
+    def __del__(self) -> None:
+        try:
+            _POOL.put(self.context)
+        except Exception:  # interpreter shutdown: nothing to return to
+            pass
+
+
 class _RasterizeFn(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, depths, opacities, features, radii, background, opts, info):  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx, means2d, conics, depths, opacities, features, radii, background, opts, info
+    ):
         width, height, alpha_max, threads = opts
         n, ch = features.shape
         splats = (_np(means2d), _np(conics), _np(depths), _np(opacities), _np(radii), _np(features))
-        bg = _np(background)
-        if features.dtype == torch.float32:
-            rc = _POOL.get()
-            f, a, d, counters = rc.forward(splats, ch, bg, width, height, alpha_max, threads)
-            if any(ctx.needs_input_grad[:5]):
-                ctx.raster_context = rc
-            else:
-                _POOL.put(rc)
-        else:
-            f, a, d, counters = _core.rasterize_forward_f64(
-                splats, ch, bg, width, height, alpha_max, threads
-            )
+        lease = _Lease(_POOL.get())
+        f, a, d, counters = lease.context.forward(
+            splats, ch, _np(background), width, height, alpha_max, threads
+        )
+        if any(ctx.needs_input_grad[:5]):
+            ctx.lease = lease
         info.update(counters)
         ctx.save_for_backward(means2d, conics, depths, opacities, features, radii, background)
         ctx.opts = opts
@@ -293,17 +301,9 @@ class _RasterizeFn(torch.autograd.Function):
             _grad_or_zeros(v_a, like_1),
             _grad_or_zeros(v_d, like_1),
         )
-        bg = _np(background)
-        if features.dtype == torch.float32:
-            rc = ctx.raster_context
-            out = rc.backward(splats, ch, bg, width, height, alpha_max, grads, threads)
-            _POOL.put(rc)
-            ctx.raster_context = None
-        else:
-            out = _core.rasterize_backward_f64(
-                splats, ch, bg, width, height, alpha_max, grads, threads
-            )
-        g2, gc, gd, go, gf = out
+        g2, gc, gd, go, gf = ctx.lease.context.backward(
+            splats, ch, _np(background), width, height, alpha_max, grads, threads
+        )
         return (
             torch.from_numpy(g2).reshape(n, 2),
             torch.from_numpy(gc).reshape(n, 3),
@@ -426,7 +426,7 @@ class _ShFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, degree, dirs, coeffs, threads):  # type: ignore[override]
         n, k, c = coeffs.shape
-        fn = getattr(_core, f"sh_forward_{_suffix(dirs.dtype)}")
+        fn = _core.sh_forward
         out = fn(degree, _np(dirs), _np(coeffs), k, c, threads)
         ctx.save_for_backward(dirs, coeffs)
         ctx.degree, ctx.threads = degree, threads
@@ -436,7 +436,7 @@ class _ShFn(torch.autograd.Function):
     def backward(ctx, v_out):  # type: ignore[override]
         dirs, coeffs = ctx.saved_tensors
         n, k, c = coeffs.shape
-        fn = getattr(_core, f"sh_backward_{_suffix(dirs.dtype)}")
+        fn = _core.sh_backward
         vd, vc = fn(
             ctx.degree, _np(dirs), _np(coeffs), k, c, _np(v_out.to(dirs.dtype)), ctx.threads
         )

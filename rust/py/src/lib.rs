@@ -7,11 +7,44 @@ use numpy::{Element, PyArray1, PyArrayMethods, PyReadonlyArrayDyn};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
+use pyo3::BoundObject;
 use std::collections::HashMap;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, Mutex, OnceLock};
 use sync4d_raster::real::Real;
 use sync4d_raster::{self as core, RasterError};
+
+/// Call `$body` with the type alias `$T` bound to the element type of array `$probe`
+/// (float32 or float64), so one generic implementation serves both dtypes.
+macro_rules! with_float_type {
+    ($probe:expr, $arg:literal, |$T:ident| $body:expr) => {{
+        if $probe.downcast::<numpy::PyArrayDyn<f32>>().is_ok() {
+            #[allow(dead_code)]
+            type $T = f32;
+            $body
+        } else if $probe.downcast::<numpy::PyArrayDyn<f64>>().is_ok() {
+            #[allow(dead_code)]
+            type $T = f64;
+            $body
+        } else {
+            Err(PyValueError::new_err(concat!(
+                $arg,
+                ": expected a float32 or float64 array"
+            )))
+        }
+    }};
+}
+
+/// Any Python object holding a NumPy array.
+type AnyArr<'py> = Bound<'py, PyAny>;
+
+/// Convert a Rust result into a Python object.
+fn to_object<'py, V: IntoPyObject<'py>>(py: Python<'py>, v: V) -> PyResult<PyObject>
+where
+    PyErr: From<V::Error>,
+{
+    Ok(v.into_pyobject(py)?.into_any().unbind())
+}
 
 /// Rayon pools by thread count, built once and reused (0 = rayon's global pool).
 fn pool(threads: usize) -> PyResult<Option<Arc<rayon::ThreadPool>>> {
@@ -213,95 +246,6 @@ fn project_bwd<'py, T: Real + Element>(
     Ok((gm, gq, gs, go))
 }
 
-/// Project Gaussians (float32). Returns (means2d, conics, depths, opacities, radii, visible) as
-/// flat arrays.
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn project_forward_f32<'py>(
-    py: Python<'py>,
-    means: Arr<'py, f32>,
-    quats: Arr<'py, f32>,
-    scales: Arr<'py, f32>,
-    opacities: Arr<'py, f32>,
-    viewmat: Vec<f64>,
-    intrinsics: (f64, f64, f64, f64),
-    width: u32,
-    height: u32,
-    settings: (f64, f64, f64, bool),
-    threads: usize,
-) -> PyResult<ProjOut<'py, f32>> {
-    project_fwd(
-        py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, threads,
-    )
-}
-
-/// Project Gaussians (float64, for gradient checks). Same outputs as `project_forward_f32`.
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn project_forward_f64<'py>(
-    py: Python<'py>,
-    means: Arr<'py, f64>,
-    quats: Arr<'py, f64>,
-    scales: Arr<'py, f64>,
-    opacities: Arr<'py, f64>,
-    viewmat: Vec<f64>,
-    intrinsics: (f64, f64, f64, f64),
-    width: u32,
-    height: u32,
-    settings: (f64, f64, f64, bool),
-    threads: usize,
-) -> PyResult<ProjOut<'py, f64>> {
-    project_fwd(
-        py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, threads,
-    )
-}
-
-/// Backward of the projection (float32): returns dL/d(means, quats, scales, opacities).
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn project_backward_f32<'py>(
-    py: Python<'py>,
-    means: Arr<'py, f32>,
-    quats: Arr<'py, f32>,
-    scales: Arr<'py, f32>,
-    opacities: Arr<'py, f32>,
-    viewmat: Vec<f64>,
-    intrinsics: (f64, f64, f64, f64),
-    width: u32,
-    height: u32,
-    settings: (f64, f64, f64, bool),
-    grads: (Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>),
-    threads: usize,
-) -> PyResult<Grads4<'py, f32>> {
-    project_bwd(
-        py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, grads,
-        threads,
-    )
-}
-
-/// Backward of the projection (float64).
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn project_backward_f64<'py>(
-    py: Python<'py>,
-    means: Arr<'py, f64>,
-    quats: Arr<'py, f64>,
-    scales: Arr<'py, f64>,
-    opacities: Arr<'py, f64>,
-    viewmat: Vec<f64>,
-    intrinsics: (f64, f64, f64, f64),
-    width: u32,
-    height: u32,
-    settings: (f64, f64, f64, bool),
-    grads: (Arr<'py, f64>, Arr<'py, f64>, Arr<'py, f64>, Arr<'py, f64>),
-    threads: usize,
-) -> PyResult<Grads4<'py, f64>> {
-    project_bwd(
-        py, means, quats, scales, opacities, viewmat, intrinsics, width, height, settings, grads,
-        threads,
-    )
-}
-
 /// Splat inputs borrowed from NumPy.
 fn splats_of<'a, T: Element>(
     a: &'a SplatArrs<'_, T>,
@@ -335,7 +279,6 @@ type SplatArrs<'py, T> = (
     Arr<'py, i32>,
     Arr<'py, T>,
 );
-type ImageOut<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>);
 type SplatGradOut<'py, T> = (
     Out<'py, T>,
     Out<'py, T>,
@@ -384,27 +327,96 @@ impl RasterContext {
         }
     }
 
-    /// Composite splats (float32). `splats` = (means2d, conics, depths, opacities, radii,
-    /// features) flat arrays; returns (features H*W*C, alpha H*W, depth_accum H*W, counters).
+    /// Composite splats: `splats` = (means2d, conics, depths, opacities, radii, features) flat
+    /// arrays, float32 (fast path) or float64 (reference). Returns (features H*W*C, alpha H*W,
+    /// depth_accum H*W, counters).
     #[allow(clippy::too_many_arguments)]
     fn forward<'py>(
         &self,
         py: Python<'py>,
-        splats: SplatArrs<'py, f32>,
+        splats: SplatAny<'py>,
         channels: usize,
-        background: Arr<'py, f32>,
+        background: AnyArr<'py>,
         width: u32,
         height: u32,
         alpha_max: f64,
         threads: usize,
-    ) -> PyResult<ImageResult<'py, f32>> {
-        let sp = splats_of(&splats, channels)?;
+    ) -> PyResult<PyObject> {
+        with_float_type!(splats.0, "means2d", |T| {
+            let arrs = extract_splats::<T>(&splats)?;
+            let out = self.forward_typed::<T>(
+                py,
+                &arrs,
+                channels,
+                background.extract()?,
+                width,
+                height,
+                alpha_max,
+                threads,
+            )?;
+            to_object(py, out)
+        })
+    }
+
+    /// Backward of `forward`: returns dL/d(means2d, conics, depths, opacities, features).
+    /// Inputs must be the forward's.
+    #[allow(clippy::too_many_arguments)]
+    fn backward<'py>(
+        &self,
+        py: Python<'py>,
+        splats: SplatAny<'py>,
+        channels: usize,
+        background: AnyArr<'py>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        grads: (AnyArr<'py>, AnyArr<'py>, AnyArr<'py>),
+        threads: usize,
+    ) -> PyResult<PyObject> {
+        with_float_type!(splats.0, "means2d", |T| {
+            let arrs = extract_splats::<T>(&splats)?;
+            let g = (grads.0.extract()?, grads.1.extract()?, grads.2.extract()?);
+            let out = self.backward_typed::<T>(
+                py,
+                &arrs,
+                channels,
+                background.extract()?,
+                width,
+                height,
+                alpha_max,
+                g,
+                threads,
+            )?;
+            to_object(py, out)
+        })
+    }
+
+    /// Bytes held by this context's reusable buffers.
+    fn nbytes(&self) -> usize {
+        self.state.lock().map(|s| s.bytes()).unwrap_or(0)
+    }
+}
+
+impl RasterContext {
+    #[allow(clippy::too_many_arguments)]
+    fn forward_typed<'py, T: core::Composite + Element>(
+        &self,
+        py: Python<'py>,
+        splats: &SplatArrs<'py, T>,
+        channels: usize,
+        background: Arr<'py, T>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        threads: usize,
+    ) -> PyResult<ImageResult<'py, T>> {
+        let sp = splats_of(splats, channels)?;
         let bg = flat(&background, "background")?;
         let npix = width as usize * height as usize;
         let (f, a, d) = (
-            zeros::<f32>(py, npix * channels),
-            zeros::<f32>(py, npix),
-            zeros::<f32>(py, npix),
+            zeros::<T>(py, npix * channels),
+            zeros::<T>(py, npix),
+            zeros::<T>(py, npix),
         );
         let out = core::ImageMut {
             features: slice_mut(&f),
@@ -415,108 +427,63 @@ impl RasterContext {
         let state = &self.state;
         let counters = run(py, threads, || {
             let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
-            core::rasterize_forward(&sp, width, height, bg, &bs, &mut st, out)
+            T::composite_forward(&sp, width, height, bg, &bs, &mut st, out)
         })?;
         Ok((f, a, d, counters_dict(py, counters)?))
     }
 
-    /// Backward of `forward` (float32): returns dL/d(means2d, conics, depths, opacities,
-    /// features). Inputs must be the forward's.
     #[allow(clippy::too_many_arguments)]
-    fn backward<'py>(
+    fn backward_typed<'py, T: core::Composite + Element>(
         &self,
         py: Python<'py>,
-        splats: SplatArrs<'py, f32>,
+        splats: &SplatArrs<'py, T>,
         channels: usize,
-        background: Arr<'py, f32>,
+        background: Arr<'py, T>,
         width: u32,
         height: u32,
         alpha_max: f64,
-        grads: (Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>),
+        grads: (Arr<'py, T>, Arr<'py, T>, Arr<'py, T>),
         threads: usize,
-    ) -> PyResult<SplatGradOut<'py, f32>> {
-        let sp = splats_of(&splats, channels)?;
+    ) -> PyResult<SplatGradOut<'py, T>> {
+        let sp = splats_of(splats, channels)?;
         let bg = flat(&background, "background")?;
         let v = core::ImageGrads {
             features: flat(&grads.0, "grad_features")?,
             alpha: flat(&grads.1, "grad_alpha")?,
             depth: flat(&grads.2, "grad_depth")?,
         };
-        let out = alloc_splat_grads::<f32>(py, sp.len(), channels);
+        let out = alloc_splat_grads::<T>(py, sp.len(), channels);
         let g = splat_grads_mut(&out);
         let bs = core::BlendSettings { alpha_max };
         let state = &self.state;
         run(py, threads, || {
             let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
-            core::rasterize_backward(&sp, width, height, bg, &bs, &mut st, &v, g)
+            T::composite_backward(&sp, width, height, bg, &bs, &mut st, &v, g)
         })?;
         Ok(out)
     }
-
-    /// Bytes held by this context's reusable buffers.
-    fn nbytes(&self) -> usize {
-        self.state.lock().map(|s| s.bytes()).unwrap_or(0)
-    }
 }
 
-/// Reference compositor (float64, brute force per pixel): same outputs as
-/// `RasterContext.forward`.
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn rasterize_forward_f64<'py>(
-    py: Python<'py>,
-    splats: SplatArrs<'py, f64>,
-    channels: usize,
-    background: Arr<'py, f64>,
-    width: u32,
-    height: u32,
-    alpha_max: f64,
-    threads: usize,
-) -> PyResult<ImageResult<'py, f64>> {
-    let sp = splats_of(&splats, channels)?;
-    let bg = flat(&background, "background")?;
-    let npix = width as usize * height as usize;
-    let out: ImageOut<'py, f64> = (zeros(py, npix * channels), zeros(py, npix), zeros(py, npix));
-    let img = core::ImageMut {
-        features: slice_mut(&out.0),
-        alpha: slice_mut(&out.1),
-        depth: slice_mut(&out.2),
-    };
-    let bs = core::BlendSettings { alpha_max };
-    let c = run(py, threads, || {
-        core::rasterize_forward_reference(&sp, width, height, bg, &bs, img)
-    })?;
-    Ok((out.0, out.1, out.2, counters_dict(py, c)?))
-}
+/// Splat arrays of unknown dtype: (means2d, conics, depths, opacities, radii, features).
+type SplatAny<'py> = (
+    AnyArr<'py>,
+    AnyArr<'py>,
+    AnyArr<'py>,
+    AnyArr<'py>,
+    AnyArr<'py>,
+    AnyArr<'py>,
+);
 
-/// Backward of the reference compositor (float64).
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn rasterize_backward_f64<'py>(
-    py: Python<'py>,
-    splats: SplatArrs<'py, f64>,
-    channels: usize,
-    background: Arr<'py, f64>,
-    width: u32,
-    height: u32,
-    alpha_max: f64,
-    grads: (Arr<'py, f64>, Arr<'py, f64>, Arr<'py, f64>),
-    threads: usize,
-) -> PyResult<SplatGradOut<'py, f64>> {
-    let sp = splats_of(&splats, channels)?;
-    let bg = flat(&background, "background")?;
-    let v = core::ImageGrads {
-        features: flat(&grads.0, "grad_features")?,
-        alpha: flat(&grads.1, "grad_alpha")?,
-        depth: flat(&grads.2, "grad_depth")?,
-    };
-    let out = alloc_splat_grads::<f64>(py, sp.len(), channels);
-    let g = splat_grads_mut(&out);
-    let bs = core::BlendSettings { alpha_max };
-    run(py, threads, || {
-        core::rasterize_backward_reference(&sp, width, height, bg, &bs, &v, g)
-    })?;
-    Ok(out)
+/// Borrow splat arrays as element type `T` (radii as int32).
+fn extract_splats<'py, T: Element>(s: &SplatAny<'py>) -> PyResult<SplatArrs<'py, T>> {
+    Ok((
+        s.0.extract()?,
+        s.1.extract()?,
+        s.2.extract()?,
+        s.3.extract()?,
+        s.4.extract()?,
+        s.5.extract()?,
+    ))
 }
 
 fn sh_fwd<'py, T: Real + Element>(
@@ -560,64 +527,134 @@ fn sh_bwd<'py, T: Real + Element>(
     Ok((vd, vc))
 }
 
-/// Spherical-harmonics colours (float32): dirs N*3, coeffs N*K*C → N*C.
-#[pyfunction]
-fn sh_forward_f32<'py>(
-    py: Python<'py>,
-    degree: u32,
-    dirs: Arr<'py, f32>,
-    coeffs: Arr<'py, f32>,
-    bases: usize,
-    channels: usize,
-    threads: usize,
-) -> PyResult<Out<'py, f32>> {
-    sh_fwd(py, degree, dirs, coeffs, bases, channels, threads)
-}
-
-/// Spherical-harmonics colours (float64).
-#[pyfunction]
-fn sh_forward_f64<'py>(
-    py: Python<'py>,
-    degree: u32,
-    dirs: Arr<'py, f64>,
-    coeffs: Arr<'py, f64>,
-    bases: usize,
-    channels: usize,
-    threads: usize,
-) -> PyResult<Out<'py, f64>> {
-    sh_fwd(py, degree, dirs, coeffs, bases, channels, threads)
-}
-
-/// Backward of the SH evaluation (float32): returns (dL/d dirs, dL/d coeffs).
+/// Project Gaussians (float32: fast path; float64: for gradient checks). Returns (means2d,
+/// conics, depths, opacities, radii, visible) as flat arrays.
 #[pyfunction]
 #[allow(clippy::too_many_arguments)]
-fn sh_backward_f32<'py>(
+fn project_forward<'py>(
     py: Python<'py>,
-    degree: u32,
-    dirs: Arr<'py, f32>,
-    coeffs: Arr<'py, f32>,
-    bases: usize,
-    channels: usize,
-    grad_out: Arr<'py, f32>,
+    means: AnyArr<'py>,
+    quats: AnyArr<'py>,
+    scales: AnyArr<'py>,
+    opacities: AnyArr<'py>,
+    viewmat: Vec<f64>,
+    intrinsics: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+    settings: (f64, f64, f64, bool),
     threads: usize,
-) -> PyResult<(Out<'py, f32>, Out<'py, f32>)> {
-    sh_bwd(py, degree, dirs, coeffs, bases, channels, grad_out, threads)
+) -> PyResult<PyObject> {
+    with_float_type!(means, "means", |T| {
+        let out = project_fwd::<T>(
+            py,
+            means.extract()?,
+            quats.extract()?,
+            scales.extract()?,
+            opacities.extract()?,
+            viewmat,
+            intrinsics,
+            width,
+            height,
+            settings,
+            threads,
+        )?;
+        to_object(py, out)
+    })
 }
 
-/// Backward of the SH evaluation (float64).
+/// Backward of the projection: returns dL/d(means, quats, scales, opacities).
 #[pyfunction]
 #[allow(clippy::too_many_arguments)]
-fn sh_backward_f64<'py>(
+fn project_backward<'py>(
+    py: Python<'py>,
+    means: AnyArr<'py>,
+    quats: AnyArr<'py>,
+    scales: AnyArr<'py>,
+    opacities: AnyArr<'py>,
+    viewmat: Vec<f64>,
+    intrinsics: (f64, f64, f64, f64),
+    width: u32,
+    height: u32,
+    settings: (f64, f64, f64, bool),
+    grads: (AnyArr<'py>, AnyArr<'py>, AnyArr<'py>, AnyArr<'py>),
+    threads: usize,
+) -> PyResult<PyObject> {
+    with_float_type!(means, "means", |T| {
+        let g = (
+            grads.0.extract()?,
+            grads.1.extract()?,
+            grads.2.extract()?,
+            grads.3.extract()?,
+        );
+        let out = project_bwd::<T>(
+            py,
+            means.extract()?,
+            quats.extract()?,
+            scales.extract()?,
+            opacities.extract()?,
+            viewmat,
+            intrinsics,
+            width,
+            height,
+            settings,
+            g,
+            threads,
+        )?;
+        to_object(py, out)
+    })
+}
+
+/// Spherical-harmonics colours: dirs N*3, coeffs N*K*C (float32 or float64) → N*C.
+#[pyfunction]
+fn sh_forward<'py>(
     py: Python<'py>,
     degree: u32,
-    dirs: Arr<'py, f64>,
-    coeffs: Arr<'py, f64>,
+    dirs: AnyArr<'py>,
+    coeffs: AnyArr<'py>,
     bases: usize,
     channels: usize,
-    grad_out: Arr<'py, f64>,
     threads: usize,
-) -> PyResult<(Out<'py, f64>, Out<'py, f64>)> {
-    sh_bwd(py, degree, dirs, coeffs, bases, channels, grad_out, threads)
+) -> PyResult<PyObject> {
+    with_float_type!(dirs, "dirs", |T| {
+        let out = sh_fwd::<T>(
+            py,
+            degree,
+            dirs.extract()?,
+            coeffs.extract()?,
+            bases,
+            channels,
+            threads,
+        )?;
+        to_object(py, out)
+    })
+}
+
+/// Backward of the SH evaluation: returns (dL/d dirs, dL/d coeffs).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn sh_backward<'py>(
+    py: Python<'py>,
+    degree: u32,
+    dirs: AnyArr<'py>,
+    coeffs: AnyArr<'py>,
+    bases: usize,
+    channels: usize,
+    grad_out: AnyArr<'py>,
+    threads: usize,
+) -> PyResult<PyObject> {
+    with_float_type!(dirs, "dirs", |T| {
+        let out = sh_bwd::<T>(
+            py,
+            degree,
+            dirs.extract()?,
+            coeffs.extract()?,
+            bases,
+            channels,
+            grad_out.extract()?,
+            threads,
+        )?;
+        to_object(py, out)
+    })
 }
 
 /// Number of threads rayon's global pool uses.
@@ -630,16 +667,10 @@ fn default_threads() -> usize {
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RasterContext>()?;
-    m.add_function(wrap_pyfunction!(project_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(project_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(project_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(project_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(rasterize_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(rasterize_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(project_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(project_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(sh_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(sh_backward, m)?)?;
     m.add_function(wrap_pyfunction!(default_threads, m)?)?;
     m.add("TILE_SIZE", core::TILE_SIZE)?;
     Ok(())

@@ -1018,3 +1018,90 @@ pub(crate) fn check_image_size(width: u32, height: u32) -> Result<()> {
     }
     Ok(())
 }
+
+/// Element types the compositor accepts: f32 runs the tiled fast path (keeping what its
+/// backward needs in the state), f64 runs the plain per-pixel reference (state unused). Lets
+/// callers such as the Python bindings write one generic path for both.
+pub trait Composite: Real {
+    /// Forward compositing; see [`rasterize_forward`].
+    fn composite_forward(
+        splats: &Splats<'_, Self>,
+        width: u32,
+        height: u32,
+        background: &[Self],
+        settings: &BlendSettings,
+        state: &mut RasterState,
+        out: ImageMut<'_, Self>,
+    ) -> Result<Counters>;
+
+    /// Backward compositing; see [`rasterize_backward`].
+    #[allow(clippy::too_many_arguments)]
+    fn composite_backward(
+        splats: &Splats<'_, Self>,
+        width: u32,
+        height: u32,
+        background: &[Self],
+        settings: &BlendSettings,
+        state: &mut RasterState,
+        v: &ImageGrads<'_, Self>,
+        grads: SplatGradsMut<'_, Self>,
+    ) -> Result<()>;
+}
+
+impl Composite for f32 {
+    fn composite_forward(
+        splats: &Splats<'_, f32>,
+        width: u32,
+        height: u32,
+        background: &[f32],
+        settings: &BlendSettings,
+        state: &mut RasterState,
+        out: ImageMut<'_, f32>,
+    ) -> Result<Counters> {
+        rasterize_forward(splats, width, height, background, settings, state, out)
+    }
+
+    fn composite_backward(
+        splats: &Splats<'_, f32>,
+        width: u32,
+        height: u32,
+        background: &[f32],
+        settings: &BlendSettings,
+        state: &mut RasterState,
+        v: &ImageGrads<'_, f32>,
+        grads: SplatGradsMut<'_, f32>,
+    ) -> Result<()> {
+        rasterize_backward(splats, width, height, background, settings, state, v, grads)
+    }
+}
+
+impl Composite for f64 {
+    fn composite_forward(
+        splats: &Splats<'_, f64>,
+        width: u32,
+        height: u32,
+        background: &[f64],
+        settings: &BlendSettings,
+        _state: &mut RasterState,
+        out: ImageMut<'_, f64>,
+    ) -> Result<Counters> {
+        crate::reference::rasterize_forward_reference(
+            splats, width, height, background, settings, out,
+        )
+    }
+
+    fn composite_backward(
+        splats: &Splats<'_, f64>,
+        width: u32,
+        height: u32,
+        background: &[f64],
+        settings: &BlendSettings,
+        _state: &mut RasterState,
+        v: &ImageGrads<'_, f64>,
+        grads: SplatGradsMut<'_, f64>,
+    ) -> Result<()> {
+        crate::reference::rasterize_backward_reference(
+            splats, width, height, background, settings, v, grads,
+        )
+    }
+}

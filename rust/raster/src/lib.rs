@@ -27,8 +27,8 @@ pub mod reference;
 pub mod sh;
 
 pub use blend::{
-    rasterize_backward, rasterize_forward, BlendSettings, Counters, ImageGrads, ImageMut,
-    RasterState, SplatGradsMut, Splats,
+    rasterize_backward, rasterize_forward, BlendSettings, Composite, Counters, ImageGrads,
+    ImageMut, RasterState, SplatGradsMut, Splats,
 };
 pub use camera::Camera;
 pub use error::{RasterError, Result};
