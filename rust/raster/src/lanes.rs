@@ -90,7 +90,10 @@ pub(crate) struct Limits {
 /// backward both use it, so their alpha cut-off decisions agree exactly.
 #[inline(always)]
 pub fn fast_exp(x: f32) -> f32 {
-    let x = x.clamp(EXP_LO, EXP_HI);
+    // max/min rather than clamp: a NaN maps to EXP_LO (as `_mm256_max_ps` does in the AVX2
+    // kernel) instead of reaching `to_int_unchecked`, where it would be undefined behaviour.
+    #[allow(clippy::manual_clamp)]
+    let x = x.max(EXP_LO).min(EXP_HI);
     let n = (x * LOG2E + 0.5).floor();
     let r = x - n * LN2_HI - n * LN2_LO;
     let mut p = EXP_P[0];
@@ -98,7 +101,8 @@ pub fn fast_exp(x: f32) -> f32 {
         p = p * r + c;
     }
     let poly = p * r * r + r + 1.0;
-    // SAFETY: after the clamp, n lies in [-126, 126], so the conversion is exact and in range.
+    // SAFETY: after the clamp (NaN included), n lies in [-126, 126], so the conversion is
+    // exact and in range.
     let ni: i32 = unsafe { n.to_int_unchecked() };
     poly * f32::from_bits(((ni + 127) as u32) << 23)
 }
@@ -221,19 +225,19 @@ pub(crate) mod portable {
                     let v_alpha = ti * vf - (px.vr[p] + px.tail[p]) / one_m;
                     px.vr[p] += w * vf;
                     px.t[p] = if valid { ti } else { px.t[p] };
-                    let va = if valid & (raw <= lim.alpha_max) {
-                        v_alpha
-                    } else {
-                        0.0
-                    };
+                    let on = valid & (raw <= lim.alpha_max);
+                    let va = if on { v_alpha } else { 0.0 };
                     let v_sigma = -va * alpha;
                     gl[5][l] += va * vis;
                     gl[2][l] += 0.5 * v_sigma * dx * dx;
                     gl[3][l] += v_sigma * dx * dy;
                     gl[4][l] += 0.5 * v_sigma * dy * dy;
                     // sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with d = pixel - mean.
-                    gl[0][l] -= v_sigma * (g.ca * dx + g.cb * dy);
-                    gl[1][l] -= v_sigma * (g.cc * dy + g.cb * dx);
+                    // Masked, so a huge user conic cannot give 0 * inf off the splat.
+                    if on {
+                        gl[0][l] -= v_sigma * (g.ca * dx + g.cb * dy);
+                        gl[1][l] -= v_sigma * (g.cc * dy + g.cb * dx);
+                    }
                     for c in 0..c1 {
                         gfl[c][l] += w * px.vc[c * TILE_PIXELS + p];
                     }
@@ -499,7 +503,8 @@ pub(crate) mod avx2 {
                 store(px.vr, row, _mm256_add_ps(vr_old, _mm256_mul_ps(w, vf)));
                 store(px.t, row, _mm256_blendv_ps(t_old, ti, valid));
                 let unclamped = _mm256_cmp_ps::<_CMP_LE_OQ>(raw, splat(lim.alpha_max));
-                let va = _mm256_and_ps(_mm256_and_ps(valid, unclamped), v_alpha);
+                let on = _mm256_and_ps(valid, unclamped);
+                let va = _mm256_and_ps(on, v_alpha);
                 let v_sigma = _mm256_mul_ps(neg(va), alpha);
                 gl[5][h] = _mm256_add_ps(gl[5][h], _mm256_mul_ps(va, vis));
                 let hv = _mm256_mul_ps(half, v_sigma);
@@ -514,8 +519,9 @@ pub(crate) mod avx2 {
                     _mm256_mul_ps(splat(g.cc), dyv),
                     _mm256_mul_ps(splat(g.cb), dx),
                 );
-                gl[0][h] = _mm256_sub_ps(gl[0][h], _mm256_mul_ps(v_sigma, ga));
-                gl[1][h] = _mm256_sub_ps(gl[1][h], _mm256_mul_ps(v_sigma, gc));
+                // Masked, so a huge user conic cannot give 0 * inf off the splat.
+                gl[0][h] = _mm256_sub_ps(gl[0][h], _mm256_and_ps(on, _mm256_mul_ps(v_sigma, ga)));
+                gl[1][h] = _mm256_sub_ps(gl[1][h], _mm256_and_ps(on, _mm256_mul_ps(v_sigma, gc)));
                 for c in 0..c1 {
                     let v = load(px.vc, c * TILE_PIXELS + row);
                     let a = load(&gfl[c], 8 * h);

@@ -25,6 +25,11 @@ const QUAT_EPS: f64 = 1e-12;
 const DET_EPS: f64 = 1e-10;
 /// Largest screen radius stored, pixels (keeps tile arithmetic in range).
 const MAX_RADIUS: f64 = 1.0e7;
+/// Largest condition number of the blurred 2D covariance that is projected, measured as
+/// `(a + d)^2 / det` (between 1 and 4 times `lambda_max / lambda_min`). Rounding in the
+/// covariance products leaves an error of ~1e-16 `lambda_max` on the small eigenvalue, so this
+/// keeps the conic to ~1e-5 relative.
+const COND_MAX: f64 = 1.0e10;
 
 /// Settings of the projection stage.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -306,6 +311,14 @@ fn project_one<F: Real>(
     let det_orig = cov2d[0] * cov2d[2] - cov2d[1] * cov2d[1];
     let (a, b, d) = (cov2d[0] + s.eps2d, cov2d[1], cov2d[2] + s.eps2d);
     let det_blur = (a * d - b * b).max(DET_EPS);
+    // A blurred 2D covariance this ill-conditioned (a needle thinner than a pixel whose length,
+    // as a standard deviation, exceeds ~5e4 px at eps2d = 0.3; a degenerate one at eps2d = 0)
+    // has lost its small eigenvalue to rounding: the conic came out as large as 1e37 and
+    // indefinite, and the gradients as noise that overflows f32. Such a Gaussian gets no
+    // projection, like a value that does not fit `F`. (NaN: caught by the checks below.)
+    if (a + d) * (a + d) > COND_MAX * det_blur {
+        return None;
+    }
     let compensation = if s.antialiased {
         (det_orig / det_blur).max(0.0).sqrt()
     } else {
@@ -639,6 +652,10 @@ pub fn project_backward<F: Real>(
     check_len("v_conics", v_out.conics, n * 3)?;
     check_len("v_depths", v_out.depths, n)?;
     check_len("v_opacities", v_out.opacities, n)?;
+    check_finite("v_means2d", v_out.means2d)?;
+    check_finite("v_conics", v_out.conics)?;
+    check_finite("v_depths", v_out.depths)?;
+    check_finite("v_opacities", v_out.opacities)?;
     check_len("grad_means", grads.means, n * 3)?;
     check_len("grad_quats", grads.quats, n * 4)?;
     check_len("grad_scales", grads.scales, n * 3)?;

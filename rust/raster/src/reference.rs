@@ -33,7 +33,9 @@ fn alpha_at(
     let dy = y as f64 + 0.5 - sp.means2d[2 * g + 1];
     let (a, b, c) = (sp.conics[3 * g], sp.conics[3 * g + 1], sp.conics[3 * g + 2]);
     let sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
-    if sigma < 0.0 {
+    // NaN-safe, as in the fast path: a NaN sigma (inf - inf for huge conics) would otherwise
+    // give alpha = NaN.min(alpha_max) = alpha_max.
+    if sigma.is_nan() || sigma < 0.0 {
         return None;
     }
     let vis = (-sigma).exp();
@@ -143,6 +145,8 @@ pub fn rasterize_backward_reference(
     check_len("v_alpha", v.alpha, npix)?;
     check_len("v_depth", v.depth, npix)?;
     check_finite("v_features", v.features)?;
+    check_finite("v_alpha", v.alpha)?;
+    check_finite("v_depth", v.depth)?;
     check_len("grad_means2d", grads.means2d, n * 2)?;
     check_len("grad_conics", grads.conics, n * 3)?;
     check_len("grad_depths", grads.depths, n)?;
