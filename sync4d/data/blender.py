@@ -1,0 +1,119 @@
+"""D-NeRF / Blender synthetic scenes: `transforms_{train,val,test}.json` with `camera_angle_x`
+and per-frame `file_path`, `time` and an OpenGL camera-to-world `transform_matrix`; optional
+indexed instance masks in `masks/{split}/<name>.png` with `masks/labels.json`."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sync4d.data.scene import Camera, DatasetError, Frame, Scene, opengl_c2w_to_opencv_w2c
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except FileNotFoundError:
+        raise DatasetError(path, "file is missing") from None
+    except json.JSONDecodeError as e:
+        raise DatasetError(path, f"invalid JSON ({e.msg} at line {e.lineno})") from None
+    if not isinstance(data, dict):
+        raise DatasetError(path, "expected a JSON object at the top level")
+    return data
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise DatasetError(path, "image file is missing") from None
+    except (UnidentifiedImageError, OSError) as e:
+        raise DatasetError(path, f"cannot read image ({e})") from None
+
+
+def _resolve_image(root: Path, file_path: str, json_path: Path, index: int) -> Path:
+    p = (root / file_path).resolve()
+    if p.suffix == "":
+        p = p.with_suffix(".png")
+    if not p.exists():
+        raise DatasetError(p, f"image file is missing (frame {index} of {json_path.name})")
+    return p
+
+
+def load_split(
+    root: Path, split: str, resolution_scale: float = 1.0, with_masks: bool = True
+) -> list[Frame]:
+    """Frames of `transforms_{split}.json` under `root`, cameras converted to OpenCV
+    world-to-camera and scaled by `resolution_scale`."""
+    path = root / f"transforms_{split}.json"
+    data = _read_json(path)
+    if "camera_angle_x" not in data:
+        raise DatasetError(path, "missing 'camera_angle_x'")
+    frames = data.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise DatasetError(path, "missing or empty 'frames' list")
+    angle = float(data["camera_angle_x"])
+    if not (0.0 < angle < math.pi):
+        raise DatasetError(path, f"'camera_angle_x' must be in (0, pi), got {angle}")
+    out: list[Frame] = []
+    native: tuple[int, int] | None = None
+    mask_dir = root / "masks" / split
+    for i, fr in enumerate(frames):
+        if not isinstance(fr, dict) or "file_path" not in fr:
+            raise DatasetError(path, f"frame {i} has no 'file_path'")
+        if "time" not in fr:
+            raise DatasetError(path, f"frame {i} ({fr['file_path']}) has no 'time'")
+        t = float(fr["time"])
+        if not (0.0 <= t <= 1.0) or math.isnan(t):
+            raise DatasetError(path, f"frame {i} has time {t}, expected a value in [0, 1]")
+        m = np.asarray(fr.get("transform_matrix"), dtype=np.float64)
+        if m.shape != (4, 4):
+            raise DatasetError(
+                path, f"frame {i} 'transform_matrix' must be 4x4, got shape {list(m.shape)}"
+            )
+        if not np.isfinite(m).all():
+            raise DatasetError(path, f"frame {i} 'transform_matrix' contains NaN or inf")
+        img = _resolve_image(root, fr["file_path"], path, i)
+        if native is None:
+            native = _image_size(img)
+        w, h = native
+        fx = 0.5 * w / math.tan(0.5 * angle)
+        cam = Camera(opengl_c2w_to_opencv_w2c(m), fx, fx, 0.5 * w, 0.5 * h, w, h)
+        if resolution_scale != 1.0:
+            cam = cam.scaled(resolution_scale)
+        mask = None
+        if with_masks and mask_dir.is_dir():
+            mask = mask_dir / (img.stem + ".png")
+            if not mask.exists():
+                raise DatasetError(mask, f"mask for {img.name} is missing ({mask_dir} has masks)")
+        out.append(Frame(img, cam, t, mask, native))
+    return out
+
+
+def load_blender(
+    root: str | Path, resolution_scale: float = 1.0, test_split: str = "test"
+) -> Scene:
+    """Load a D-NeRF / Blender scene directory (`test_split` = "test" or "val")."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(root, "dataset directory does not exist")
+    if not (0.0 < resolution_scale <= 1.0):
+        raise DatasetError(root, f"resolution scale must be in (0, 1], got {resolution_scale}")
+    train = load_split(root, "train", resolution_scale)
+    test = load_split(root, test_split, resolution_scale)
+    labels = None
+    labels_path = root / "masks" / "labels.json"
+    if labels_path.exists():
+        raw = _read_json(labels_path)
+        try:
+            labels = {int(k): str(v) for k, v in raw.items()}
+        except ValueError:
+            raise DatasetError(labels_path, "keys must be integer mask labels") from None
+    return Scene(root.name, train, test, labels)
