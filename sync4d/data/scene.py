@@ -137,11 +137,14 @@ class Frame:
         try:
             with Image.open(self.mask_path) as im:
                 im.load()
-                if im.mode not in ("L", "P", "I", "I;16"):
+                if im.mode == "1":  # binary foreground mask: label 1
+                    arr = (np.asarray(im.convert("L")) > 0).astype(np.uint8)
+                elif im.mode in ("L", "P", "I", "I;16"):
+                    arr = np.asarray(im)
+                else:
                     raise DatasetError(
                         self.mask_path, f"instance mask must be single-channel, got mode {im.mode}"
                     )
-                arr = np.asarray(im)
         except FileNotFoundError:
             raise DatasetError(self.mask_path, "mask file is missing") from None
         except (UnidentifiedImageError, OSError) as e:
