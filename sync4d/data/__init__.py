@@ -5,6 +5,7 @@ Loaders convert every on-disk convention to that one camera contract. Malformed 
 `DatasetError` naming the file and the problem.
 """
 
+from sync4d.data.detect import load_scene
 from sync4d.data.scene import Camera, DatasetError, Frame, Scene
 
-__all__ = ["Camera", "DatasetError", "Frame", "Scene"]
+__all__ = ["Camera", "DatasetError", "Frame", "Scene", "load_scene"]

@@ -1,0 +1,33 @@
+"""Pick the loader for a dataset directory by the files it contains."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from sync4d.data.scene import DatasetError, Scene
+
+
+def load_scene(root: str | Path, resolution_scale: float = 1.0) -> Scene:
+    """Load a dataset directory in any supported layout: D-NeRF / Blender
+    (`transforms_train.json`), Dynamic-3DGS Panoptic (`train_meta.json`) or nerfstudio with
+    per-frame time (`transforms.json`)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(root, "dataset directory does not exist")
+    if (root / "transforms_train.json").exists():
+        from sync4d.data.blender import load_blender
+
+        return load_blender(root, resolution_scale)
+    if (root / "train_meta.json").exists():
+        from sync4d.data.panoptic import load_panoptic
+
+        return load_panoptic(root, resolution_scale)
+    if (root / "transforms.json").exists():
+        from sync4d.data.nerfstudio import load_nerfstudio
+
+        return load_nerfstudio(root, resolution_scale)
+    raise DatasetError(
+        root,
+        "unrecognised dataset layout: expected transforms_train.json (D-NeRF/Blender), "
+        "train_meta.json (Dynamic-3DGS Panoptic) or transforms.json (nerfstudio with time)",
+    )
