@@ -1,0 +1,120 @@
+"""Phase 1 deformation model (paper Sec. 3.1, Appendix A): per-Gaussian embeddings and the
+deformation MLP D_theta(x0, z, gamma(t)) -> (dx, dw, dl), applied as
+
+    x(t) = x0 + dx                                  (Eq. 2)
+    q(t) = normalize(aa2q(dw) (x) q0)               (Eq. 3, quaternions w, x, y, z)
+    s(t) = exp(log s0 + dl)                         (Eq. 4)
+
+The last layer is zero-initialised, so training starts from the identity deformation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+__all__ = [
+    "DeformConfig",
+    "DeformationMLP",
+    "axis_angle_to_quat",
+    "deform_gaussians",
+    "quat_multiply",
+    "time_encoding",
+]
+
+
+@dataclass(frozen=True)
+class DeformConfig:
+    """Hyperparameters of D_theta (Appendix A defaults)."""
+
+    embed_dim: int = 32
+    bands: int = 6
+    hidden: int = 128
+    layers: int = 4
+    scale_position: float = 0.10
+    scale_rotation: float = 0.10
+    scale_log_scale: float = 0.05
+
+    @property
+    def input_dim(self) -> int:
+        """3 (position) + embedding + 1 + 2 * bands (time encoding): 48 by default."""
+        return 3 + self.embed_dim + 1 + 2 * self.bands
+
+
+def time_encoding(t: Tensor, bands: int = 6) -> Tensor:
+    """gamma(t) = [t, sin(2^0 pi t), cos(2^0 pi t), ..., sin(2^(L-1) pi t), cos(...)]:
+    [...] -> [..., 1 + 2 L]."""
+    t = t.unsqueeze(-1)
+    freqs = (2.0 ** torch.arange(bands, dtype=t.dtype, device=t.device)) * math.pi
+    ang = t * freqs
+    enc = torch.stack([torch.sin(ang), torch.cos(ang)], dim=-1).flatten(-2)
+    return torch.cat([t, enc], dim=-1)
+
+
+def axis_angle_to_quat(w: Tensor, eps: float = 1e-8) -> Tensor:
+    """Unit quaternion (w, x, y, z) of rotation vectors `w` [..., 3] (Appendix A's aa2q)."""
+    theta = w.norm(dim=-1, keepdim=True)
+    axis = w / (theta + eps)
+    q = torch.cat([torch.cos(0.5 * theta), axis * torch.sin(0.5 * theta)], dim=-1)
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product a (x) b of quaternions (w, x, y, z), [..., 4]: rotating by b, then a."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+class DeformationMLP(nn.Module):
+    """D_theta: [x0; z; gamma(t)] (48-d) -> Lin 128 -> ReLU -> ... -> Lin 9 (zero-initialised),
+    scaled to (dx 0.10, dw 0.10, dl 0.05)."""
+
+    def __init__(self, config: DeformConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or DeformConfig()
+        c = self.config
+        dims = [c.input_dim] + [c.hidden] * (c.layers - 1)
+        blocks: list[nn.Module] = []
+        for d_in, d_out in zip(dims[:-1], dims[1:], strict=True):
+            blocks += [nn.Linear(d_in, d_out), nn.ReLU()]
+        self.trunk = nn.Sequential(*blocks)
+        self.head = nn.Linear(dims[-1], 9)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, x0: Tensor, z: Tensor, t: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Deltas (dx [N, 3], dw [N, 3] rotation vector, dl [N, 3] log-scale) at time `t`
+        (a scalar in [0, 1] or a [N] tensor) for canonical means `x0` [N, 3], embeddings `z`."""
+        n = x0.shape[0]
+        t = torch.as_tensor(t, dtype=x0.dtype, device=x0.device)
+        if t.dim() == 0:
+            t = t.expand(n)
+        h = torch.cat([x0, z, time_encoding(t, self.config.bands)], dim=-1)
+        o = self.head(self.trunk(h))
+        c = self.config
+        return (
+            o[:, 0:3] * c.scale_position,
+            o[:, 3:6] * c.scale_rotation,
+            o[:, 6:9] * c.scale_log_scale,
+        )
+
+
+def deform_gaussians(
+    x0: Tensor, q0: Tensor, log_s0: Tensor, dx: Tensor, dw: Tensor, dl: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Eqs. 2-4: deformed means [N, 3], unit quaternions [N, 4] and scales [N, 3] (positive)."""
+    q = quat_multiply(axis_angle_to_quat(dw), q0)
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return x0 + dx, q, torch.exp(log_s0 + dl)
