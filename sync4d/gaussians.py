@@ -1,0 +1,112 @@
+"""Phase 1 scene model: canonical Gaussians (Appendix A initialisation) plus the deformation
+MLP, rendered at any time through :mod:`sync4d.raster`.
+
+Parameters are stored unconstrained: log-scales, opacity logits, SH coefficients (DC band
+`sh_dc` [N, 1, 3] and higher bands `sh_rest` [N, 15, 3]), unnormalised quaternions (w, x, y, z),
+and a 32-d embedding per Gaussian.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from sync4d import raster
+from sync4d.data.scene import Camera
+from sync4d.deform import DeformationMLP, DeformConfig, deform_gaussians
+
+__all__ = ["DeformableGaussians", "rgb_to_sh_dc", "SH_C0"]
+
+#: Constant of the degree-0 real SH basis function.
+SH_C0 = 0.28209479177387814
+
+
+def rgb_to_sh_dc(rgb: Tensor) -> Tensor:
+    """DC SH coefficient whose colour (with the 3DGS +0.5 offset) is `rgb` [N, 3]."""
+    return (rgb - 0.5) / SH_C0
+
+
+class DeformableGaussians(nn.Module):
+    """Canonical Gaussians + D_theta. `points` [N, 3] and `colors` [N, 3] in [0, 1] seed them
+    (Appendix A: identity rotation, scale 0.02, opacity 0.1, embeddings ~ N(0, 0.01^2))."""
+
+    def __init__(
+        self,
+        points: Tensor,
+        colors: Tensor | None = None,
+        sh_degree: int = 3,
+        config: DeformConfig | None = None,
+        init_scale: float = 0.02,
+        init_opacity: float = 0.1,
+        embed_std: float = 0.01,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        if points.dim() != 2 or points.shape[1] != 3:
+            raise ValueError(f"points: expected shape [N, 3], got {list(points.shape)}")
+        if not torch.isfinite(points).all():
+            raise ValueError("points: contains NaN or inf")
+        n = points.shape[0]
+        if colors is None:
+            colors = torch.full((n, 3), 0.5)
+        if colors.shape != (n, 3):
+            raise ValueError(f"colors: expected shape [{n}, 3], got {list(colors.shape)}")
+        self.config = config or DeformConfig()
+        self.sh_degree = sh_degree
+        k = (sh_degree + 1) ** 2
+        f32 = torch.float32
+        self.means = nn.Parameter(points.to(f32).clone())
+        quats = torch.zeros(n, 4, dtype=f32)
+        quats[:, 0] = 1.0
+        self.quats = nn.Parameter(quats)
+        self.log_scales = nn.Parameter(torch.full((n, 3), math.log(init_scale), dtype=f32))
+        logit = math.log(init_opacity / (1.0 - init_opacity))
+        self.opacity_logits = nn.Parameter(torch.full((n,), logit, dtype=f32))
+        self.sh_dc = nn.Parameter(rgb_to_sh_dc(colors.to(f32)).unsqueeze(1))
+        self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3, dtype=f32))
+        z = torch.randn(n, self.config.embed_dim, generator=generator, dtype=f32) * embed_std
+        self.embeddings = nn.Parameter(z)
+        self.deform = DeformationMLP(self.config)
+
+    @classmethod
+    def random_in_box(
+        cls, n: int, lo: Tensor, hi: Tensor, generator: torch.Generator | None = None, **kw
+    ) -> DeformableGaussians:
+        """`n` Gaussians uniform in the box [lo, hi] with random colours (no point cloud)."""
+        u = torch.rand(n, 3, generator=generator)
+        colors = torch.rand(n, 3, generator=generator)
+        return cls(lo + u * (hi - lo), colors, generator=generator, **kw)
+
+    @property
+    def num_gaussians(self) -> int:
+        """Number of Gaussians N."""
+        return self.means.shape[0]
+
+    def at_time(self, t: float) -> tuple[Tensor, Tensor, Tensor]:
+        """Deformed means [N, 3], unit quaternions [N, 4] and scales [N, 3] at time `t`."""
+        q0 = self.quats / self.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        dx, dw, dl = self.deform(self.means, self.embeddings, t)
+        return deform_gaussians(self.means, q0, self.log_scales, dx, dw, dl)
+
+    def render(
+        self,
+        camera: Camera,
+        t: float,
+        sh_degree: int | None = None,
+        background: Tensor | None = None,
+        **raster_kw,
+    ) -> raster.RasterOutput:
+        """Render the scene deformed to time `t` from `camera` (RGB features from SH of degree
+        `sh_degree`, default the model's)."""
+        means, quats, scales = self.at_time(t)
+        viewmat = torch.as_tensor(camera.viewmat, dtype=torch.float32)
+        coeffs = torch.cat([self.sh_dc, self.sh_rest], dim=1)
+        degree = self.sh_degree if sh_degree is None else sh_degree
+        colors = raster.sh_features(means, coeffs, viewmat, degree)
+        K = torch.as_tensor(camera.K, dtype=torch.float32)
+        return raster.rasterize(
+            means, quats, scales, torch.sigmoid(self.opacity_logits), colors, viewmat, K,
+            camera.width, camera.height, background=background, **raster_kw,
+        )  # fmt: skip
