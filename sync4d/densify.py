@@ -1,0 +1,187 @@
+"""Adaptive density control of 3DGS (clone / split / prune, opacity reset) as a strategy object
+that owns its statistics, so the trainer never changes when the strategy does.
+
+Every operation keeps the Adam state aligned with the parameters: rows of kept Gaussians keep
+their moments, new rows start at zero.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from sync4d.gaussians import DeformableGaussians
+
+__all__ = ["DensifyConfig", "Densifier", "PER_GAUSSIAN"]
+
+#: Per-Gaussian parameters of `DeformableGaussians` (dimension 0 is N).
+PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "embeddings")
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """3DGS densification settings (paper Appendix A values where given)."""
+
+    grad_threshold: float = 2e-4
+    start: int = 500
+    stop: int = 15_000
+    interval: int = 100
+    opacity_reset_interval: int = 3_000
+    prune_opacity: float = 0.005
+    percent_dense: float = 0.01
+    split_count: int = 2
+    max_gaussians: int = 1_000_000
+
+
+def _replace_rows(optimizer: torch.optim.Optimizer, model: DeformableGaussians, fn) -> None:
+    """Replace every per-Gaussian parameter `p` by `fn(name, p, is_state)`, carrying the Adam
+    moments through the same row operation."""
+    for name in PER_GAUSSIAN:
+        old = getattr(model, name)
+        new = torch.nn.Parameter(fn(name, old.data, False))
+        for group in optimizer.param_groups:
+            for i, p in enumerate(group["params"]):
+                if p is old:
+                    group["params"][i] = new
+                    state = optimizer.state.pop(old, None)
+                    if state:
+                        for k in ("exp_avg", "exp_avg_sq"):
+                            if k in state:
+                                state[k] = fn(name, state[k], True)
+                        optimizer.state[new] = state
+        setattr(model, name, new)
+
+
+class Densifier:
+    """Accumulates screen-space gradient statistics and densifies / prunes on schedule."""
+
+    def __init__(self, config: DensifyConfig | None = None) -> None:
+        self.config = config or DensifyConfig()
+        self.grad_accum = torch.zeros(0)
+        self.count = torch.zeros(0)
+
+    def _ensure(self, n: int) -> None:
+        if self.grad_accum.shape[0] != n:
+            self.grad_accum = torch.zeros(n)
+            self.count = torch.zeros(n)
+
+    def accumulate(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:
+        """Add one view's screen-space gradient norms (pixels -> NDC units) for visible
+        Gaussians. `means2d_grad` [N, 2], `radii` [N, 2]."""
+        n = means2d_grad.shape[0]
+        self._ensure(n)
+        visible = (radii > 0).all(dim=-1)
+        g = means2d_grad.detach() * torch.tensor([0.5 * width, 0.5 * height])
+        self.grad_accum[visible] += g[visible].norm(dim=-1)
+        self.count[visible] += 1
+
+    def step(
+        self,
+        model: DeformableGaussians,
+        optimizer: torch.optim.Optimizer,
+        iteration: int,
+        scene_extent: float,
+    ) -> dict[str, int]:
+        """Densify / prune / reset opacities when the schedule says so; returns counts of what
+        happened (cloned, split, pruned)."""
+        c = self.config
+        out = {"cloned": 0, "split": 0, "pruned": 0}
+        if c.start <= iteration < c.stop and iteration % c.interval == 0 and iteration > 0:
+            out = self.densify_and_prune(model, optimizer, scene_extent)
+        if iteration > 0 and iteration % c.opacity_reset_interval == 0 and iteration < c.stop:
+            self.reset_opacity(model, optimizer)
+        return out
+
+    @torch.no_grad()
+    def densify_and_prune(
+        self, model: DeformableGaussians, optimizer: torch.optim.Optimizer, scene_extent: float
+    ) -> dict[str, int]:
+        """Clone small high-gradient Gaussians, split large ones, prune transparent ones."""
+        c = self.config
+        n = model.num_gaussians
+        self._ensure(n)
+        avg = self.grad_accum / self.count.clamp_min(1)
+        big = model.log_scales.exp().max(dim=-1).values > c.percent_dense * scene_extent
+        hot = avg >= c.grad_threshold
+        room = max(0, c.max_gaussians - n)
+        clone = hot & ~big
+        split = hot & big
+        # Respect the cap: clones add 1 row each, splits add split_count - 1.
+        if int(clone.sum()) + int(split.sum()) * (c.split_count - 1) > room:
+            order = torch.argsort(avg, descending=True)
+            budget, keep = room, torch.zeros(n, dtype=torch.bool)
+            for i in order.tolist():
+                cost = 1 if clone[i] else c.split_count - 1
+                if not hot[i] or cost > budget:
+                    continue
+                keep[i] = True
+                budget -= cost
+            clone &= keep
+            split &= keep
+        n_clone, n_split = int(clone.sum()), int(split.sum())
+        if n_clone or n_split:
+            # New rows: clones copy; split children are sampled inside the parent and shrunk.
+            stds = model.log_scales.data[split].exp().repeat(c.split_count, 1)
+            rot = _rotmats(model.quats.data[split]).repeat(c.split_count, 1, 1)
+            offsets = (rot @ (torch.randn_like(stds) * stds).unsqueeze(-1)).squeeze(-1)
+            shrink = math.log(0.8 * c.split_count)
+
+            def grow(name: str, t: Tensor, is_state: bool) -> Tensor:
+                cloned = t[clone]
+                kids = t[split].repeat(c.split_count, *([1] * (t.dim() - 1)))
+                if not is_state:
+                    if name == "means":
+                        kids = kids + offsets
+                    elif name == "log_scales":
+                        kids = kids - shrink
+                else:
+                    cloned, kids = torch.zeros_like(cloned), torch.zeros_like(kids)
+                # Parents of splits are removed below; append clones and children.
+                return torch.cat([t, cloned, kids], dim=0)
+
+            _replace_rows(optimizer, model, grow)
+            keep = torch.ones(model.num_gaussians, dtype=torch.bool)
+            keep[:n][split] = False
+            self._keep(model, optimizer, keep)
+        opacity = torch.sigmoid(model.opacity_logits.data)
+        prune = opacity < c.prune_opacity
+        n_prune = int(prune.sum())
+        if n_prune and n_prune < model.num_gaussians:
+            self._keep(model, optimizer, ~prune)
+        self.grad_accum = torch.zeros(model.num_gaussians)
+        self.count = torch.zeros(model.num_gaussians)
+        return {"cloned": n_clone, "split": n_split, "pruned": n_prune}
+
+    def _keep(
+        self, model: DeformableGaussians, optimizer: torch.optim.Optimizer, keep: Tensor
+    ) -> None:
+        _replace_rows(optimizer, model, lambda name, t, is_state: t[keep])
+
+    @torch.no_grad()
+    def reset_opacity(self, model: DeformableGaussians, optimizer: torch.optim.Optimizer) -> None:
+        """Clamp opacities to at most 0.01 and zero their Adam moments (3DGS opacity reset)."""
+        cap = math.log(0.01 / 0.99)
+
+        def reset(name: str, t: Tensor, is_state: bool) -> Tensor:
+            if name != "opacity_logits":
+                return t
+            return torch.zeros_like(t) if is_state else t.clamp_max(cap)
+
+        _replace_rows(optimizer, model, reset)
+
+
+def _rotmats(q: Tensor) -> Tensor:
+    """Rotation matrices [N, 3, 3] of quaternions (w, x, y, z) [N, 4]."""
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)  # fmt: skip

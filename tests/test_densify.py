@@ -1,0 +1,86 @@
+"""Densification bookkeeping: clone / split / prune keep parameters and Adam state aligned."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from sync4d.densify import PER_GAUSSIAN, Densifier, DensifyConfig
+from sync4d.gaussians import DeformableGaussians
+
+
+def _setup():
+    g = torch.Generator().manual_seed(0)
+    pts = torch.randn(6, 3, generator=g)
+    model = DeformableGaussians(pts, torch.rand(6, 3, generator=g), generator=g)
+    with torch.no_grad():
+        model.log_scales[3:5] = math.log(0.5)  # large: will split
+        model.opacity_logits[5] = -10.0  # transparent: will be pruned
+    params = [getattr(model, n) for n in PER_GAUSSIAN]
+    opt = torch.optim.Adam(
+        [{"params": [p], "name": n} for n, p in zip(PER_GAUSSIAN, params, strict=True)]
+        + [{"params": model.deform.parameters()}],
+        lr=1e-3,
+    )
+    loss = sum((getattr(model, n) ** 2).sum() for n in PER_GAUSSIAN)
+    loss.backward()
+    opt.step()
+    return model, opt
+
+
+def test_clone_split_prune_keep_optimizer_state_aligned() -> None:
+    model, opt = _setup()
+    before = {n: opt.state[getattr(model, n)]["exp_avg"].clone() for n in PER_GAUSSIAN}
+    old_means = model.means.data.clone()
+    old_log_scales = model.log_scales.data.clone()
+    d = Densifier(DensifyConfig(grad_threshold=1e-3, percent_dense=0.1))
+    d._ensure(6)
+    d.grad_accum[:] = torch.tensor([1.0, 0.0, 1.0, 1.0, 0.0, 0.0])  # hot: 0, 2 (clone), 3 (split)
+    d.count[:] = 1
+    out = d.densify_and_prune(model, opt, scene_extent=1.0)
+    assert out == {"cloned": 2, "split": 1, "pruned": 1}
+    n = model.num_gaussians
+    assert n == 6 + 2 + 2 - 1 - 1  # +clones, +2 children, -split parent, -pruned
+    for name in PER_GAUSSIAN:
+        p = getattr(model, name)
+        st = opt.state[p]
+        assert st["exp_avg"].shape == p.shape and st["exp_avg_sq"].shape == p.shape
+        assert any(p is q for grp in opt.param_groups for q in grp["params"])
+    # Originals kept (0, 1, 2, 4) keep their moments, in order, and come first.
+    kept = [0, 1, 2, 4]
+    for name in PER_GAUSSIAN:
+        assert torch.equal(opt.state[getattr(model, name)]["exp_avg"][:4], before[name][kept])
+        assert opt.state[getattr(model, name)]["exp_avg"][4:].abs().max() == 0
+    assert torch.equal(model.means.data[:4], old_means[kept])
+    assert torch.equal(model.means.data[4:6], old_means[[0, 2]])  # clones copy their parent
+    # Split children are shrunk by 1 / (0.8 * 2) and stay near their parent.
+    expected = (old_log_scales[3] - math.log(1.6)).expand(2, 3)
+    assert torch.allclose(model.log_scales.data[6:], expected)
+    assert ((model.means.data[6:] - old_means[3]).norm(dim=-1) < 3.0).all()
+    # The optimizer keeps working on the new tensors.
+    sum((getattr(model, n) ** 2).sum() for n in PER_GAUSSIAN).backward()
+    opt.step()
+    assert d.grad_accum.shape == (n,)
+
+
+def test_cap_and_opacity_reset() -> None:
+    model, opt = _setup()
+    d = Densifier(DensifyConfig(grad_threshold=1e-3, percent_dense=0.1, max_gaussians=7))
+    d._ensure(6)
+    d.grad_accum[:] = torch.tensor([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+    d.count[:] = 1
+    out = d.densify_and_prune(model, opt, scene_extent=1.0)
+    assert out["cloned"] == 1  # only one slot under the cap: the hottest (index 2)
+    d.reset_opacity(model, opt)
+    assert torch.sigmoid(model.opacity_logits.data).max() <= 0.01 + 1e-6
+    assert opt.state[model.opacity_logits]["exp_avg"].abs().max() == 0
+
+
+def test_accumulate_uses_visible_gaussians_in_ndc_units() -> None:
+    d = Densifier()
+    grad = torch.tensor([[1.0, 0.0], [0.0, 2.0]])
+    radii = torch.tensor([[3, 3], [0, 0]], dtype=torch.int32)
+    d.accumulate(grad, radii, width=100, height=50)
+    assert torch.allclose(d.grad_accum, torch.tensor([50.0, 0.0]))
+    assert torch.equal(d.count, torch.tensor([1.0, 0.0]))
