@@ -1,0 +1,161 @@
+"""Checkpoints: one safetensors file holding every tensor (canonical Gaussians, D_theta
+weights, Adam moments, densification statistics) and a JSON header (format version, model
+config, iteration, learning rates, RNG state). Written atomically (temporary file, then
+rename), so an interrupted write never replaces the last good checkpoint. The standalone Rust
+renderer reads the same file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from sync4d.deform import DeformConfig
+from sync4d.densify import PER_GAUSSIAN
+from sync4d.gaussians import DeformableGaussians
+from sync4d.train import Phase1Config, Phase1Trainer
+
+__all__ = ["CheckpointError", "FORMAT_VERSION", "save_checkpoint", "load_model", "resume_trainer"]
+
+FORMAT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """An unreadable, truncated or inconsistent checkpoint; the message names the file."""
+
+    def __init__(self, path: str | Path, problem: str) -> None:
+        super().__init__(f"{path}: {problem}")
+
+
+def _rng_to_json(state: tuple) -> list:
+    version, internal, gauss = state
+    return [version, list(internal), gauss]
+
+
+def save_checkpoint(trainer: Phase1Trainer, path: str | Path) -> Path:
+    """Write the trainer's model, optimizer and loop state to `path` atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    m = trainer.model
+    tensors: dict[str, torch.Tensor] = {
+        f"gaussians.{n}": getattr(m, n).detach() for n in PER_GAUSSIAN
+    }
+    for k, v in m.deform.state_dict().items():
+        tensors[f"deform.{k}"] = v.detach()
+    steps: dict[str, float] = {}
+    for gi, group in enumerate(trainer.optimizer.param_groups):
+        for pi, p in enumerate(group["params"]):
+            st = trainer.optimizer.state.get(p)
+            if st:
+                for k in ("exp_avg", "exp_avg_sq"):
+                    tensors[f"optim.{gi}.{pi}.{k}"] = st[k]
+                steps[f"{gi}.{pi}"] = float(st["step"])
+    tensors["densify.grad_accum"] = trainer.densifier.grad_accum
+    tensors["densify.count"] = trainer.densifier.count
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "kind": "sync4d.phase1",
+        "iteration": trainer.iteration,
+        "total_iterations": trainer.total,
+        "sh_degree": m.sh_degree,
+        "deform_config": asdict(m.config),
+        "lrs": [g["lr"] for g in trainer.optimizer.param_groups],
+        "adam_steps": steps,
+        "python_rng": _rng_to_json(trainer._rng.getstate()),
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(
+        {k: v.contiguous() for k, v in tensors.items()},
+        str(tmp),
+        metadata={"sync4d": json.dumps(meta)},
+    )
+    os.replace(tmp, path)
+    return path
+
+
+def _read(path: Path) -> tuple[dict[str, torch.Tensor], dict]:
+    if not path.exists():
+        raise CheckpointError(path, "checkpoint file is missing")
+    try:
+        tensors = load_file(str(path))
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as f:
+            header = f.metadata() or {}
+    except (SafetensorError, OSError) as e:
+        raise CheckpointError(path, f"not a readable safetensors checkpoint ({e})") from None
+    if "sync4d" not in header:
+        raise CheckpointError(path, "no sync4d metadata in the header (not a sync4d checkpoint)")
+    meta = json.loads(header["sync4d"])
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(path, f"unsupported format version {meta.get('format_version')}")
+    for name, t in tensors.items():
+        if t.is_floating_point() and not torch.isfinite(t).all():
+            raise CheckpointError(path, f"tensor '{name}' contains NaN or inf")
+    return tensors, meta
+
+
+def load_model(path: str | Path) -> tuple[DeformableGaussians, dict]:
+    """The model stored in a checkpoint, and its metadata."""
+    path = Path(path)
+    tensors, meta = _read(path)
+    try:
+        means = tensors["gaussians.means"]
+        model = DeformableGaussians(
+            means, None, sh_degree=meta["sh_degree"], config=DeformConfig(**meta["deform_config"])
+        )
+        with torch.no_grad():
+            for n in PER_GAUSSIAN:
+                src = tensors[f"gaussians.{n}"]
+                if src.shape != getattr(model, n).shape:
+                    want = list(getattr(model, n).shape)
+                    raise CheckpointError(
+                        path, f"'gaussians.{n}' has shape {list(src.shape)}, expected {want}"
+                    )
+                getattr(model, n).copy_(src)
+        deform = {k[len("deform.") :]: v for k, v in tensors.items() if k.startswith("deform.")}
+        model.deform.load_state_dict(deform)
+    except KeyError as e:
+        raise CheckpointError(path, f"missing tensor or field {e}") from None
+    except RuntimeError as e:
+        raise CheckpointError(path, f"inconsistent deformation weights ({e})") from None
+    return model, meta
+
+
+def resume_trainer(
+    path: str | Path, scene, config: Phase1Config | None = None, threads: int | None = None
+) -> Phase1Trainer:
+    """Rebuild a `Phase1Trainer` exactly as it was when `path` was saved."""
+    path = Path(path)
+    model, meta = load_model(path)
+    tensors, _ = _read(path)
+    trainer = Phase1Trainer(
+        model, scene, config, total_iterations=meta["total_iterations"], threads=threads
+    )
+    trainer.iteration = meta["iteration"]
+    for gi, group in enumerate(trainer.optimizer.param_groups):
+        group["lr"] = meta["lrs"][gi]
+        for pi, p in enumerate(group["params"]):
+            key = f"{gi}.{pi}"
+            if key in meta["adam_steps"]:
+                trainer.optimizer.state[p] = {
+                    "step": torch.tensor(meta["adam_steps"][key]),
+                    "exp_avg": tensors[f"optim.{key}.exp_avg"].clone(),
+                    "exp_avg_sq": tensors[f"optim.{key}.exp_avg_sq"].clone(),
+                }
+    trainer.densifier.grad_accum = tensors["densify.grad_accum"].clone()
+    trainer.densifier.count = tensors["densify.count"].clone()
+    try:
+        version, internal, gauss = meta["python_rng"]
+        trainer._rng = random.Random()
+        trainer._rng.setstate((version, tuple(internal), gauss))
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(path, f"bad frame-sampler state ({e})") from None
+    return trainer

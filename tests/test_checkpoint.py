@@ -1,0 +1,62 @@
+"""Checkpoints: round trip, resume gives the same next-step loss, clear errors for bad files."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from test_train_phase1 import _scene
+
+from sync4d.checkpoint import CheckpointError, load_model, resume_trainer, save_checkpoint
+from sync4d.densify import DensifyConfig
+from sync4d.gaussians import DeformableGaussians
+from sync4d.train import Phase1Config, Phase1Trainer
+
+
+def _trainer(tmp_path: Path) -> tuple[Phase1Trainer, object, Phase1Config]:
+    scene, gt = _scene(tmp_path)
+    g = torch.Generator().manual_seed(3)
+    model = DeformableGaussians(
+        gt.means.data + 0.05 * torch.randn(40, 3, generator=g), None, sh_degree=0, generator=g
+    )
+    with torch.no_grad():
+        model.log_scales.fill_(math.log(0.1))
+    cfg = Phase1Config(densify=DensifyConfig(start=4, interval=4, stop=100, grad_threshold=1e-5))
+    return Phase1Trainer(model, scene, cfg, total_iterations=50, threads=1), scene, cfg
+
+
+def test_resume_gives_the_same_next_step(tmp_path: Path) -> None:
+    trainer, scene, cfg = _trainer(tmp_path)
+    trainer.train(9)  # densification has changed N by now
+    n_saved = trainer.model.num_gaussians
+    assert n_saved != 40  # densification changed N before the save
+    ck = save_checkpoint(trainer, tmp_path / "run" / "ckpt.safetensors")
+    assert not (tmp_path / "run" / "ckpt.safetensors.tmp").exists()
+    expected = [trainer.step()["loss"] for _ in range(3)]
+    resumed = resume_trainer(ck, scene, cfg, threads=1)
+    assert resumed.iteration == 9
+    got = [resumed.step()["loss"] for _ in range(3)]
+    assert got == expected
+    model, meta = load_model(ck)
+    assert meta["kind"] == "sync4d.phase1" and meta["iteration"] == 9
+    assert model.num_gaussians == n_saved
+    assert torch.equal(model.means.data, load_model(ck)[0].means.data)
+
+
+def test_bad_checkpoints_are_named(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointError, match="checkpoint file is missing"):
+        load_model(tmp_path / "none.safetensors")
+    trainer, _, _ = _trainer(tmp_path)
+    ck = save_checkpoint(trainer, tmp_path / "ok.safetensors")
+    data = ck.read_bytes()
+    trunc = tmp_path / "trunc.safetensors"
+    trunc.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match="trunc.safetensors: not a readable"):
+        load_model(trunc)
+    with torch.no_grad():
+        trainer.model.means[0, 0] = float("nan")
+    bad = save_checkpoint(trainer, tmp_path / "nan.safetensors")
+    with pytest.raises(CheckpointError, match="'gaussians.means' contains NaN"):
+        load_model(bad)
