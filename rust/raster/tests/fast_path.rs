@@ -18,39 +18,15 @@ fn fast_backward(
     state: &mut RasterState,
     w: &Image<f64>,
 ) -> [Vec<f32>; 5] {
-    let n = s.n();
-    let ch = s.channels;
     let feats = to_f32(&s.features);
-    let (mut g2, mut gc, mut gd, mut go, mut gf) = (
-        vec![0.0; 2 * n],
-        vec![0.0; 3 * n],
-        vec![0.0; n],
-        vec![0.0; n],
-        vec![0.0; n * ch],
-    );
-    let (wf, wa, wd) = (to_f32(&w.features), to_f32(&w.alpha), to_f32(&w.depth));
-    rasterize_backward(
-        &splats(p, &feats, ch),
-        s.camera.width,
-        s.camera.height,
-        &to_f32(&s.background),
-        bs,
-        state,
-        &ImageGrads {
-            features: &wf,
-            alpha: &wa,
-            depth: &wd,
-        },
-        SplatGradsMut {
-            means2d: &mut g2,
-            conics: &mut gc,
-            depths: &mut gd,
-            opacities: &mut go,
-            features: &mut gf,
-        },
-    )
-    .unwrap();
-    [g2, gc, gd, go, gf]
+    let w32 = Image {
+        features: to_f32(&w.features),
+        alpha: to_f32(&w.alpha),
+        depth: to_f32(&w.depth),
+    };
+    let (width, height) = (s.camera.width, s.camera.height);
+    let sp = splats(p, &feats, s.channels);
+    splat_grads(&sp, width, height, &to_f32(&s.background), bs, state, &w32).unwrap()
 }
 
 fn reference_backward(
@@ -59,36 +35,18 @@ fn reference_backward(
     bs: &BlendSettings,
     w: &Image<f64>,
 ) -> [Vec<f64>; 5] {
-    let n = s.n();
-    let ch = s.channels;
-    let (mut g2, mut gc, mut gd, mut go, mut gf) = (
-        vec![0.0; 2 * n],
-        vec![0.0; 3 * n],
-        vec![0.0; n],
-        vec![0.0; n],
-        vec![0.0; n * ch],
-    );
-    rasterize_backward_reference(
-        &splats(p, &s.features, ch),
-        s.camera.width,
-        s.camera.height,
+    let (width, height) = (s.camera.width, s.camera.height);
+    let sp = splats(p, &s.features, s.channels);
+    splat_grads(
+        &sp,
+        width,
+        height,
         &s.background,
         bs,
-        &ImageGrads {
-            features: &w.features,
-            alpha: &w.alpha,
-            depth: &w.depth,
-        },
-        SplatGradsMut {
-            means2d: &mut g2,
-            conics: &mut gc,
-            depths: &mut gd,
-            opacities: &mut go,
-            features: &mut gf,
-        },
+        &mut RasterState::new(),
+        w,
     )
-    .unwrap();
-    [g2, gc, gd, go, gf]
+    .unwrap()
 }
 
 /// Relative L2 error of a whole gradient tensor.

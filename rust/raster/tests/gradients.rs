@@ -15,32 +15,16 @@ fn pipeline_grads(
 ) -> [Vec<f64>; 5] {
     let (p, _) = render_reference(s, ps, bs);
     let n = s.n();
-    let ch = s.channels;
-    let (mut g2, mut gc, mut gd, mut go, mut gf) = (
-        vec![0.0; 2 * n],
-        vec![0.0; 3 * n],
-        vec![0.0; n],
-        vec![0.0; n],
-        vec![0.0; n * ch],
-    );
-    rasterize_backward_reference(
-        &splats(&p, &s.features, ch),
-        s.camera.width,
-        s.camera.height,
+    let sp = splats(&p, &s.features, s.channels);
+    let (width, height) = (s.camera.width, s.camera.height);
+    let [g2, gc, gd, go, gf] = splat_grads(
+        &sp,
+        width,
+        height,
         &s.background,
         bs,
-        &ImageGrads {
-            features: &w.features,
-            alpha: &w.alpha,
-            depth: &w.depth,
-        },
-        SplatGradsMut {
-            means2d: &mut g2,
-            conics: &mut gc,
-            depths: &mut gd,
-            opacities: &mut go,
-            features: &mut gf,
-        },
+        &mut RasterState::new(),
+        w,
     )
     .unwrap();
     let (mut vm, mut vq, mut vs, mut vo) = (

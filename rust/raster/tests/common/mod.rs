@@ -337,3 +337,42 @@ pub fn assert_grad_close(
         worst.0, worst.1
     );
 }
+
+/// Splat gradients `[means2d, conics, depths, opacities, features]` under upstream image
+/// gradients `v`, through the compositor of element type `F` (f32: fast path, which needs the
+/// forward's `state`; f64: reference).
+#[allow(clippy::too_many_arguments)]
+pub fn splat_grads<F: Composite>(
+    sp: &Splats<'_, F>,
+    width: u32,
+    height: u32,
+    background: &[F],
+    bs: &BlendSettings,
+    state: &mut RasterState,
+    v: &Image<F>,
+) -> Result<[Vec<F>; 5]> {
+    let (n, ch) = (sp.len(), sp.channels);
+    let z = |k: usize| vec![F::zero(); k];
+    let (mut g2, mut gc, mut gd, mut go, mut gf) = (z(2 * n), z(3 * n), z(n), z(n), z(n * ch));
+    F::composite_backward(
+        sp,
+        width,
+        height,
+        background,
+        bs,
+        state,
+        &ImageGrads {
+            features: &v.features,
+            alpha: &v.alpha,
+            depth: &v.depth,
+        },
+        SplatGradsMut {
+            means2d: &mut g2,
+            conics: &mut gc,
+            depths: &mut gd,
+            opacities: &mut go,
+            features: &mut gf,
+        },
+    )?;
+    Ok([g2, gc, gd, go, gf])
+}
