@@ -9,8 +9,8 @@ from sync4d.data.scene import DatasetError, Scene
 
 def load_scene(root: str | Path, resolution_scale: float = 1.0) -> Scene:
     """Load a dataset directory in any supported layout: D-NeRF / Blender
-    (`transforms_train.json`), Dynamic-3DGS Panoptic (`train_meta.json`) or nerfstudio with
-    per-frame time (`transforms.json`)."""
+    (`transforms_train.json`), Dynamic-3DGS Panoptic (`train_meta.json`), HyperNeRF
+    (`dataset.json` + `metadata.json`) or nerfstudio with per-frame time (`transforms.json`)."""
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(root, "dataset directory does not exist")
@@ -22,6 +22,10 @@ def load_scene(root: str | Path, resolution_scale: float = 1.0) -> Scene:
         from sync4d.data.panoptic import load_panoptic
 
         return load_panoptic(root, resolution_scale)
+    if (root / "dataset.json").exists() and (root / "metadata.json").exists():
+        from sync4d.data.hypernerf import load_hypernerf
+
+        return load_hypernerf(root, resolution_scale)
     if (root / "transforms.json").exists():
         from sync4d.data.nerfstudio import load_nerfstudio
 
@@ -29,5 +33,6 @@ def load_scene(root: str | Path, resolution_scale: float = 1.0) -> Scene:
     raise DatasetError(
         root,
         "unrecognised dataset layout: expected transforms_train.json (D-NeRF/Blender), "
-        "train_meta.json (Dynamic-3DGS Panoptic) or transforms.json (nerfstudio with time)",
+        "train_meta.json (Dynamic-3DGS Panoptic), dataset.json + metadata.json (HyperNeRF) or "
+        "transforms.json (nerfstudio with time)",
     )

@@ -1,0 +1,84 @@
+"""HyperNeRF / Nerfies captures: `dataset.json` (`ids`, `train_ids`, `val_ids`),
+`metadata.json` (per id `time_id`, or `warp_id`), `camera/<id>.json` (Nerfies cameras:
+`orientation` = world-to-camera rotation in OpenCV axes, `position` = camera centre,
+`focal_length`, `pixel_aspect_ratio`, `principal_point`, `image_size`) and images in
+`rgb/{1x,2x,4x,...}/<id>.png`. Lens distortion is not modelled; a pinhole is assumed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sync4d.data.blender import _read_json
+from sync4d.data.scene import Camera, DatasetError, Frame, Scene
+
+
+def _camera(path: Path) -> Camera:
+    c = _read_json(path)
+    try:
+        r = np.asarray(c["orientation"], dtype=np.float64)
+        pos = np.asarray(c["position"], dtype=np.float64)
+        f = float(c["focal_length"])
+        aspect = float(c.get("pixel_aspect_ratio", 1.0))
+        cx, cy = (float(v) for v in c["principal_point"])
+        w, h = (int(v) for v in c["image_size"])
+    except KeyError as e:
+        raise DatasetError(path, f"missing camera field {e}") from None
+    except (TypeError, ValueError) as e:
+        raise DatasetError(path, f"malformed camera field ({e})") from None
+    if r.shape != (3, 3) or pos.shape != (3,):
+        raise DatasetError(
+            path,
+            f"'orientation' must be 3x3 and 'position' 3 values, got "
+            f"{list(r.shape)} and {list(pos.shape)}",
+        )
+    if not (
+        np.isfinite(r).all() and np.isfinite(pos).all() and np.isfinite([f, aspect, cx, cy]).all()
+    ):
+        raise DatasetError(path, "camera contains NaN or inf")
+    vm = np.eye(4)
+    vm[:3, :3] = r
+    vm[:3, 3] = -r @ pos
+    return Camera(vm, f, f * aspect, cx, cy, w, h)
+
+
+def load_hypernerf(root: str | Path, resolution_scale: float = 1.0) -> Scene:
+    """Load a HyperNeRF capture; `resolution_scale` 1, 0.5, 0.25 ... reads `rgb/1x`, `rgb/2x`,
+    `rgb/4x` ... when present (else resizes from `rgb/1x`)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(root, "dataset directory does not exist")
+    if not (0.0 < resolution_scale <= 1.0):
+        raise DatasetError(root, f"resolution scale must be in (0, 1], got {resolution_scale}")
+    ds_path, meta_path = root / "dataset.json", root / "metadata.json"
+    ds, meta = _read_json(ds_path), _read_json(meta_path)
+    for key in ("train_ids", "val_ids"):
+        if not isinstance(ds.get(key), list):
+            raise DatasetError(ds_path, f"missing '{key}' list")
+    factor = round(1.0 / resolution_scale)
+    folder = root / "rgb" / f"{factor}x"
+    stored_scale = 1.0 / factor
+    if abs(stored_scale - resolution_scale) > 1e-9 or not folder.is_dir():
+        folder, stored_scale = root / "rgb" / "1x", 1.0
+    times: dict[str, float] = {}
+    for i in ds["train_ids"] + ds["val_ids"]:
+        entry = meta.get(i)
+        if not isinstance(entry, dict) or ("time_id" not in entry and "warp_id" not in entry):
+            raise DatasetError(meta_path, f"id {i!r} has no 'time_id' (or 'warp_id')")
+        times[i] = float(entry.get("time_id", entry.get("warp_id")))
+    t_max = max(times.values()) or 1.0
+
+    def frames(ids: list[str]) -> list[Frame]:
+        out = []
+        for i in ids:
+            cam = _camera(root / "camera" / f"{i}.json")
+            native = cam.scaled(stored_scale)
+            img = folder / f"{i}.png"
+            if not img.exists():
+                raise DatasetError(img, f"image file is missing (id {i!r})")
+            cam = cam.scaled(resolution_scale)
+            out.append(Frame(img, cam, times[i] / t_max, None, (native.width, native.height)))
+        return out
+
+    return Scene(root.name, frames(ds["train_ids"]), frames(ds["val_ids"]))
