@@ -1,0 +1,90 @@
+"""Hyperparameters: dataclass defaults hold the paper's values; a TOML file in `configs/`
+and `section.key=value` overrides from the command line replace them."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import tomllib
+
+from sync4d.deform import DeformConfig
+from sync4d.train import Phase1Config
+
+__all__ = ["ConfigError", "RunConfig", "load_config"]
+
+
+class ConfigError(ValueError):
+    """A bad config file or override; the message names the key and what to do."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything a Phase 1 run needs besides the data."""
+
+    phase1: Phase1Config = dataclasses.field(default_factory=Phase1Config)
+    deform: DeformConfig = dataclasses.field(default_factory=DeformConfig)
+    iterations: int = 30_000
+    sh_degree: int = 3
+    resolution_scale: float = 1.0
+
+
+def _replace(obj: Any, path: list[str], value: Any, full: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(obj)}
+    name = path[0]
+    if name not in fields:
+        raise ConfigError(f"{full}: unknown key '{name}' (known: {', '.join(sorted(fields))})")
+    current = getattr(obj, name)
+    if len(path) > 1:
+        if not dataclasses.is_dataclass(current):
+            raise ConfigError(f"{full}: '{name}' is a value, not a section")
+        return dataclasses.replace(obj, **{name: _replace(current, path[1:], value, full)})
+    if dataclasses.is_dataclass(current):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{full}: '{name}' is a section; set its keys")
+        for k, v in value.items():
+            current = _replace(current, [k], v, f"{full}.{k}")
+        return dataclasses.replace(obj, **{name: current})
+    return dataclasses.replace(obj, **{name: _coerce(value, current, full)})
+
+
+def _coerce(value: Any, like: Any, full: str) -> Any:
+    try:
+        if isinstance(like, bool):
+            if isinstance(value, str):
+                if value.lower() not in ("true", "false"):
+                    raise ValueError(value)
+                return value.lower() == "true"
+            return bool(value)
+        if isinstance(like, int):
+            return int(value)
+        if isinstance(like, float):
+            return float(value)
+        if isinstance(like, tuple):
+            parts = value.split(",") if isinstance(value, str) else list(value)
+            return tuple(type(like[0])(p) for p in parts)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{full}: cannot use {value!r} as a {type(like).__name__}") from None
+    return value
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
+    """Defaults, then the TOML file at `path` (if any), then `section.key=value` overrides."""
+    cfg = RunConfig()
+    if path is not None:
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: config file is missing") from None
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"{path}: invalid TOML ({e})") from None
+        for k, v in data.items():
+            cfg = _replace(cfg, [k], v, f"{path}: {k}")
+    for item in overrides or []:
+        if "=" not in item:
+            raise ConfigError(f"{item}: overrides look like section.key=value")
+        key, value = item.split("=", 1)
+        cfg = _replace(cfg, key.strip().split("."), value.strip(), key.strip())
+    return cfg
