@@ -7,6 +7,13 @@ import os
 
 import pytest
 import torch
+from hypothesis import settings
+
+# Deterministic property tests in CI (the same examples every run); set
+# HYPOTHESIS_PROFILE=explore to draw new random examples locally.
+settings.register_profile("deterministic", derandomize=True, database=None)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
 # Two cores on CI: never oversubscribe (torch + rayon).
 torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
