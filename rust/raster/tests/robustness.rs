@@ -406,29 +406,12 @@ fn run_fast(s: &EdgeScene) {
     let mut rng = Rng::new(s.seed ^ 0x5EED);
     let mut draw =
         |len: usize| -> Vec<f32> { (0..len).map(|_| rng.uniform(-1.0, 1.0) as f32).collect() };
-    let (vf, va, vd) = (draw(npix * ch), draw(npix), draw(npix));
-    let [mut g2, mut gc, mut gd, mut go, mut gf] = splat_grad_bufs::<f32>(s.gs.len(), ch);
-    rasterize_backward(
-        &sp,
-        w,
-        h,
-        &bg,
-        &bs,
-        &mut state,
-        &ImageGrads {
-            features: &vf,
-            alpha: &va,
-            depth: &vd,
-        },
-        SplatGradsMut {
-            means2d: &mut g2,
-            conics: &mut gc,
-            depths: &mut gd,
-            opacities: &mut go,
-            features: &mut gf,
-        },
-    )
-    .unwrap();
+    let v = Image {
+        features: draw(npix * ch),
+        alpha: draw(npix),
+        depth: draw(npix),
+    };
+    let [g2, gc, gd, go, gf] = splat_grads(&sp, w, h, &bg, &bs, &mut state, &v).unwrap();
     for (name, g) in GRAD_NAMES.iter().zip([&g2, &gc, &gd, &go, &gf]) {
         assert_finite(name, g);
     }
@@ -482,27 +465,9 @@ fn run_reference(s: &EdgeScene) {
         assert!(img.alpha.iter().all(|a| *a == 0.0), "alpha without a splat");
     }
     let v = random_image_grads(npix, ch, s.seed ^ 0x5EED);
-    let [mut g2, mut gc, mut gd, mut go, mut gf] = splat_grad_bufs::<f64>(s.gs.len(), ch);
-    rasterize_backward_reference(
-        &sp,
-        w,
-        h,
-        &inp.background,
-        &bs,
-        &ImageGrads {
-            features: &v.features,
-            alpha: &v.alpha,
-            depth: &v.depth,
-        },
-        SplatGradsMut {
-            means2d: &mut g2,
-            conics: &mut gc,
-            depths: &mut gd,
-            opacities: &mut go,
-            features: &mut gf,
-        },
-    )
-    .unwrap();
+    let bg = &inp.background;
+    let [g2, gc, gd, go, gf] =
+        splat_grads(&sp, w, h, bg, &bs, &mut RasterState::new(), &v).unwrap();
     for (name, g) in GRAD_NAMES.iter().zip([&g2, &gc, &gd, &go, &gf]) {
         assert_finite(name, g);
     }
@@ -792,27 +757,8 @@ fn nan_sigma_splats_are_skipped() {
         check_image(&img, &[0.25]);
         assert!(img.alpha.iter().all(|a| *a == 0.0), "f64: NaN sigma drawn");
         let v = random_image_grads(npix, 1, 4);
-        let [mut g2, mut gc, mut gd, mut go, mut gf] = splat_grad_bufs::<f64>(1, 1);
-        rasterize_backward_reference(
-            &sp,
-            w,
-            h,
-            &[0.25],
-            &bs,
-            &ImageGrads {
-                features: &v.features,
-                alpha: &v.alpha,
-                depth: &v.depth,
-            },
-            SplatGradsMut {
-                means2d: &mut g2,
-                conics: &mut gc,
-                depths: &mut gd,
-                opacities: &mut go,
-                features: &mut gf,
-            },
-        )
-        .unwrap();
+        let [g2, gc, gd, go, gf] =
+            splat_grads(&sp, w, h, &[0.25], &bs, &mut RasterState::new(), &v).unwrap();
         for (name, g) in GRAD_NAMES.iter().zip([&g2, &gc, &gd, &go, &gf]) {
             assert_finite(name, g);
         }
