@@ -5,6 +5,7 @@
 #   make test    setup + cargo test (release) + pytest
 #   make lint    cargo fmt --check, clippy -D warnings, ruff
 #   make bench   setup + python -m sync4d bench raster $(BENCH_ARGS)
+#   make fit     setup + train the embedded synthetic scene (runs/synthetic) and print test PSNR
 #   make clean   drop build outputs and stamps (keeps .venv and its packages)
 #
 # Stamps live inside .venv, so deleting .venv resets everything.
@@ -49,7 +50,7 @@ endif
 
 PIP_FLAGS := --disable-pip-version-check $(if $(CI),--progress-bar off --no-input)
 
-.PHONY: setup test lint bench clean distclean FORCE
+.PHONY: setup test lint bench fit clean distclean FORCE
 
 setup: $(EXT_STAMP)
 
@@ -98,6 +99,10 @@ lint: $(DEPS_STAMP)
 BENCH_ARGS ?=
 bench: setup
 	$(VPY) -m sync4d bench raster $(BENCH_ARGS)
+
+FIT_ARGS ?=
+fit: setup
+	$(VPY) -m sync4d fit --out runs/synthetic --force $(FIT_ARGS)
 
 clean:
 	rm -f $(EXT_STAMP) sync4d/_core*.so

@@ -22,7 +22,14 @@ from sync4d.densify import PER_GAUSSIAN
 from sync4d.gaussians import DeformableGaussians
 from sync4d.train import Phase1Config, Phase1Trainer
 
-__all__ = ["CheckpointError", "FORMAT_VERSION", "save_checkpoint", "load_model", "resume_trainer"]
+__all__ = [
+    "CheckpointError",
+    "FORMAT_VERSION",
+    "camera_records",
+    "save_checkpoint",
+    "load_model",
+    "resume_trainer",
+]
 
 FORMAT_VERSION = 1
 
@@ -39,8 +46,30 @@ def _rng_to_json(state: tuple) -> list:
     return [version, list(internal), gauss]
 
 
-def save_checkpoint(trainer: Phase1Trainer, path: str | Path) -> Path:
-    """Write the trainer's model, optimizer and loop state to `path` atomically."""
+def camera_records(scene) -> list[dict]:
+    """Every train and test camera of `scene` as JSON-ready records (viewmat row-major 4x4
+    world-to-camera, OpenCV axes; intrinsics in pixels; frame time), for renderers that read a
+    checkpoint without the dataset."""
+    out = []
+    for split, frames in (("train", scene.train), ("test", scene.test)):
+        for f in frames:
+            c = f.camera
+            out.append(
+                {
+                    "split": split,
+                    "name": f.image_path.name,
+                    "time": float(f.time),
+                    "viewmat": [float(v) for v in c.viewmat.reshape(-1)],
+                    "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+                    "width": c.width, "height": c.height,
+                }  # fmt: skip
+            )
+    return out
+
+
+def save_checkpoint(trainer: Phase1Trainer, path: str | Path, extra: dict | None = None) -> Path:
+    """Write the trainer's model, optimizer and loop state to `path` atomically; `extra`
+    (JSON-serialisable: run settings, cameras) is stored in the header under "run"."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m = trainer.model
@@ -69,7 +98,10 @@ def save_checkpoint(trainer: Phase1Trainer, path: str | Path) -> Path:
         "lrs": [g["lr"] for g in trainer.optimizer.param_groups],
         "adam_steps": steps,
         "python_rng": _rng_to_json(trainer._rng.getstate()),
+        "background": list(trainer.config.background),
     }
+    if extra:
+        meta["run"] = extra
     tmp = path.with_name(path.name + ".tmp")
     save_file(
         {k: v.contiguous() for k, v in tensors.items()},
@@ -130,14 +162,23 @@ def load_model(path: str | Path) -> tuple[DeformableGaussians, dict]:
 
 
 def resume_trainer(
-    path: str | Path, scene, config: Phase1Config | None = None, threads: int | None = None
+    path: str | Path,
+    scene,
+    config: Phase1Config | None = None,
+    threads: int | None = None,
+    total_iterations: int | None = None,
 ) -> Phase1Trainer:
-    """Rebuild a `Phase1Trainer` exactly as it was when `path` was saved."""
+    """Rebuild a `Phase1Trainer` exactly as it was when `path` was saved (`total_iterations`
+    extends or shortens the run; the learning-rate schedules follow the new length)."""
     path = Path(path)
     model, meta = load_model(path)
     tensors, _ = _read(path)
     trainer = Phase1Trainer(
-        model, scene, config, total_iterations=meta["total_iterations"], threads=threads
+        model,
+        scene,
+        config,
+        total_iterations=total_iterations or meta["total_iterations"],
+        threads=threads,
     )
     trainer.iteration = meta["iteration"]
     for gi, group in enumerate(trainer.optimizer.param_groups):

@@ -1,6 +1,9 @@
 """Command-line interface: ``python -m sync4d <command> ...``.
 
 Commands:
+  fit [DATA]     Phase 1 training (the embedded synthetic scene when DATA is omitted)
+  eval RUN       PSNR / SSIM / LPIPS of a run on its test split
+  render RUN     render a run's checkpoint at chosen times to PNGs and a GIF
   bench raster   time the rasterizer (forward/backward), optionally against the gsplat reference
 
 The command implementations are imported lazily, so ``--help`` stays fast and a missing optional
@@ -59,6 +62,65 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"sync4d {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     commands.required = True
+
+    fit = commands.add_parser(
+        "fit",
+        help="train a deformable 4D Gaussian scene (Phase 1)",
+        description="Train Phase 1 on a dataset folder (D-NeRF/Blender, nerfstudio, HyperNeRF, "
+        "COLMAP, Dynamic-3DGS Panoptic) or, without DATA, on the embedded synthetic scene. "
+        "Ctrl-C saves a checkpoint; --resume continues it.",
+    )
+    fit.add_argument("data", nargs="?", default=None, metavar="DATA", help="dataset folder")
+    fit.add_argument("--out", metavar="RUN", default=None, help="run folder (default runs/NAME)")
+    fit.add_argument("--config", metavar="FILE.toml", default=None,
+                     help="hyperparameters (default: the paper's values; configs/synthetic.toml "
+                     "for the embedded scene)")  # fmt: skip
+    fit.add_argument("--iters", type=_positive_int, default=None, metavar="N",
+                     help="training iterations; the config's densification, opacity-reset and "
+                     "SH schedules are scaled to the new length")
+    fit.add_argument("--resolution-scale", type=_positive_float, default=None, metavar="S",
+                     help="downsample images by S, e.g. 0.5")  # fmt: skip
+    fit.add_argument("--set", action="append", metavar="KEY=VALUE", default=[],
+                     help="override a config value, e.g. --set phase1.densify.stop=10000 "
+                     "(repeatable)")  # fmt: skip
+    fit.add_argument("--threads", type=_positive_int, default=None, metavar="T",
+                     help="CPU threads for torch and the rasterizer (default: all cores)")
+    fit.add_argument("--resume", action="store_true", help="continue RUN's checkpoint")
+    fit.add_argument("--force", action="store_true", help="start over in an existing RUN")
+    fit.set_defaults(handler="sync4d.commands.fit")
+
+    ev = commands.add_parser(
+        "eval",
+        help="PSNR / SSIM / LPIPS of a run",
+        description="Evaluate a run's checkpoint on its dataset's test split "
+        "(writes RUN/eval.json).",
+    )
+    ev.add_argument("run", metavar="RUN", help="run folder written by 'fit'")
+    ev.add_argument("--data", default=None, metavar="DATA",
+                    help="dataset folder, if it moved since training")
+    ev.add_argument("--split", choices=("test", "train"), default="test")
+    ev.add_argument("--threads", type=_positive_int, default=None, metavar="T")
+    ev.set_defaults(handler="sync4d.commands.evaluate")
+
+    rd = commands.add_parser(
+        "render",
+        help="render a run at chosen times",
+        description="Render a run's checkpoint from one of its stored cameras at chosen times "
+        "(default: a sweep over [0, 1]) to PNGs and a GIF.",
+    )
+    rd.add_argument("run", metavar="RUN", help="run folder (or a checkpoint file)")
+    rd.add_argument("--times", nargs="+", type=float, default=None, metavar="T",
+                    help="times in [0, 1] (default: --frames evenly spaced)")
+    rd.add_argument("--frames", type=_positive_int, default=48, metavar="N",
+                    help="frames in the default time sweep (default 48)")
+    rd.add_argument("--camera", default=None, metavar="CAM",
+                    help="test:K, train:K, K (a test camera) or a frame name; default test:0")
+    rd.add_argument("--out", default=None, metavar="DIR",
+                    help="output folder (default RUN/renders)")
+    rd.add_argument("--fps", type=_positive_float, default=15.0, help="GIF frame rate")
+    rd.add_argument("--no-gif", action="store_true", help="write PNGs only")
+    rd.add_argument("--threads", type=_positive_int, default=None, metavar="T")
+    rd.set_defaults(handler="sync4d.commands.render")
 
     bench = commands.add_parser("bench", help="run a benchmark")
     targets = bench.add_subparsers(dest="target", metavar="TARGET")
@@ -135,6 +197,30 @@ def build_parser() -> argparse.ArgumentParser:
         help="N=10000 at 256x256 only, fewer repeats (smoke run); --sizes/--resolutions win",
     )
     raster.set_defaults(handler="sync4d.bench.raster")
+
+    bfit = targets.add_parser(
+        "fit",
+        help="Phase 1 test PSNR against training time (Pareto curve)",
+        description="Train one scene at several budgets (iterations x resolution scale x "
+        "Gaussian cap) and write a JSON and a PNG plot of test PSNR against training time.",
+    )
+    bfit.add_argument("data", nargs="?", default=None, metavar="DATA",
+                      help="dataset folder (default: the embedded synthetic scene)")
+    bfit.add_argument("--config", metavar="FILE.toml", default=None)
+    bfit.add_argument("--set", action="append", metavar="KEY=VALUE", default=[],
+                      help="override a config value (repeatable)")
+    bfit.add_argument("--iters", nargs="+", type=_positive_int, metavar="N", default=None,
+                      help="iteration budgets (default: 1/8, 1/4, 1/2 and all of the config's)")
+    bfit.add_argument("--scales", nargs="+", type=_positive_float, metavar="S", default=None,
+                      help="resolution scales (default: the config's)")
+    bfit.add_argument("--caps", nargs="+", type=_positive_int, metavar="N", default=None,
+                      help="Gaussian caps (default: the config's max_gaussians)")
+    bfit.add_argument("--threads", type=_positive_int, default=None, metavar="T")
+    bfit.add_argument("--out", metavar="FILE.json", default=None,
+                      help="results JSON (default bench-fit-NAME.json; the plot goes beside it)")
+    bfit.add_argument("--keep-runs", metavar="DIR", default=None,
+                      help="keep each budget's run folder under DIR")
+    bfit.set_defaults(handler="sync4d.bench.fit")
     return parser
 
 
@@ -147,7 +233,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ModuleNotFoundError as exc:
         if exc.name is not None and module_name.startswith(exc.name):
             print(
-                f"python -m sync4d: '{args.command} {args.target}' is not available: "
+                f"python -m sync4d: '{args.command}' is not available: "
                 f"module {module_name} is missing from this install",
                 file=sys.stderr,
             )

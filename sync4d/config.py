@@ -12,7 +12,7 @@ import tomllib
 from sync4d.deform import DeformConfig
 from sync4d.train import Phase1Config
 
-__all__ = ["ConfigError", "RunConfig", "load_config"]
+__all__ = ["ConfigError", "RunConfig", "apply_overrides", "load_config", "with_budget"]
 
 
 class ConfigError(ValueError):
@@ -28,6 +28,48 @@ class RunConfig:
     iterations: int = 30_000
     sh_degree: int = 3
     resolution_scale: float = 1.0
+    #: Random initial Gaussians when the dataset has no point cloud (3DGS uses 100k on a GPU).
+    init_points: int = 20_000
+    #: Half-size of the random-init cube as a fraction of the mean camera distance.
+    init_box_fraction: float = 0.33
+    #: Test-split PSNR/SSIM every this many iterations during `fit` (0: only at the end).
+    eval_every: int = 1_000
+    #: Test frames used by the periodic evaluation (0: all); the final evaluation uses all.
+    eval_frames: int = 0
+    #: Atomic checkpoint every this many iterations (and always at the end and on Ctrl-C).
+    checkpoint_every: int = 1_000
+
+
+def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
+    """`cfg` trained for `iterations` instead of `cfg.iterations`, with the iteration-based
+    schedules (densification start/stop/interval, opacity reset, SH degree steps, periodic
+    evaluation and checkpoints) scaled by the same ratio, so a shorter run still densifies,
+    resets opacities and reaches full SH degree at the same fractions of training."""
+    if iterations < 1:
+        raise ConfigError(f"iterations: expected a positive integer, got {iterations}")
+    r = iterations / cfg.iterations
+
+    def scaled(v: int, floor: int = 1) -> int:
+        return max(floor, int(round(v * r)))
+
+    d = cfg.phase1.densify
+    densify = dataclasses.replace(
+        d,
+        start=scaled(d.start, 0),
+        stop=scaled(d.stop, 0),
+        interval=scaled(d.interval, 10),
+        opacity_reset_interval=scaled(d.opacity_reset_interval),
+    )
+    phase1 = dataclasses.replace(
+        cfg.phase1, densify=densify, sh_degree_interval=scaled(cfg.phase1.sh_degree_interval)
+    )
+    return dataclasses.replace(
+        cfg,
+        phase1=phase1,
+        iterations=iterations,
+        eval_every=scaled(cfg.eval_every) if cfg.eval_every else 0,
+        checkpoint_every=scaled(cfg.checkpoint_every) if cfg.checkpoint_every else 0,
+    )
 
 
 def _replace(obj: Any, path: list[str], value: Any, full: str) -> Any:
@@ -69,6 +111,16 @@ def _coerce(value: Any, like: Any, full: str) -> Any:
     return value
 
 
+def apply_overrides(cfg: RunConfig, overrides: list[str]) -> RunConfig:
+    """`cfg` with `section.key=value` overrides applied in order."""
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"{item}: overrides look like section.key=value")
+        key, value = item.split("=", 1)
+        cfg = _replace(cfg, key.strip().split("."), value.strip(), key.strip())
+    return cfg
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
     """Defaults, then the TOML file at `path` (if any), then `section.key=value` overrides."""
     cfg = RunConfig()
@@ -82,9 +134,4 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             raise ConfigError(f"{path}: invalid TOML ({e})") from None
         for k, v in data.items():
             cfg = _replace(cfg, [k], v, f"{path}: {k}")
-    for item in overrides or []:
-        if "=" not in item:
-            raise ConfigError(f"{item}: overrides look like section.key=value")
-        key, value = item.split("=", 1)
-        cfg = _replace(cfg, key.strip().split("."), value.strip(), key.strip())
-    return cfg
+    return apply_overrides(cfg, overrides or [])

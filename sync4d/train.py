@@ -16,11 +16,12 @@ import numpy as np
 import torch
 
 from sync4d.data.scene import Frame, Scene
+from sync4d.deform import DeformConfig
 from sync4d.densify import Densifier, DensifyConfig
 from sync4d.gaussians import DeformableGaussians
 from sync4d.losses import photometric_loss, psnr
 
-__all__ = ["Phase1Config", "Phase1Trainer", "scene_extent"]
+__all__ = ["Phase1Config", "Phase1Trainer", "initial_model", "scene_extent", "scene_focus"]
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,9 @@ class Phase1Config:
     lr_sh: float = 2.5e-3
     lr_deform: float = 5e-4
     lr_embed: float = 5e-4
+    #: D_theta and embedding learning rates decay log-linearly to these (the position-lr rule).
+    lr_deform_final: float = 5e-6
+    lr_embed_final: float = 5e-6
     sh_degree_interval: int = 1_000
     lambda_l1: float = 0.8
     lambda_dssim: float = 0.2
@@ -48,6 +52,54 @@ def scene_extent(scene: Scene) -> float:
     """Radius of the training cameras around their centroid, times 1.1 (3DGS's extent)."""
     centres = np.stack([f.camera.center for f in scene.train])
     return float(1.1 * np.linalg.norm(centres - centres.mean(0), axis=1).max() + 1e-6)
+
+
+def scene_focus(scene: Scene) -> tuple[np.ndarray, float]:
+    """Point [3] closest (least squares) to every training camera's optical axis, and the mean
+    camera distance to it: where an object-centric capture looks, and from how far."""
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    centres = []
+    for f in scene.train:
+        c = f.camera.center
+        d = f.camera.viewmat[2, :3]  # optical axis (camera +z) in world coordinates
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ c
+        centres.append(c)
+    centres_arr = np.stack(centres)
+    if np.linalg.cond(a) > 1e8:  # parallel axes (e.g. a forward-facing rig): use the centroid
+        focus = centres_arr.mean(0)
+    else:
+        focus = np.linalg.solve(a, b)
+    dist = float(np.linalg.norm(centres_arr - focus, axis=1).mean())
+    return focus, max(dist, 1e-6)
+
+
+def initial_model(
+    scene: Scene,
+    num_random: int = 20_000,
+    sh_degree: int = 3,
+    deform: DeformConfig | None = None,
+    box_fraction: float = 0.33,
+    seed: int = 42,
+) -> DeformableGaussians:
+    """Canonical Gaussians for `scene`: its points (and colours) when it has a point cloud
+    (COLMAP), otherwise `num_random` points uniform in a cube of half-size `box_fraction` times
+    the camera distance around the point the cameras look at (D-NeRF: about [-1.3, 1.3]^3)."""
+    g = torch.Generator().manual_seed(seed)
+    if scene.points is not None and len(scene.points) > 0:
+        pts = torch.as_tensor(np.asarray(scene.points), dtype=torch.float32)
+        cols = getattr(scene, "point_colors", None)
+        colors = None if cols is None else torch.as_tensor(np.asarray(cols), dtype=torch.float32)
+        return DeformableGaussians(pts, colors, sh_degree=sh_degree, config=deform, generator=g)
+    focus, dist = scene_focus(scene)
+    half = box_fraction * dist
+    lo = torch.as_tensor(focus - half, dtype=torch.float32)
+    hi = torch.as_tensor(focus + half, dtype=torch.float32)
+    return DeformableGaussians.random_in_box(
+        num_random, lo, hi, generator=g, sh_degree=sh_degree, config=deform
+    )
 
 
 class Phase1Trainer:
@@ -93,20 +145,33 @@ class Phase1Trainer:
             self._images[index] = torch.from_numpy(frame.load_image(self.config.background))
         return self._images[index]
 
+    def _decayed(self, start: float, final: float) -> float:
+        """Log-linear interpolation from `start` to `final` over the run."""
+        frac = min(1.0, self.iteration / self.total)
+        if start <= 0 or final <= 0:
+            return start
+        return math.exp((1 - frac) * math.log(start) + frac * math.log(final))
+
     def _position_lr(self) -> float:
         """Log-linear decay from lr_means to lr_means_final over the run (scaled by extent)."""
         c = self.config
-        frac = min(1.0, self.iteration / self.total)
-        lr = math.exp((1 - frac) * math.log(c.lr_means) + frac * math.log(c.lr_means_final))
-        return lr * self.extent
+        return self._decayed(c.lr_means, c.lr_means_final) * self.extent
+
+    def _update_learning_rates(self) -> None:
+        c = self.config
+        for g in self.optimizer.param_groups:
+            if g["name"] == "means":
+                g["lr"] = self._position_lr()
+            elif g["name"] == "deform":
+                g["lr"] = self._decayed(c.lr_deform, c.lr_deform_final)
+            elif g["name"] == "embeddings":
+                g["lr"] = self._decayed(c.lr_embed, c.lr_embed_final)
 
     def step(self) -> dict[str, float]:
         """One iteration on a random training frame; returns loss, PSNR and N."""
         c = self.config
         self.iteration += 1
-        for g in self.optimizer.param_groups:
-            if g["name"] == "means":
-                g["lr"] = self._position_lr()
+        self._update_learning_rates()
         idx = self._rng.randrange(len(self.scene.train))
         frame = self.scene.train[idx]
         target = self._image(idx, frame)

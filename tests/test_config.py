@@ -40,3 +40,16 @@ def test_errors(tmp_path: Path) -> None:
         load_config(bad)
     with pytest.raises(ConfigError, match="missing.toml: config file is missing"):
         load_config(tmp_path / "missing.toml")
+
+
+def test_with_budget_scales_the_schedule_and_overrides_win() -> None:
+    from sync4d.config import apply_overrides, with_budget
+
+    cfg = with_budget(load_config(), 3000)
+    d = cfg.phase1.densify
+    assert cfg.iterations == 3000 and (d.start, d.stop, d.interval) == (50, 1500, 10)
+    assert d.opacity_reset_interval == 300 and cfg.phase1.sh_degree_interval == 100
+    assert cfg.eval_every == 100 and cfg.checkpoint_every == 100
+    assert apply_overrides(cfg, ["eval_every=7"]).eval_every == 7
+    with pytest.raises(ConfigError, match="positive"):
+        with_budget(cfg, 0)

@@ -66,6 +66,7 @@ import torch
 from torch import Tensor
 
 import sync4d
+from sync4d.report import align_table
 
 __all__ = [
     "BenchScene",
@@ -761,17 +762,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
                 *(_fmt_count(counters.get(k)) for k in ("evaluated", "blended")),
             ]
         )
-    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
-    out = []
-    for j, line in enumerate(lines):
-        cells = [
-            c.ljust(w) if i == 1 else c.rjust(w)
-            for i, (c, w) in enumerate(zip(line, widths, strict=True))
-        ]
-        out.append("  ".join(cells).rstrip())
-        if j == 0:
-            out.append("  ".join("-" * w for w in widths))
-    return "\n".join(out)
+    return align_table(header, lines[1:], left=(1,))
 
 
 def thread_scaling(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -1,0 +1,179 @@
+"""``python -m sync4d bench fit [DATA]``: run time against error for Phase 1.
+
+Trains the same scene at several budgets (iterations x resolution scale x Gaussian cap), each a
+full `fit` run with its schedule scaled to the budget, and records training seconds against
+test PSNR / SSIM / LPIPS. Writes a JSON and a PNG plot of test PSNR against wall time with the
+Pareto front (no other budget is both faster and better) marked, so a user can pick the budget
+that fits their time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as _dt
+import json
+import platform
+import sys
+import tempfile
+from itertools import product
+from pathlib import Path
+from typing import Any
+
+from sync4d.config import ConfigError, RunConfig, load_config, with_budget
+from sync4d.data import DatasetError, load_scene
+from sync4d.report import align_table
+
+__all__ = ["main", "pareto_front", "plot_pareto", "run_grid"]
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
+    """For (seconds, psnr) points, whether each is on the front: no other point is at least as
+    fast and strictly better, or strictly faster and at least as good."""
+    out = []
+    for i, (ti, pi) in enumerate(points):
+        dominated = any(
+            (tj <= ti and pj > pi) or (tj < ti and pj >= pi)
+            for j, (tj, pj) in enumerate(points)
+            if j != i
+        )
+        out.append(not dominated)
+    return out
+
+
+def run_grid(
+    data: Path,
+    base: RunConfig,
+    iterations: list[int],
+    scales: list[float],
+    caps: list[int],
+    threads: int | None,
+    work_dir: Path,
+) -> list[dict[str, Any]]:
+    """Train every budget in the grid; one result record per budget."""
+    from sync4d.commands.fit import run_fit
+
+    rows: list[dict[str, Any]] = []
+    grid = list(product(scales, caps, iterations))
+    for k, (scale, cap, iters) in enumerate(grid):
+        cfg = with_budget(dataclasses.replace(base, resolution_scale=scale), iters)
+        densify = dataclasses.replace(cfg.phase1.densify, max_gaussians=cap)
+        cfg = dataclasses.replace(
+            cfg, phase1=dataclasses.replace(cfg.phase1, densify=densify), eval_every=0,
+            checkpoint_every=0,
+        )  # fmt: skip
+        print(
+            f"bench fit: [{k + 1}/{len(grid)}] {iters} iterations, scale {scale}, cap {cap}",
+            file=sys.stderr,
+        )
+        scene = load_scene(data, scale)
+        run_dir = work_dir / f"s{scale}_c{cap}_i{iters}"
+        summary = run_fit(
+            scene, cfg, run_dir, data, threads=threads, log_every=max(50, iters // 10), quiet=True
+        )
+        rows.append(
+            {
+                "iterations": iters,
+                "resolution_scale": scale,
+                "max_gaussians": cap,
+                "backend": "cpu",
+                "width": scene.train[0].camera.width,
+                "height": scene.train[0].camera.height,
+                "train_seconds": summary["train_seconds"],
+                "wall_seconds": summary["wall_seconds"],
+                "gaussians": summary["gaussians"],
+                "psnr": summary["psnr"],
+                "ssim": summary["ssim"],
+                "lpips": summary["lpips"],
+            }
+        )
+    front = pareto_front([(r["train_seconds"], r["psnr"]) for r in rows])
+    for r, f in zip(rows, front, strict=True):
+        r["pareto"] = f
+    return rows
+
+
+def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
+    """Scatter of test PSNR against training time, the Pareto front as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    groups: dict[tuple[float, int], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["resolution_scale"], r["max_gaussians"]), []).append(r)
+    for (scale, cap), rs in sorted(groups.items()):
+        rs = sorted(rs, key=lambda r: r["train_seconds"])
+        ax.plot(
+            [r["train_seconds"] / 60 for r in rs], [r["psnr"] for r in rs], "o-", alpha=0.6,
+            label=f"{rs[0]['width']}x{rs[0]['height']} (scale {scale}), cap {cap:,}",
+        )  # fmt: skip
+        for r in rs:
+            ax.annotate(
+                f"{r['iterations']}", (r["train_seconds"] / 60, r["psnr"]), fontsize=7,
+                xytext=(3, -9), textcoords="offset points",
+            )  # fmt: skip
+    front = sorted((r for r in rows if r["pareto"]), key=lambda r: r["train_seconds"])
+    ax.plot(
+        [r["train_seconds"] / 60 for r in front], [r["psnr"] for r in front], "k--", lw=1.2,
+        label="Pareto front",
+    )  # fmt: skip
+    ax.set_xlabel("training time on this machine (minutes)")
+    ax.set_ylabel("test PSNR (dB)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def format_rows(rows: list[dict[str, Any]]) -> str:
+    """The results as an aligned table."""
+    body = [
+        [
+            str(r["iterations"]), f"{r['width']}x{r['height']}", f"{r['max_gaussians']:,}",
+            f"{r['train_seconds']:.0f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}",
+            "-" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['gaussians']:,}",
+            "*" if r["pareto"] else "",
+        ]
+        for r in sorted(rows, key=lambda r: r["train_seconds"])
+    ]  # fmt: skip
+    header = ["iters", "res", "cap", "train s", "PSNR", "SSIM", "LPIPS", "#G", "front"]
+    return align_table(header, body, left=(1,))
+
+
+def main(args: argparse.Namespace) -> int:
+    from sync4d.commands.fit import _resolve_data
+
+    try:
+        data, default_cfg = _resolve_data(args)
+        base = load_config(args.config or default_cfg, list(args.set or []))
+        scales = args.scales or [base.resolution_scale]
+        caps = args.caps or [base.phase1.densify.max_gaussians]
+        iterations = args.iters or [max(100, base.iterations // 8), base.iterations // 4,
+                                    base.iterations // 2, base.iterations]  # fmt: skip
+        out = Path(args.out or f"bench-fit-{data.name}.json")
+        with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
+            work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
+            rows = run_grid(data, base, iterations, scales, caps, args.threads, work)
+    except (ConfigError, DatasetError) as e:
+        print(f"bench fit: {e}", file=sys.stderr)
+        return 2
+    record = {
+        "benchmark": "fit",
+        "data": str(data),
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {"platform": platform.platform(), "processor": platform.processor()},
+        "threads": args.threads,
+        "config": dataclasses.asdict(base),
+        "results": rows,
+    }
+    out.write_text(json.dumps(record, indent=2) + "\n")
+    png = plot_pareto(rows, out.with_suffix(".png"), f"sync4d fit: {data.name}")
+    print(format_rows(rows))
+    print(f"bench fit: wrote {out} and {png}")
+    return 0

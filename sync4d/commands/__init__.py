@@ -1,0 +1,1 @@
+"""Implementations of the ``python -m sync4d`` commands (each module has ``main(args)``)."""

@@ -1,0 +1,155 @@
+"""The fit / eval / render / bench fit commands end to end on a tiny D-NeRF-layout dataset."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from test_data_blender import _write_scene
+
+from sync4d.checkpoint import load_model
+from sync4d.cli import main
+from sync4d.progress import Progress, format_duration
+from sync4d.train import Phase1Trainer
+
+TINY = ["--set", "init_points=300", "--set", "eval_frames=2", "--threads", "1"]
+
+
+@pytest.fixture
+def data(tmp_path: Path) -> Path:
+    root = tmp_path / "tiny"
+    _write_scene(root, n=4, size=24)
+    return root
+
+
+def _iteration(run: Path) -> int:
+    return load_model(run / "checkpoint.safetensors")[1]["iteration"]
+
+
+def test_fit_eval_render(data: Path, tmp_path: Path, capsys) -> None:
+    run = tmp_path / "run"
+    args = ["fit", str(data), "--out", str(run), "--iters", "20", *TINY]
+    assert main(args + ["--set", "checkpoint_every=10", "--set", "eval_every=10"]) == 0
+    out = capsys.readouterr()
+    assert "test PSNR" in out.out and "[eval @ 10]" in out.err
+    assert _iteration(run) == 20
+    ev = json.loads((run / "eval.json").read_text())
+    assert len(ev["frames"]) == 4 and ev["mean"]["psnr"] > 0
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert any("test" in r for r in records) and "final" in records[-1]
+    meta = load_model(run / "checkpoint.safetensors")[1]
+    assert len(meta["run"]["cameras"]) == 8 and meta["run"]["data"] == str(data.resolve())
+
+    (run / "eval.json").unlink()
+    assert main(["eval", str(run), "--threads", "1"]) == 0
+    assert "mean" in capsys.readouterr().out
+    assert len(json.loads((run / "eval.json").read_text())["frames"]) == 4
+
+    assert main(["render", str(run), "--times", "0", "0.5", "1", "--camera", "train:1"]) == 0
+    pngs = sorted((run / "renders").glob("*.png"))
+    assert [p.name for p in pngs] == [
+        "r_001_t0.000.png", "r_001_t0.500.png", "r_001_t1.000.png",
+    ]  # fmt: skip
+    assert (run / "renders" / "r_001_sweep.gif").stat().st_size > 0
+
+
+def test_existing_run_needs_resume_and_resume_continues(data: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    base = ["fit", str(data), "--out", str(run), *TINY, "--set", "eval_every=0"]
+    assert main(base + ["--iters", "10"]) == 0
+    assert main(base + ["--iters", "10"]) == 2
+    assert main(base + ["--iters", "15", "--resume"]) == 0
+    assert _iteration(run) == 15
+    assert main(base + ["--iters", "5", "--force"]) == 0
+    assert _iteration(run) == 5
+
+
+def test_interrupt_saves_the_last_state_and_resumes(
+    data: Path, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    run = tmp_path / "run"
+    original = Phase1Trainer.step
+
+    def step(self):
+        if self.iteration == 7:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(Phase1Trainer, "step", step)
+    base = ["fit", str(data), "--out", str(run), "--iters", "12", *TINY]
+    assert main(base) == 130
+    assert "--resume" in capsys.readouterr().err
+    assert _iteration(run) == 7
+    monkeypatch.setattr(Phase1Trainer, "step", original)
+    assert main(base + ["--resume"]) == 0
+    assert _iteration(run) == 12
+
+
+def test_sigint_in_a_real_process_keeps_a_checkpoint(data: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RAYON_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "sync4d", "fit", str(data), "--out", str(run), "--iters",
+           "1000000", *TINY, "--set", "checkpoint_every=0", "--set", "eval_every=0"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.time() + 120
+        assert proc.stderr is not None
+        for line in proc.stderr:  # non-tty progress: one line per 100 iterations
+            if line.startswith("fit 100/") or time.time() > deadline:
+                break
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert _iteration(run) >= 100
+
+
+def test_bad_inputs_give_one_clear_message(data: Path, tmp_path: Path, capsys) -> None:
+    (data / "transforms_train.json").write_text("{not json")
+    assert main(["fit", str(data), "--out", str(tmp_path / "r")]) == 2
+    assert "transforms_train.json" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path / "missing")]) == 2
+    assert "missing" in capsys.readouterr().err
+    assert main(["fit", str(tmp_path / "nope"), "--out", str(tmp_path / "r")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["fit", str(data), "--set", "phase1.nope=1"]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
+def test_bench_fit_writes_json_and_plot(data: Path, tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "bench.json"
+    args = ["bench", "fit", str(data), "--iters", "5", "10", "--out", str(out), *TINY]
+    assert main(args) == 0
+    rec = json.loads(out.read_text())
+    assert [r["iterations"] for r in rec["results"]] == [5, 10]
+    assert all(r["psnr"] > 0 and r["train_seconds"] > 0 for r in rec["results"])
+    assert any(r["pareto"] for r in rec["results"])
+    assert out.with_suffix(".png").stat().st_size > 1000
+
+
+def test_pareto_front() -> None:
+    from sync4d.bench.fit import pareto_front
+
+    pts = [(1.0, 20.0), (2.0, 25.0), (3.0, 24.0), (2.0, 25.0), (4.0, 30.0), (0.5, 10.0)]
+    assert pareto_front(pts) == [True, True, False, True, True, True]
+
+
+def test_progress_lines_and_durations() -> None:
+    assert format_duration(5.25) == "5.2s" and format_duration(125) == "2m05s"
+    assert format_duration(3 * 3600 + 60) == "3h01m" and format_duration(float("nan")) == "?"
+    buf = io.StringIO()
+    bar = Progress(10, desc="x", stream=buf, log_every=5)
+    for i in range(1, 11):
+        bar.update(i, {"loss": "1.0"})
+    bar.close()
+    lines = buf.getvalue().splitlines()
+    assert len(lines) == 2 and lines[-1].startswith("x 10/10 [") and "ETA" in lines[-1]
