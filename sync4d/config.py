@@ -28,6 +28,8 @@ class RunConfig:
     iterations: int = 30_000
     sh_degree: int = 3
     resolution_scale: float = 1.0
+    #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames.
+    test_split: str = "test"
     #: Random initial Gaussians when the dataset has no point cloud (3DGS uses 100k on a GPU).
     init_points: int = 20_000
     #: Half-size of the random-init cube as a fraction of the mean camera distance.

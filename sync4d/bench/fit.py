@@ -66,7 +66,7 @@ def run_grid(
             f"bench fit: [{k + 1}/{len(grid)}] {iters} iterations, scale {scale}, cap {cap}",
             file=sys.stderr,
         )
-        scene = load_scene(data, scale)
+        scene = load_scene(data, scale, cfg.test_split)
         run_dir = work_dir / f"s{scale}_c{cap}_i{iters}"
         summary = run_fit(
             scene, cfg, run_dir, data, threads=threads, log_every=max(50, iters // 10), quiet=True

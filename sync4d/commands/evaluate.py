@@ -110,7 +110,9 @@ def load_run(
     root = data or run.get("data")
     scene = None
     if root is not None and (data is not None or Path(root).exists()):
-        scene = load_scene(root, float(run.get("resolution_scale", 1.0)))
+        scene = load_scene(
+            root, float(run.get("resolution_scale", 1.0)), run.get("test_split", "test")
+        )
     return model, meta, scene, background
 
 

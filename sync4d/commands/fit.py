@@ -96,6 +96,7 @@ def run_fit(
         "data": str(data.resolve()),
         "scene": scene.name,
         "resolution_scale": cfg.resolution_scale,
+        "test_split": cfg.test_split,
         "config": dataclasses.asdict(cfg),
         "threads": n_threads,
     }
@@ -214,7 +215,7 @@ def main(args: argparse.Namespace) -> int:
         if args.force and not args.resume:
             for name in (CHECKPOINT_NAME, METRICS_FILE):
                 (run_dir / name).unlink(missing_ok=True)
-        scene = load_scene(data, cfg.resolution_scale)
+        scene = load_scene(data, cfg.resolution_scale, cfg.test_split)
         print(
             f"fit: {scene.name}: {len(scene.train)} train / {len(scene.test)} test frames at "
             f"{scene.train[0].camera.width}x{scene.train[0].camera.height}, "

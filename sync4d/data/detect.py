@@ -7,8 +7,9 @@ from pathlib import Path
 from sync4d.data.scene import DatasetError, Scene
 
 
-def load_scene(root: str | Path, resolution_scale: float = 1.0) -> Scene:
-    """Load a dataset directory in any supported layout: D-NeRF / Blender
+def load_scene(root: str | Path, resolution_scale: float = 1.0, test_split: str = "test") -> Scene:
+    """Load a dataset directory in any supported layout (`test_split` "val" picks D-NeRF's
+    validation frames as the test split): D-NeRF / Blender
     (`transforms_train.json`), Dynamic-3DGS Panoptic (`train_meta.json`), HyperNeRF
     (`dataset.json` + `metadata.json`) or nerfstudio with per-frame time (`transforms.json`)."""
     root = Path(root)
@@ -17,7 +18,11 @@ def load_scene(root: str | Path, resolution_scale: float = 1.0) -> Scene:
     if (root / "transforms_train.json").exists():
         from sync4d.data.blender import load_blender
 
-        return load_blender(root, resolution_scale)
+        return load_blender(root, resolution_scale, test_split)
+    if test_split != "test":
+        raise DatasetError(
+            root, f"test split '{test_split}' is only available for D-NeRF/Blender datasets"
+        )
     if (root / "train_meta.json").exists():
         from sync4d.data.panoptic import load_panoptic
 
