@@ -21,23 +21,33 @@ def _check(pred: Tensor, target: Tensor) -> None:
         )
 
 
+def _box_filter(v: Tensor, window: int) -> Tensor:
+    """Mean over `window`x`window` neighbourhoods of [B, H, W] maps (reflect padding keeps the
+    size); separable shifted-slice sums, several times faster on the CPU than avg_pool2d."""
+    pad = window // 2
+    h, w = v.shape[-2:]
+    v = F.pad(v.unsqueeze(0), (pad, pad, pad, pad), mode="reflect").squeeze(0)
+    rows = v[:, :, 0:w]
+    for k in range(1, window):
+        rows = rows + v[:, :, k : k + w]
+    out = rows[:, 0:h]
+    for k in range(1, window):
+        out = out + rows[:, k : k + h]
+    return out * (1.0 / (window * window))
+
+
 def ssim(pred: Tensor, target: Tensor, window: int = 3) -> Tensor:
     """Mean SSIM of two [H, W, C] images in [0, 1], with `window`x`window` average pooling
     (reflect padding keeps the output the input's size)."""
     _check(pred, target)
-    x = pred.permute(2, 0, 1).unsqueeze(0)
-    y = target.permute(2, 0, 1).unsqueeze(0)
-    pad = window // 2
-
-    def pool(v: Tensor) -> Tensor:
-        return F.avg_pool2d(F.pad(v, (pad, pad, pad, pad), mode="reflect"), window, stride=1)
-
-    mx, my = pool(x), pool(y)
-    sxx = pool(x * x) - mx * mx
-    syy = pool(y * y) - my * my
-    sxy = pool(x * y) - mx * my
-    num = (2 * mx * my + _C1) * (2 * sxy + _C2)
-    den = (mx * mx + my * my + _C1) * (sxx + syy + _C2)
+    x = pred.permute(2, 0, 1)
+    y = target.permute(2, 0, 1)
+    c = x.shape[0]
+    stats = _box_filter(torch.cat([x, y, x * x, y * y, x * y]), window)
+    mx, my, exx, eyy, exy = stats.split(c)
+    mxx, myy, mxy = mx * mx, my * my, mx * my
+    num = (2 * mxy + _C1) * (2 * (exy - mxy) + _C2)
+    den = (mxx + myy + _C1) * ((exx - mxx) + (eyy - myy) + _C2)
     return (num / den).mean()
 
 
