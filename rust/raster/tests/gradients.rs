@@ -134,11 +134,7 @@ fn compositor_gradients_match_finite_differences() {
         30,
         &s.background,
         &bs,
-        &ImageGrads {
-            features: &w.features,
-            alpha: &w.alpha,
-            depth: &w.depth,
-        },
+        &w.as_grads(),
         SplatGradsMut {
             means2d: &mut g2,
             conics: &mut gc,
@@ -156,11 +152,7 @@ fn compositor_gradients_match_finite_differences() {
             30,
             &s.background,
             &bs,
-            ImageMut {
-                features: &mut img.features,
-                alpha: &mut img.alpha,
-                depth: &mut img.depth,
-            },
+            img.as_mut(),
         )
         .unwrap();
         weighted(&img, &w)

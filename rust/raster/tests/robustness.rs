@@ -342,14 +342,17 @@ fn project_grads<F: real::Real>(
     [vm, vq, vs, vo]
 }
 
-fn splat_grad_bufs<F: real::Real>(n: usize, ch: usize) -> [Vec<F>; 5] {
-    [
-        vec![F::zero(); 2 * n],
-        vec![F::zero(); 3 * n],
-        vec![F::zero(); n],
-        vec![F::zero(); n],
-        vec![F::zero(); n * ch],
-    ]
+/// Splats over buffers ordered (means2d, conics, depths, opacities, features, ...).
+fn splats_from<'a, F>(b: &'a [Vec<F>], radii: &'a [i32], channels: usize) -> Splats<'a, F> {
+    Splats {
+        means2d: &b[0],
+        conics: &b[1],
+        depths: &b[2],
+        opacities: &b[3],
+        radii,
+        features: &b[4],
+        channels,
+    }
 }
 
 const GRAD_NAMES: [&str; 5] = [
@@ -383,20 +386,7 @@ fn run_fast(s: &EdgeScene) {
     let mut state = RasterState::new();
     let mut img = Image::<f32>::zeros(npix, ch);
     let sp = splats(&p, &feats, ch);
-    let counters = rasterize_forward(
-        &sp,
-        w,
-        h,
-        &bg,
-        &bs,
-        &mut state,
-        ImageMut {
-            features: &mut img.features,
-            alpha: &mut img.alpha,
-            depth: &mut img.depth,
-        },
-    )
-    .unwrap();
+    let counters = rasterize_forward(&sp, w, h, &bg, &bs, &mut state, img.as_mut()).unwrap();
     check_image(&img, &bg);
     if counters.visible == 0 || ops.iter().all(|o| *o == 0.0) {
         assert!(img.alpha.iter().all(|a| *a == 0.0), "alpha without a splat");
@@ -447,19 +437,8 @@ fn run_reference(s: &EdgeScene) {
     check_projection(&p, &cam_z(&inp.camera, &inp.means), &ps);
     let sp = splats(&p, &inp.features, ch);
     let mut img = Image::<f64>::zeros(npix, ch);
-    let counters = rasterize_forward_reference(
-        &sp,
-        w,
-        h,
-        &inp.background,
-        &bs,
-        ImageMut {
-            features: &mut img.features,
-            alpha: &mut img.alpha,
-            depth: &mut img.depth,
-        },
-    )
-    .unwrap();
+    let counters =
+        rasterize_forward_reference(&sp, w, h, &inp.background, &bs, img.as_mut()).unwrap();
     check_image(&img, &inp.background);
     if counters.visible == 0 || inp.opacities.iter().all(|o| *o == 0.0) {
         assert!(img.alpha.iter().all(|a| *a == 0.0), "alpha without a splat");
@@ -741,19 +720,7 @@ fn nan_sigma_splats_are_skipped() {
         };
         let mut img = Image::<f64>::zeros(npix, 1);
         let bs = BlendSettings::default();
-        rasterize_forward_reference(
-            &sp,
-            w,
-            h,
-            &[0.25],
-            &bs,
-            ImageMut {
-                features: &mut img.features,
-                alpha: &mut img.alpha,
-                depth: &mut img.depth,
-            },
-        )
-        .unwrap();
+        rasterize_forward_reference(&sp, w, h, &[0.25], &bs, img.as_mut()).unwrap();
         check_image(&img, &[0.25]);
         assert!(img.alpha.iter().all(|a| *a == 0.0), "f64: NaN sigma drawn");
         let v = random_image_grads(npix, 1, 4);
@@ -789,11 +756,7 @@ fn nan_sigma_splats_are_skipped() {
             &[0.25],
             &BlendSettings::default(),
             &mut RasterState::new(),
-            ImageMut {
-                features: &mut img.features,
-                alpha: &mut img.alpha,
-                depth: &mut img.depth,
-            },
+            img.as_mut(),
         )
         .unwrap();
         check_image(&img, &[0.25]);
@@ -940,40 +903,13 @@ fn non_finite_splat_inputs_are_rejected() {
                 s.background.clone(),
             ];
             bufs[ai][1] = bad;
-            let sp = Splats {
-                means2d: &bufs[0],
-                conics: &bufs[1],
-                depths: &bufs[2],
-                opacities: &bufs[3],
-                radii: &p64.radii,
-                features: &bufs[4],
-                channels: ch,
-            };
+            let sp = splats_from(&bufs, &p64.radii, ch);
             let mut img = Image::<f64>::zeros(npix, ch);
-            let r = rasterize_forward_reference(
-                &sp,
-                w,
-                h,
-                &bufs[5],
-                &bs,
-                ImageMut {
-                    features: &mut img.features,
-                    alpha: &mut img.alpha,
-                    depth: &mut img.depth,
-                },
-            );
+            let r = rasterize_forward_reference(&sp, w, h, &bufs[5], &bs, img.as_mut());
             expect_arg(r, arg, "reference forward");
 
             let b32 = bufs.clone().map(|b| to_f32(&b));
-            let sp = Splats {
-                means2d: &b32[0],
-                conics: &b32[1],
-                depths: &b32[2],
-                opacities: &b32[3],
-                radii: &p64.radii,
-                features: &b32[4],
-                channels: ch,
-            };
+            let sp = splats_from(&b32, &p64.radii, ch);
             let mut img = Image::<f32>::zeros(npix, ch);
             let r = rasterize_forward(
                 &sp,
@@ -982,11 +918,7 @@ fn non_finite_splat_inputs_are_rejected() {
                 &b32[5],
                 &bs,
                 &mut RasterState::new(),
-                ImageMut {
-                    features: &mut img.features,
-                    alpha: &mut img.alpha,
-                    depth: &mut img.depth,
-                },
+                img.as_mut(),
             );
             expect_arg(r, arg, "fast forward");
         }
@@ -1009,30 +941,20 @@ fn non_finite_upstream_gradients_are_rejected() {
         for (ai, arg) in ["v_features", "v_alpha", "v_depth"].iter().enumerate() {
             let mut v = random_image_grads(npix, ch, 1);
             [&mut v.features, &mut v.alpha, &mut v.depth][ai][1] = bad;
-            let [mut g2, mut gc, mut gd, mut go, mut gf] = splat_grad_bufs::<f64>(n, ch);
+            let mut gb = splat_grad_bufs::<f64>(n, ch);
             let r = rasterize_backward_reference(
                 &splats(&p64, &s.features, ch),
                 w,
                 h,
                 &s.background,
                 &bs,
-                &ImageGrads {
-                    features: &v.features,
-                    alpha: &v.alpha,
-                    depth: &v.depth,
-                },
-                SplatGradsMut {
-                    means2d: &mut g2,
-                    conics: &mut gc,
-                    depths: &mut gd,
-                    opacities: &mut go,
-                    features: &mut gf,
-                },
+                &v.as_grads(),
+                grads_mut(&mut gb),
             );
             expect_arg(r, arg, "reference backward");
 
             let (vf, va, vd) = (to_f32(&v.features), to_f32(&v.alpha), to_f32(&v.depth));
-            let [mut g2, mut gc, mut gd, mut go, mut gf] = splat_grad_bufs::<f32>(n, ch);
+            let mut gb = splat_grad_bufs::<f32>(n, ch);
             let r = rasterize_backward(
                 &splats(&p32, &f32s, ch),
                 w,
@@ -1045,13 +967,7 @@ fn non_finite_upstream_gradients_are_rejected() {
                     alpha: &va,
                     depth: &vd,
                 },
-                SplatGradsMut {
-                    means2d: &mut g2,
-                    conics: &mut gc,
-                    depths: &mut gd,
-                    opacities: &mut go,
-                    features: &mut gf,
-                },
+                grads_mut(&mut gb),
             );
             expect_arg(r, arg, "fast backward");
         }

@@ -180,6 +180,47 @@ impl<F: real::Real> Image<F> {
             depth: vec![F::zero(); npix],
         }
     }
+
+    /// The image as the compositor's output buffers.
+    pub fn as_mut(&mut self) -> ImageMut<'_, F> {
+        ImageMut {
+            features: &mut self.features,
+            alpha: &mut self.alpha,
+            depth: &mut self.depth,
+        }
+    }
+
+    /// The image as upstream gradients for a backward pass.
+    pub fn as_grads(&self) -> ImageGrads<'_, F> {
+        ImageGrads {
+            features: &self.features,
+            alpha: &self.alpha,
+            depth: &self.depth,
+        }
+    }
+}
+
+/// Zeroed per-splat gradient buffers (means2d, conics, depths, opacities, features).
+pub fn splat_grad_bufs<F: real::Real>(n: usize, ch: usize) -> [Vec<F>; 5] {
+    [
+        vec![F::zero(); 2 * n],
+        vec![F::zero(); 3 * n],
+        vec![F::zero(); n],
+        vec![F::zero(); n],
+        vec![F::zero(); n * ch],
+    ]
+}
+
+/// `splat_grad_bufs` as the backward pass's output view.
+pub fn grads_mut<F>(b: &mut [Vec<F>; 5]) -> SplatGradsMut<'_, F> {
+    let [g2, gc, gd, go, gf] = b;
+    SplatGradsMut {
+        means2d: g2,
+        conics: gc,
+        depths: gd,
+        opacities: go,
+        features: gf,
+    }
 }
 
 pub fn splats<'a, F>(p: &'a Proj<F>, features: &'a [F], channels: usize) -> Splats<'a, F> {
@@ -209,11 +250,7 @@ pub fn render_reference(
         s.camera.height,
         &s.background,
         bs,
-        ImageMut {
-            features: &mut img.features,
-            alpha: &mut img.alpha,
-            depth: &mut img.depth,
-        },
+        img.as_mut(),
     )
     .unwrap();
     (p, img)
@@ -244,11 +281,7 @@ pub fn render_fast(
         &to_f32(&s.background),
         bs,
         state,
-        ImageMut {
-            features: &mut img.features,
-            alpha: &mut img.alpha,
-            depth: &mut img.depth,
-        },
+        img.as_mut(),
     )
     .unwrap();
     (p, img, counters)
@@ -352,8 +385,7 @@ pub fn splat_grads<F: Composite>(
     v: &Image<F>,
 ) -> Result<[Vec<F>; 5]> {
     let (n, ch) = (sp.len(), sp.channels);
-    let z = |k: usize| vec![F::zero(); k];
-    let (mut g2, mut gc, mut gd, mut go, mut gf) = (z(2 * n), z(3 * n), z(n), z(n), z(n * ch));
+    let mut gb = splat_grad_bufs::<F>(n, ch);
     F::composite_backward(
         sp,
         width,
@@ -361,18 +393,8 @@ pub fn splat_grads<F: Composite>(
         background,
         bs,
         state,
-        &ImageGrads {
-            features: &v.features,
-            alpha: &v.alpha,
-            depth: &v.depth,
-        },
-        SplatGradsMut {
-            means2d: &mut g2,
-            conics: &mut gc,
-            depths: &mut gd,
-            opacities: &mut go,
-            features: &mut gf,
-        },
+        &v.as_grads(),
+        grads_mut(&mut gb),
     )?;
-    Ok([g2, gc, gd, go, gf])
+    Ok(gb)
 }
