@@ -54,6 +54,25 @@ def _resolution(text: str) -> tuple[int, int]:
     return width, height
 
 
+def _add_threads(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--threads",
+        type=_positive_int,
+        default=None,
+        metavar="T",
+        help="CPU threads for torch and the rasterizer (default: all cores)",
+    )
+
+
+def _add_training_options(p: argparse.ArgumentParser, config_help: str) -> None:
+    """Options shared by every command that trains: config file, overrides, threads."""
+    p.add_argument("--config", metavar="FILE.toml", default=None, help=config_help)
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", default=[],
+                   help="override a config value, e.g. --set phase1.densify.stop=10000 "
+                   "(repeatable)")  # fmt: skip
+    _add_threads(p)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m sync4d",
@@ -72,19 +91,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("data", nargs="?", default=None, metavar="DATA", help="dataset folder")
     fit.add_argument("--out", metavar="RUN", default=None, help="run folder (default runs/NAME)")
-    fit.add_argument("--config", metavar="FILE.toml", default=None,
-                     help="hyperparameters (default: the paper's values; configs/synthetic.toml "
-                     "for the embedded scene)")  # fmt: skip
+    _add_training_options(
+        fit, "hyperparameters (default: the paper's values; configs/synthetic.toml for the "
+        "embedded scene)",
+    )  # fmt: skip
     fit.add_argument("--iters", type=_positive_int, default=None, metavar="N",
                      help="training iterations; the config's densification, opacity-reset and "
                      "SH schedules are scaled to the new length")
     fit.add_argument("--resolution-scale", type=_positive_float, default=None, metavar="S",
                      help="downsample images by S, e.g. 0.5")  # fmt: skip
-    fit.add_argument("--set", action="append", metavar="KEY=VALUE", default=[],
-                     help="override a config value, e.g. --set phase1.densify.stop=10000 "
-                     "(repeatable)")  # fmt: skip
-    fit.add_argument("--threads", type=_positive_int, default=None, metavar="T",
-                     help="CPU threads for torch and the rasterizer (default: all cores)")
     fit.add_argument("--resume", action="store_true", help="continue RUN's checkpoint")
     fit.add_argument("--force", action="store_true", help="start over in an existing RUN")
     fit.set_defaults(handler="sync4d.commands.fit")
@@ -99,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--data", default=None, metavar="DATA",
                     help="dataset folder, if it moved since training")
     ev.add_argument("--split", choices=("test", "train"), default="test")
-    ev.add_argument("--threads", type=_positive_int, default=None, metavar="T")
+    _add_threads(ev)
     ev.set_defaults(handler="sync4d.commands.evaluate")
 
     rd = commands.add_parser(
@@ -119,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="output folder (default RUN/renders)")
     rd.add_argument("--fps", type=_positive_float, default=15.0, help="GIF frame rate")
     rd.add_argument("--no-gif", action="store_true", help="write PNGs only")
-    rd.add_argument("--threads", type=_positive_int, default=None, metavar="T")
+    _add_threads(rd)
     rd.set_defaults(handler="sync4d.commands.render")
 
     bench = commands.add_parser("bench", help="run a benchmark")
@@ -206,16 +221,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bfit.add_argument("data", nargs="?", default=None, metavar="DATA",
                       help="dataset folder (default: the embedded synthetic scene)")
-    bfit.add_argument("--config", metavar="FILE.toml", default=None)
-    bfit.add_argument("--set", action="append", metavar="KEY=VALUE", default=[],
-                      help="override a config value (repeatable)")
+    _add_training_options(bfit, "hyperparameters of every budget (default as for 'fit')")
     bfit.add_argument("--iters", nargs="+", type=_positive_int, metavar="N", default=None,
                       help="iteration budgets (default: 1/8, 1/4, 1/2 and all of the config's)")
     bfit.add_argument("--scales", nargs="+", type=_positive_float, metavar="S", default=None,
                       help="resolution scales (default: the config's)")
     bfit.add_argument("--caps", nargs="+", type=_positive_int, metavar="N", default=None,
                       help="Gaussian caps (default: the config's max_gaussians)")
-    bfit.add_argument("--threads", type=_positive_int, default=None, metavar="T")
     bfit.add_argument("--out", metavar="FILE.json", default=None,
                       help="results JSON (default bench-fit-NAME.json; the plot goes beside it)")
     bfit.add_argument("--keep-runs", metavar="DIR", default=None,

@@ -7,6 +7,7 @@ line every `log_every` updates so logs stay readable.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import TextIO
@@ -16,7 +17,7 @@ __all__ = ["Progress", "format_duration"]
 
 def format_duration(seconds: float) -> str:
     """`seconds` as ``1h02m``, ``3m05s`` or ``12.3s``."""
-    if seconds != seconds or seconds == float("inf"):
+    if not math.isfinite(seconds):
         return "?"
     seconds = max(0.0, seconds)
     if seconds < 60:
@@ -64,8 +65,10 @@ class Progress:
         done = step - self._last_step
         if done > 0:
             rate = (now - self._last_t) / done
-            a = 0.1 if self.sec_per_it == self.sec_per_it else 1.0
-            self.sec_per_it = rate if a == 1.0 else (1 - a) * self.sec_per_it + a * rate
+            if math.isnan(self.sec_per_it):
+                self.sec_per_it = rate
+            else:
+                self.sec_per_it = 0.9 * self.sec_per_it + 0.1 * rate
             self._last_t, self._last_step = now, step
         self._updates += 1
         last = step >= self.total

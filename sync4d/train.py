@@ -123,6 +123,7 @@ class Phase1Trainer:
         self.densifier = Densifier(self.config.densify)
         self._rng = random.Random(self.config.seed)
         self._images: dict[int, torch.Tensor] = {}
+        self._background = torch.tensor(self.config.background, dtype=torch.float32)
         c = self.config
         m = model
         groups = [
@@ -176,9 +177,9 @@ class Phase1Trainer:
         frame = self.scene.train[idx]
         target = self._image(idx, frame)
         degree = min(self.model.sh_degree, (self.iteration - 1) // c.sh_degree_interval)
-        bg = torch.tensor(c.background, dtype=torch.float32)
         out = self.model.render(
-            frame.camera, frame.time, sh_degree=degree, background=bg, threads=self.threads
+            frame.camera, frame.time, sh_degree=degree, background=self._background,
+            threads=self.threads,
         )
         out.means2d.retain_grad()
         loss = photometric_loss(out.features, target, c.lambda_l1, c.lambda_dssim)

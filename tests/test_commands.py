@@ -153,3 +153,22 @@ def test_progress_lines_and_durations() -> None:
     bar.close()
     lines = buf.getvalue().splitlines()
     assert len(lines) == 2 and lines[-1].startswith("x 10/10 [") and "ETA" in lines[-1]
+
+
+def test_render_and_eval_reject_bad_arguments(data: Path, tmp_path: Path, capsys) -> None:
+    run = tmp_path / "run"
+    assert main(["fit", str(data), "--out", str(run), "--iters", "3", *TINY]) == 0
+    capsys.readouterr()
+    assert main(["render", str(run), "--times", "0.5", "1.5"]) == 2
+    assert "[0, 1]" in capsys.readouterr().err
+    assert main(["render", str(run), "--camera", "test:99"]) == 2
+    assert "only 4 test cameras" in capsys.readouterr().err
+    assert main(["render", str(run), "--camera", "no_such_frame"]) == 2
+    assert "no camera with that name" in capsys.readouterr().err
+    assert main(["render", str(tmp_path / "nothing")]) == 2
+    assert "missing" in capsys.readouterr().err
+    moved = tmp_path / "moved"
+    data.rename(moved)
+    assert main(["eval", str(run)]) == 2
+    assert "--data" in capsys.readouterr().err
+    assert main(["eval", str(run), "--data", str(moved), "--threads", "1"]) == 0

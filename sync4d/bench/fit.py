@@ -147,10 +147,10 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sync4d.commands.fit import _resolve_data
+    from sync4d.commands.fit import FitInterrupted, resolve_data
 
     try:
-        data, default_cfg = _resolve_data(args)
+        data, default_cfg = resolve_data(args)
         base = load_config(args.config or default_cfg, list(args.set or []))
         scales = args.scales or [base.resolution_scale]
         caps = args.caps or [base.phase1.densify.max_gaussians]
@@ -163,6 +163,9 @@ def main(args: argparse.Namespace) -> int:
     except (ConfigError, DatasetError) as e:
         print(f"bench fit: {e}", file=sys.stderr)
         return 2
+    except FitInterrupted:
+        print("bench fit: interrupted; no results written", file=sys.stderr)
+        return 130
     record = {
         "benchmark": "fit",
         "data": str(data),

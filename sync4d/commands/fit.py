@@ -25,7 +25,15 @@ from sync4d.evaluate import evaluate_frames, summarize
 from sync4d.progress import Progress, format_duration
 from sync4d.train import Phase1Trainer, initial_model
 
-__all__ = ["main", "CHECKPOINT_NAME", "RUN_FILE", "repo_configs"]
+__all__ = [
+    "CHECKPOINT_NAME",
+    "FitInterrupted",
+    "RUN_FILE",
+    "main",
+    "repo_configs",
+    "resolve_data",
+    "run_fit",
+]
 
 #: File names inside a run directory.
 CHECKPOINT_NAME = "checkpoint.safetensors"
@@ -46,7 +54,7 @@ def _set_threads(threads: int | None) -> int:
     return n
 
 
-def _resolve_data(args: argparse.Namespace) -> tuple[Path, Path | None]:
+def resolve_data(args: argparse.Namespace) -> tuple[Path, Path | None]:
     """Dataset folder and default config: the user's, or the embedded synthetic scene."""
     if args.data is not None:
         return Path(args.data), None
@@ -58,20 +66,19 @@ def _resolve_data(args: argparse.Namespace) -> tuple[Path, Path | None]:
     return root, cfg if cfg.exists() else None
 
 
-def _load(args: argparse.Namespace) -> tuple[Path, RunConfig, list[str]]:
-    data, default_cfg = _resolve_data(args)
+def _load(args: argparse.Namespace) -> tuple[Path, RunConfig]:
+    data, default_cfg = resolve_data(args)
     overrides = list(args.set or [])
     if args.resolution_scale is not None:
         overrides.append(f"resolution_scale={args.resolution_scale}")
     cfg = load_config(args.config or default_cfg)
     if args.iters is not None:  # scale the file's schedule; explicit overrides still win
         cfg = with_budget(cfg, args.iters)
-    cfg = apply_overrides(cfg, overrides)
-    return data, cfg, overrides
+    return data, apply_overrides(cfg, overrides)
 
 
-class _Interrupted(Exception):
-    pass
+class FitInterrupted(Exception):
+    """Training stopped by Ctrl-C or SIGTERM after saving its checkpoint."""
 
 
 def _raise_interrupt(signum, frame) -> None:  # noqa: ARG001
@@ -182,7 +189,7 @@ def run_fit(
             f"     continue with: python -m sync4d fit {data} --out {run_dir} --resume",
             file=sys.stderr,
         )
-        raise _Interrupted
+        raise FitInterrupted
     from sync4d.commands.evaluate import evaluate_run
 
     summary = evaluate_run(
@@ -199,7 +206,7 @@ def run_fit(
 
 def main(args: argparse.Namespace) -> int:
     try:
-        data, cfg, _ = _load(args)
+        data, cfg = _load(args)
         run_dir = Path(args.out) if args.out else Path("runs") / data.name
         ckpt = run_dir / CHECKPOINT_NAME
         if args.resume and not ckpt.exists():
@@ -226,7 +233,7 @@ def main(args: argparse.Namespace) -> int:
     except (ConfigError, DatasetError) as e:
         print(f"fit: {e}", file=sys.stderr)
         return 2
-    except _Interrupted:
+    except FitInterrupted:
         return 130
     print(
         f"fit: done in {format_duration(summary['train_seconds'])} of training: test PSNR "
