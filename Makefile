@@ -70,6 +70,9 @@ $(DEPS_STAMP): $(VPY) scripts/dev_requirements.py
 	@echo ">>> installing Python requirements (set $(REQS_HASH))"
 	$(PYTHON) scripts/dev_requirements.py > $@.tmp
 	$(VPY) -m pip install $(PIP_FLAGS) -r $@.tmp
+	$(PYTHON) scripts/dev_requirements.py --no-deps > $@.nodeps
+	if [ -s $@.nodeps ]; then $(VPY) -m pip install $(PIP_FLAGS) --no-deps -r $@.nodeps; fi
+	rm -f $@.nodeps
 	rm -f $(VENV)/.sync4d-deps-*.stamp
 	mv $@.tmp $@
 

@@ -1,7 +1,8 @@
 """Print the development requirement set declared in pyproject.toml.
 
 Used by the Makefile: one requirement per line (runtime deps, the `test` extra and the build
-backend), and with ``--hash`` a short digest of that set, which keys the install stamp so that
+backend), with ``--no-deps`` the packages installed without their dependencies ([tool.sync4d]
+no-deps), and with ``--hash`` a short digest of both sets, which keys the install stamp so that
 `make setup` reinstalls only when the requirements themselves change.
 
 Runs on the host interpreter before the virtualenv exists, so it uses the standard library only.
@@ -40,14 +41,24 @@ def requirements() -> list[str]:
     return out
 
 
+def no_deps_requirements() -> list[str]:
+    """Packages installed with ``pip install --no-deps`` ([tool.sync4d] no-deps)."""
+    data = tomllib.loads(PYPROJECT.read_text(encoding="utf-8"))
+    return list(data.get("tool", {}).get("sync4d", {}).get("no-deps", []))
+
+
 def main(argv: list[str]) -> int:
     reqs = requirements()
+    no_deps = no_deps_requirements()
     if argv[1:] == ["--hash"]:
-        print(hashlib.sha256("\n".join(reqs).encode()).hexdigest()[:16])
+        blob = "\n".join(reqs) + "\n--no-deps\n" + "\n".join(no_deps)
+        print(hashlib.sha256(blob.encode()).hexdigest()[:16])
+    elif argv[1:] == ["--no-deps"]:
+        print("\n".join(no_deps))
     elif not argv[1:]:
         print("\n".join(reqs))
     else:
-        print("usage: dev_requirements.py [--hash]", file=sys.stderr)
+        print("usage: dev_requirements.py [--hash | --no-deps]", file=sys.stderr)
         return 2
     return 0
 

@@ -15,6 +15,7 @@ from sync4d.checkpoint import CheckpointError, load_model
 from sync4d.data import DatasetError, Scene, load_scene
 from sync4d.evaluate import FrameMetrics, evaluate_frames, summarize
 from sync4d.gaussians import DeformableGaussians
+from sync4d.lpips import MIN_SIZE, LPIPSAlex, load_lpips
 from sync4d.progress import Progress
 from sync4d.report import align_table
 
@@ -27,13 +28,8 @@ class RunError(ValueError):
     """A run directory that cannot be used; the message names the file."""
 
 
-def _lpips_metric():
+def _lpips_metric() -> LPIPSAlex | None:
     """The LPIPS-Alex callable, or None (with a note on stderr) when its weights are missing."""
-    try:
-        from sync4d.lpips import load_lpips
-    except ImportError as e:  # pragma: no cover - module ships with the package
-        print(f"eval: LPIPS unavailable ({e})", file=sys.stderr)
-        return None
     try:
         return load_lpips()
     except RuntimeError as e:
@@ -71,6 +67,11 @@ def evaluate_run(
     if not frames:
         raise RunError(f"{run_dir}: the dataset has no {split} frames to evaluate")
     lpips = _lpips_metric()
+    h, w = frames[0].camera.height, frames[0].camera.width
+    if lpips is not None and min(h, w) < MIN_SIZE:
+        print(f"eval: LPIPS skipped: {w}x{h} images are smaller than the {MIN_SIZE} pixels "
+              "AlexNet needs", file=sys.stderr)  # fmt: skip
+        lpips = None
     bar = Progress(len(frames), desc=f"eval {split}", log_every=max(1, len(frames)))
     metrics = evaluate_frames(
         model, frames, tuple(background), threads, lpips=lpips,
