@@ -44,9 +44,10 @@ class RunConfig:
 
 def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     """`cfg` trained for `iterations` instead of `cfg.iterations`, with the iteration-based
-    schedules (densification start/stop/interval, opacity reset, SH degree steps, periodic
-    evaluation and checkpoints) scaled by the same ratio, so a shorter run still densifies,
-    resets opacities and reaches full SH degree at the same fractions of training."""
+    schedules (densification start/stop/interval, opacity reset, SH degree steps, static
+    warm-up, periodic evaluation and checkpoints) scaled by the same ratio, so a shorter run
+    still densifies, resets opacities and reaches full SH degree at the same fractions of
+    training."""
     if iterations < 1:
         raise ConfigError(f"iterations: expected a positive integer, got {iterations}")
     r = iterations / cfg.iterations
@@ -63,7 +64,10 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
         opacity_reset_interval=scaled(d.opacity_reset_interval),
     )
     phase1 = dataclasses.replace(
-        cfg.phase1, densify=densify, sh_degree_interval=scaled(cfg.phase1.sh_degree_interval)
+        cfg.phase1,
+        densify=densify,
+        sh_degree_interval=scaled(cfg.phase1.sh_degree_interval),
+        static_warmup=scaled(cfg.phase1.static_warmup, 0),
     )
     return dataclasses.replace(
         cfg,

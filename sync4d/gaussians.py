@@ -84,9 +84,12 @@ class DeformableGaussians(nn.Module):
         """Number of Gaussians N."""
         return self.means.shape[0]
 
-    def at_time(self, t: float) -> tuple[Tensor, Tensor, Tensor]:
-        """Deformed means [N, 3], unit quaternions [N, 4] and scales [N, 3] at time `t`."""
+    def at_time(self, t: float, deform: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+        """Deformed means [N, 3], unit quaternions [N, 4] and scales [N, 3] at time `t`
+        (the canonical Gaussians when `deform` is False)."""
         q0 = self.quats / self.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        if not deform:
+            return self.means, q0, torch.exp(self.log_scales)
         dx, dw, dl = self.deform(self.means, self.embeddings, t)
         return deform_gaussians(self.means, q0, self.log_scales, dx, dw, dl)
 
@@ -96,11 +99,12 @@ class DeformableGaussians(nn.Module):
         t: float,
         sh_degree: int | None = None,
         background: Tensor | None = None,
+        deform: bool = True,
         **raster_kw,
     ) -> raster.RasterOutput:
         """Render the scene deformed to time `t` from `camera` (RGB features from SH of degree
-        `sh_degree`, default the model's)."""
-        means, quats, scales = self.at_time(t)
+        `sh_degree`, default the model's; the canonical scene when `deform` is False)."""
+        means, quats, scales = self.at_time(t, deform)
         viewmat = torch.as_tensor(camera.viewmat, dtype=torch.float32)
         coeffs = torch.cat([self.sh_dc, self.sh_rest], dim=1)
         degree = self.sh_degree if sh_degree is None else sh_degree

@@ -41,6 +41,10 @@ class Phase1Config:
     lr_deform_final: float = 5e-6
     lr_embed_final: float = 5e-6
     sh_degree_interval: int = 1_000
+    #: Iterations at the start that train the canonical Gaussians alone, D_theta off (the
+    #: static warm-up of Deformable-3DGS): the static scene settles first, so its gradients do
+    #: not drown D_theta's time signal. 0 disables it.
+    static_warmup: int = 0
     lambda_l1: float = 0.8
     lambda_dssim: float = 0.2
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -90,7 +94,7 @@ def initial_model(
     g = torch.Generator().manual_seed(seed)
     if scene.points is not None and len(scene.points) > 0:
         pts = torch.as_tensor(np.asarray(scene.points), dtype=torch.float32)
-        cols = getattr(scene, "point_colors", None)
+        cols = scene.point_colors
         colors = None if cols is None else torch.as_tensor(np.asarray(cols), dtype=torch.float32)
         return DeformableGaussians(pts, colors, sh_degree=sh_degree, config=deform, generator=g)
     focus, dist = scene_focus(scene)
@@ -179,7 +183,7 @@ class Phase1Trainer:
         degree = min(self.model.sh_degree, (self.iteration - 1) // c.sh_degree_interval)
         out = self.model.render(
             frame.camera, frame.time, sh_degree=degree, background=self._background,
-            threads=self.threads,
+            deform=self.iteration > c.static_warmup, threads=self.threads,
         )
         out.means2d.retain_grad()
         loss = photometric_loss(out.features, target, c.lambda_l1, c.lambda_dssim)

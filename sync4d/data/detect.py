@@ -11,7 +11,8 @@ def load_scene(root: str | Path, resolution_scale: float = 1.0, test_split: str 
     """Load a dataset directory in any supported layout (`test_split` "val" picks D-NeRF's
     validation frames as the test split): D-NeRF / Blender
     (`transforms_train.json`), Dynamic-3DGS Panoptic (`train_meta.json`), HyperNeRF
-    (`dataset.json` + `metadata.json`) or nerfstudio with per-frame time (`transforms.json`)."""
+    (`dataset.json` + `metadata.json`), nerfstudio with per-frame time (`transforms.json`) or
+    COLMAP (`sparse/` + `images/`, read with pycolmap)."""
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(root, "dataset directory does not exist")
@@ -35,9 +36,13 @@ def load_scene(root: str | Path, resolution_scale: float = 1.0, test_split: str 
         from sync4d.data.nerfstudio import load_nerfstudio
 
         return load_nerfstudio(root, resolution_scale)
+    if (root / "sparse").exists():
+        from sync4d.data.colmap import load_colmap
+
+        return load_colmap(root, resolution_scale)
     raise DatasetError(
         root,
         "unrecognised dataset layout: expected transforms_train.json (D-NeRF/Blender), "
-        "train_meta.json (Dynamic-3DGS Panoptic), dataset.json + metadata.json (HyperNeRF) or "
-        "transforms.json (nerfstudio with time)",
+        "train_meta.json (Dynamic-3DGS Panoptic), dataset.json + metadata.json (HyperNeRF), "
+        "transforms.json (nerfstudio with time) or sparse/ + images/ (COLMAP)",
     )

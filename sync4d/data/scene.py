@@ -161,7 +161,10 @@ class Scene:
     train: list[Frame]
     test: list[Frame]
     labels: dict[int, str] | None = None
+    #: [N, 3] float64 world points to initialise the Gaussians from (e.g. COLMAP's sparse cloud).
     points: np.ndarray | None = None
+    #: [N, 3] float32 RGB in [0, 1] of `points` (same length), or None when uncoloured.
+    point_colors: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
 
     @property

@@ -1,0 +1,196 @@
+"""COLMAP reconstructions of dynamic scenes, read with pycolmap: images in `images/`, the sparse
+model (cameras, images, points3D as `.bin` or `.txt`) in `sparse/0/` or `sparse/`, optional
+indexed instance masks `masks/<image stem>.png` with `masks/labels.json`.
+
+Each image's time comes from `times.json` (image name -> time; normalised to [0, 1] by min/max
+unless already in [0, 1]); without it the images sorted by name are one monocular video with
+times evenly spaced over [0, 1]. The test split is `test_images.txt` (one image name per line)
+when present, else every 8th image sorted by name (the LLFF / mip-NeRF 360 convention). Only
+undistorted pinhole cameras are supported: run `colmap image_undistorter` first otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sync4d.data.blender import _read_json
+from sync4d.data.scene import Camera, DatasetError, Frame, Scene
+
+#: COLMAP camera models read as pinholes; the radial / OpenCV ones only with zero distortion.
+PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
+ZERO_DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
+#: Every `test_every`-th image (sorted by name) is held out when there is no test_images.txt.
+TEST_EVERY = 8
+
+
+def find_sparse_model(root: Path) -> Path:
+    """The sparse model directory of a COLMAP dataset: `sparse/0/` if present, else `sparse/`."""
+    sparse = root / "sparse"
+    for cand in (sparse / "0", sparse):
+        if any((cand / f"cameras.{ext}").exists() for ext in ("bin", "txt")):
+            return cand
+    raise DatasetError(
+        sparse,
+        "COLMAP sparse model is missing: expected cameras, images and points3D (.bin or .txt) "
+        "in sparse/0/ or sparse/",
+    )
+
+
+def _read_model(sparse: Path):
+    try:
+        import pycolmap
+    except ImportError:
+        raise DatasetError(
+            sparse, "reading COLMAP models needs pycolmap: pip install pycolmap"
+        ) from None
+    try:
+        return pycolmap.Reconstruction(str(sparse))
+    except Exception as e:  # pycolmap raises ValueError / RuntimeError with COLMAP's check text
+        raise DatasetError(sparse, f"pycolmap cannot read the sparse model ({e})") from None
+
+
+def _intrinsics(sparse: Path, cam) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of a pycolmap camera, refusing lens distortion."""
+    model = str(cam.model_name)
+    params = np.asarray(cam.params, dtype=np.float64)
+    if model not in PINHOLE_MODELS + ZERO_DISTORTION_MODELS:
+        raise DatasetError(
+            sparse,
+            f"camera {cam.camera_id} has model {model}, which sync4d does not support; "
+            "undistort the images with `colmap image_undistorter` (it writes PINHOLE cameras)",
+        )
+    extra = params[list(cam.extra_params_idxs())]
+    if np.any(extra != 0.0):
+        raise DatasetError(
+            sparse,
+            f"camera {cam.camera_id} ({model}) has lens distortion {extra.tolist()}; sync4d "
+            "needs undistorted images: run `colmap image_undistorter` and load its output",
+        )
+    out = (
+        float(cam.focal_length_x),
+        float(cam.focal_length_y),
+        float(cam.principal_point_x),
+        float(cam.principal_point_y),
+    )
+    if not all(math.isfinite(v) for v in out) or out[0] <= 0 or out[1] <= 0:
+        raise DatasetError(sparse, f"camera {cam.camera_id} has invalid intrinsics {list(out)}")
+    return out
+
+
+def _viewmat(image) -> np.ndarray:
+    """[4, 4] world-to-camera of a pycolmap image (COLMAP poses are OpenCV cam_from_world)."""
+    pose = image.cam_from_world
+    if callable(pose):  # a method in pycolmap >= 3.12 / 4, a property before
+        pose = pose()
+    m = np.eye(4)
+    m[:3, :] = np.asarray(pose.matrix(), dtype=np.float64)
+    return m
+
+
+def _read_times(root: Path, names: list[str]) -> list[float]:
+    """Per-image times in [0, 1]: from `times.json`, else evenly spaced over sorted names."""
+    path = root / "times.json"
+    if not path.exists():
+        n = len(names)
+        return [i / max(1, n - 1) for i in range(n)]
+    data = _read_json(path)
+    raw: list[float] = []
+    for name in names:
+        if name not in data:
+            raise DatasetError(path, f"no time for image '{name}'")
+        try:
+            t = float(data[name])
+        except (TypeError, ValueError):
+            raise DatasetError(path, f"time of '{name}' is not a number: {data[name]!r}") from None
+        if not math.isfinite(t):
+            raise DatasetError(path, f"time of '{name}' is not finite ({t})")
+        raw.append(t)
+    lo, hi = min(raw), max(raw)
+    if lo >= 0.0 and hi <= 1.0:
+        return raw
+    return [(t - lo) / (hi - lo) for t in raw]  # hi > lo: not all within [0, 1]
+
+
+def _read_test_names(root: Path, names: list[str]) -> set[str]:
+    """Held-out image names: `test_images.txt` if present, else every 8th sorted name."""
+    path = root / "test_images.txt"
+    if not path.exists():
+        return {n for i, n in enumerate(names) if i % TEST_EVERY == 0}
+    known = set(names)
+    out: set[str] = set()
+    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        name = line.strip()
+        if not name or name.startswith("#"):
+            continue
+        if name not in known:
+            raise DatasetError(
+                path, f"line {lineno} names '{name}', which is not a registered image"
+            )
+        out.add(name)
+    return out
+
+
+def _read_labels(path: Path) -> dict[int, str]:
+    raw = _read_json(path)
+    try:
+        return {int(k): str(v) for k, v in raw.items()}
+    except ValueError:
+        raise DatasetError(path, "keys must be integer mask labels") from None
+
+
+def load_colmap(root: str | Path, resolution_scale: float = 1.0) -> Scene:
+    """Load a COLMAP dataset directory (`images/`, `sparse/[0/]`, optional `masks/`,
+    `times.json`, `test_images.txt`) with cameras scaled by `resolution_scale` in (0, 1]."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(root, "dataset directory does not exist")
+    if not (0.0 < resolution_scale <= 1.0):
+        raise DatasetError(root, f"resolution scale must be in (0, 1], got {resolution_scale}")
+    image_dir = root / "images"
+    if not image_dir.is_dir():
+        raise DatasetError(image_dir, "image folder is missing")
+    sparse = find_sparse_model(root)
+    rec = _read_model(sparse)
+    images = sorted((rec.images[i] for i in rec.reg_image_ids()), key=lambda im: im.name)
+    if not images:
+        raise DatasetError(sparse, "the sparse model has no registered images")
+    names = [im.name for im in images]
+    times = _read_times(root, names)
+    test_names = _read_test_names(root, names)
+    mask_dir = root / "masks"
+    has_masks = mask_dir.is_dir()
+    train: list[Frame] = []
+    test: list[Frame] = []
+    for im, time in zip(images, times, strict=True):
+        img = image_dir / im.name
+        if not img.exists():
+            raise DatasetError(img, f"image file is missing (listed in {sparse})")
+        col = rec.cameras[im.camera_id]
+        fx, fy, cx, cy = _intrinsics(sparse, col)
+        w, h = int(col.width), int(col.height)
+        viewmat = _viewmat(im)
+        if not np.isfinite(viewmat).all():
+            raise DatasetError(sparse, f"image '{im.name}' has a non-finite pose")
+        cam = Camera(viewmat, fx, fy, cx, cy, w, h)
+        if resolution_scale != 1.0:
+            cam = cam.scaled(resolution_scale)
+        mask = None
+        if has_masks:
+            mask = mask_dir / Path(im.name).with_suffix(".png")
+            if not mask.exists():
+                raise DatasetError(mask, f"mask for {im.name} is missing ({mask_dir} has masks)")
+        frame = Frame(img, cam, time, mask, (w, h))
+        (test if im.name in test_names else train).append(frame)
+    if not train:
+        raise DatasetError(root, "the split leaves no training frames")
+    labels_path = mask_dir / "labels.json"
+    labels = _read_labels(labels_path) if labels_path.exists() else None
+    points = colors = None
+    if rec.num_points3D() > 0:
+        pts = [rec.points3D[i] for i in sorted(rec.point3D_ids())]
+        points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
+        colors = np.array([p.color for p in pts], dtype=np.float32).reshape(-1, 3) / 255.0
+    return Scene(root.name, train, test, labels, points, colors)
