@@ -85,15 +85,20 @@ class Densifier:
         iteration: int,
         scene_extent: float,
     ) -> dict[str, int]:
-        """Densify / prune / reset opacities when the schedule says so; returns counts of what
-        happened (cloned, split, pruned)."""
+        """Densify and prune after `iteration` when the schedule says so; returns counts of
+        what happened (cloned, split, pruned). Opacity resets are `reset_due`'s business."""
         c = self.config
         out = {"cloned": 0, "split": 0, "pruned": 0}
         if c.start <= iteration < c.stop and iteration % c.interval == 0 and iteration > 0:
             out = self.densify_and_prune(model, optimizer, scene_extent)
-        if iteration > 0 and iteration % c.opacity_reset_interval == 0 and iteration < c.stop:
-            self.reset_opacity(model, optimizer)
         return out
+
+    def reset_due(self, iteration: int) -> bool:
+        """Whether the opacity reset scheduled after `iteration` is due. The trainer applies it
+        at the start of the next iteration, so evaluations and checkpoints taken at the end
+        of `iteration` see the model before the reset rather than washed-out opacities."""
+        c = self.config
+        return iteration > 0 and iteration % c.opacity_reset_interval == 0 and iteration < c.stop
 
     @torch.no_grad()
     def densify_and_prune(

@@ -100,11 +100,13 @@ class DeformableGaussians(nn.Module):
         sh_degree: int | None = None,
         background: Tensor | None = None,
         deform: bool = True,
+        deformed: tuple[Tensor, Tensor, Tensor] | None = None,
         **raster_kw,
     ) -> raster.RasterOutput:
         """Render the scene deformed to time `t` from `camera` (RGB features from SH of degree
-        `sh_degree`, default the model's; the canonical scene when `deform` is False)."""
-        means, quats, scales = self.at_time(t, deform)
+        `sh_degree`, default the model's; the canonical scene when `deform` is False).
+        `deformed` passes `at_time(t)`'s result when the caller already computed it."""
+        means, quats, scales = deformed if deformed is not None else self.at_time(t, deform)
         viewmat = torch.as_tensor(camera.viewmat, dtype=torch.float32)
         coeffs = torch.cat([self.sh_dc, self.sh_rest], dim=1)
         degree = self.sh_degree if sh_degree is None else sh_degree

@@ -175,18 +175,24 @@ class Phase1Trainer:
     def step(self) -> dict[str, float]:
         """One iteration on a random training frame; returns loss, PSNR and N."""
         c = self.config
+        if self.densifier.reset_due(self.iteration):
+            self.densifier.reset_opacity(self.model, self.optimizer)
         self.iteration += 1
         self._update_learning_rates()
         idx = self._rng.randrange(len(self.scene.train))
         frame = self.scene.train[idx]
         target = self._image(idx, frame)
         degree = min(self.model.sh_degree, (self.iteration - 1) // c.sh_degree_interval)
+        deformed = self.model.at_time(frame.time, deform=self.iteration > c.static_warmup)
         out = self.model.render(
             frame.camera, frame.time, sh_degree=degree, background=self._background,
-            deform=self.iteration > c.static_warmup, threads=self.threads,
+            deformed=deformed, threads=self.threads,
         )
         out.means2d.retain_grad()
         loss = photometric_loss(out.features, target, c.lambda_l1, c.lambda_dssim)
+        extra, extra_stats = self.auxiliary_loss(frame, deformed[0])
+        if extra is not None:
+            loss = loss + extra
         loss.backward()
         with torch.no_grad():
             self.densifier.accumulate(
@@ -194,12 +200,25 @@ class Phase1Trainer:
             )
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self.densifier.step(self.model, self.optimizer, self.iteration, self.extent)
+        changed = self.densifier.step(self.model, self.optimizer, self.iteration, self.extent)
+        if any(changed.values()):
+            self.on_gaussians_changed()
         return {
             "loss": float(loss.detach()),
             "psnr": psnr(out.features.detach(), target),
             "gaussians": float(self.model.num_gaussians),
+            **extra_stats,
         }
+
+    def auxiliary_loss(
+        self, frame: Frame, means: torch.Tensor
+    ) -> tuple[torch.Tensor | None, dict[str, float]]:
+        """Loss terms added to the photometric loss for `frame`, given the deformed means
+        [N, 3] the render used, and scalars to report; Phase 1 has none (Phase 2 overrides)."""
+        return None, {}
+
+    def on_gaussians_changed(self) -> None:
+        """Called after densification changed the number of Gaussians (Phase 2 re-assigns)."""
 
     def train(self, iterations: int, callback: Callable[[int, dict], None] | None = None) -> dict:
         """Run `iterations` steps, calling `callback(iteration, stats)` after each."""

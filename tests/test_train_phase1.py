@@ -79,3 +79,18 @@ def test_densification_runs_inside_the_loop(tmp_path: Path) -> None:
             st = trainer.optimizer.state.get(p)
             if st:
                 assert st["exp_avg"].shape == p.shape
+
+
+def test_opacity_reset_applies_at_the_start_of_the_next_iteration(tmp_path: Path) -> None:
+    """An evaluation or checkpoint at a reset iteration sees the trained opacities; the reset
+    lands when the next iteration starts."""
+    scene, gt = _scene(tmp_path)
+    model = DeformableGaussians(gt.means.data.clone(), None, sh_degree=0)
+    with torch.no_grad():
+        model.opacity_logits.fill_(2.0)
+    dcfg = DensifyConfig(start=10_000, stop=100, opacity_reset_interval=3)
+    trainer = Phase1Trainer(model, scene, Phase1Config(densify=dcfg), 10, threads=1)
+    trainer.train(3)
+    assert float(torch.sigmoid(model.opacity_logits).min()) > 0.5
+    trainer.step()
+    assert float(torch.sigmoid(model.opacity_logits).max()) < 0.05
