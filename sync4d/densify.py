@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from sync4d.deform import quat_to_matrix
 from sync4d.gaussians import DeformableGaussians
 
 __all__ = ["DensifyConfig", "Densifier", "PER_GAUSSIAN"]
@@ -130,7 +131,7 @@ class Densifier:
         if n_clone or n_split:
             # New rows: clones copy; split children are sampled inside the parent and shrunk.
             stds = model.log_scales.data[split].exp().repeat(c.split_count, 1)
-            rot = _rotmats(model.quats.data[split]).repeat(c.split_count, 1, 1)
+            rot = quat_to_matrix(model.quats.data[split]).repeat(c.split_count, 1, 1)
             offsets = (rot @ (torch.randn_like(stds) * stds).unsqueeze(-1)).squeeze(-1)
             shrink = math.log(0.8 * c.split_count)
 
@@ -178,15 +179,3 @@ class Densifier:
         _replace_rows(optimizer, model, reset)
 
 
-def _rotmats(q: Tensor) -> Tensor:
-    """Rotation matrices [N, 3, 3] of quaternions (w, x, y, z) [N, 4]."""
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)  # fmt: skip

@@ -1,0 +1,379 @@
+"""Phase 2 shared object motion M_phi (paper Sec. 3.3, Eq. 5, Appendix A "Object Motion Model").
+
+One interface, three parameterisations of a transform per object k and time t:
+
+* ``se3`` (default): a per-frame table of rotation vectors w [K, T, 3] and translations
+  t [K, T, 3]; x~ = R(w) x0 + t.
+* ``affine``: a per-frame table of affine deltas dA [K, T, 3, 3] and offsets b [K, T, 3];
+  x~ = (I + dA) x0 + b.
+* ``mlp``: a learned 16-d embedding per object concatenated with gamma(t), Lin 64 -> ReLU ->
+  Lin 64 -> ReLU -> Lin (6 for SE(3), 12 for affine), zero-initialised output.
+
+Tables hold one entry per stored frame time (the sorted distinct training times); a time
+between two stored frames interpolates (quaternion slerp of the rotation, linear elsewhere), so
+rendering and export work at any t in [0, 1]. Every transform maps canonical positions x0 to
+the object-predicted positions x~_i(t) that only the Phase 2 losses see: rendering always uses
+D_theta's x_i(t).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from sync4d.deform import axis_angle_to_quat, quat_to_matrix, time_encoding
+
+__all__ = [
+    "MOTION_KINDS",
+    "MotionConfig",
+    "ObjectMotion",
+    "fit_affine",
+    "kabsch",
+    "make_motion",
+    "matrix_to_rotvec",
+    "quat_slerp",
+    "robust_fit",
+    "rotvec_to_matrix",
+]
+
+#: The M_phi parameterisations `make_motion` knows.
+MOTION_KINDS = ("se3", "affine", "mlp")
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """M_phi's parameterisation and optimisation (Appendix A: per-frame SE(3), init sigma 1e-4,
+    learning rate cosine-annealed 1e-3 -> 1e-5)."""
+
+    kind: str = "se3"
+    #: "identity" (the paper: near-identity start, sigma `init_std`) or "fit": start the tables
+    #: at the closed-form minimiser of the residual energy given Phase 1's D_theta (weighted
+    #: Kabsch per object and frame for SE(3), least squares for affine). A per-frame table
+    #: entry is only updated when its frame is drawn, so from the identity it needs many
+    #: thousands of iterations to reach large rotations; "fit" suits short CPU schedules.
+    init: str = "identity"
+    #: For ``mlp``: whether it outputs an affine transform (12) instead of SE(3) (6).
+    mlp_affine: bool = False
+    init_std: float = 1e-4
+    lr: float = 1e-3
+    lr_final: float = 1e-5
+    mlp_embed_dim: int = 16
+    mlp_hidden: int = 64
+    mlp_bands: int = 6
+
+
+def rotvec_to_matrix(w: Tensor) -> Tensor:
+    """Rotation matrices [..., 3, 3] of rotation vectors `w` [..., 3] (Rodrigues; a Taylor
+    series below 1e-4 rad keeps the gradient finite at w = 0)."""
+    theta2 = (w * w).sum(-1, keepdim=True)
+    theta = theta2.clamp_min(1e-24).sqrt()
+    small = theta2 < 1e-8
+    safe = torch.where(small, torch.ones_like(theta), theta)
+    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(safe) / safe)
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(safe)) / (safe * safe))
+    x, y, z = w.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*w.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(k)
+    return eye + a[..., None] * k + b[..., None] * (k @ k)
+
+
+def quat_slerp(q0: Tensor, q1: Tensor, alpha: float) -> Tensor:
+    """Spherical interpolation of unit quaternions [..., 4] by `alpha` in [0, 1] along the
+    shorter arc (linear + renormalise when they nearly coincide)."""
+    dot = (q0 * q1).sum(-1, keepdim=True)
+    q1 = torch.where(dot < 0, -q1, q1)
+    dot = dot.abs().clamp(max=1.0)
+    omega = torch.acos(dot)
+    so = torch.sin(omega)
+    near = so < 1e-6
+    safe = torch.where(near, torch.ones_like(so), so)
+    w0 = torch.where(near, 1.0 - alpha, torch.sin((1.0 - alpha) * omega) / safe)
+    w1 = torch.where(near, torch.full_like(so, alpha), torch.sin(alpha * omega) / safe)
+    q = w0 * q0 + w1 * q1
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def kabsch(
+    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R [3, 3] and translation t [3] minimising sum w ||R src + t - dst||^2 over
+    corresponding points `src`, `dst` [M, 3] (float64; proper rotation, det +1)."""
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / max(w.sum(), 1e-300)
+    cs, cd = w @ src, w @ dst
+    h = ((src - cs) * w[:, None]).T @ (dst - cd)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return r, cd - r @ cs
+
+
+def fit_affine(
+    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Affine map (A [3, 3], b [3]) minimising sum w ||A src + b - dst||^2 (least squares; the
+    identity part is kept where the points do not determine it)."""
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
+    sw = np.sqrt(w)[:, None]
+    x = np.concatenate([src, np.ones((len(src), 1))], axis=1)
+    sol, *_ = np.linalg.lstsq(x * sw, (dst - src) * sw, rcond=None)
+    return np.eye(3) + sol[:3].T, sol[3]
+
+
+def robust_fit(
+    fit, src: np.ndarray, dsts: list[np.ndarray], rounds: int = 3, cutoff: float = 3.0
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per-frame transforms `fit(src, dsts[j], weights)` of one object, refitted `rounds`
+    times without the points whose residual (averaged over frames) exceeds `cutoff` times the
+    median: points that do not follow the object (mislabelled background under it, floaters)
+    drop out, as the paper's residual modulation intends."""
+    w = np.ones(len(src))
+    for r in range(rounds + 1):
+        out = [fit(src, d, w) for d in dsts]
+        if r == rounds:
+            return out
+        res = np.mean(
+            [np.linalg.norm(src @ a.T + b - d, axis=1)
+             for (a, b), d in zip(out, dsts, strict=True)],
+            axis=0,
+        )  # fmt: skip
+        keep = res <= cutoff * np.median(res) + 1e-9
+        if keep.sum() < 4 or keep.all():
+            return out
+        w = keep.astype(np.float64)
+    return out
+
+
+def matrix_to_rotvec(r: np.ndarray) -> np.ndarray:
+    """Rotation vector [3] of a rotation matrix [3, 3] (float64, angle in [0, pi])."""
+    cos = np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)
+    angle = math.acos(cos)
+    if angle < 1e-8:
+        return np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
+    if math.pi - angle < 1e-6:  # axis from the symmetric part
+        m = (r + np.eye(3)) / 2.0
+        axis = m[np.argmax(np.diag(m))]
+        return axis / np.linalg.norm(axis) * angle
+    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return v / (2.0 * math.sin(angle)) * angle
+
+
+class ObjectMotion(nn.Module):
+    """M_phi for K objects over the stored frame times `times` [T] (sorted, in [0, 1]).
+
+    Subclasses provide `params_at(j)` (the raw per-object parameters at stored frame j, [K, P],
+    which the smoothness and identity losses act on) and `linear_at(t)`: the transform at any
+    time as (A [K, 3, 3], b [K, 3]) with x~ = A x0 + b.
+    """
+
+    #: Whether the transform is rigid (SE(3)); the affine ones are not.
+    rigid: bool = True
+
+    def __init__(self, num_objects: int, times: np.ndarray | list[float]) -> None:
+        super().__init__()
+        times = np.asarray(times, dtype=np.float64)
+        if num_objects < 1:
+            raise ValueError(f"M_phi needs at least one object, got {num_objects}")
+        if times.ndim != 1 or len(times) < 1 or np.any(np.diff(times) <= 0):
+            raise ValueError("M_phi frame times must be a non-empty strictly increasing list")
+        self.num_objects = num_objects
+        self.register_buffer("times", torch.as_tensor(times, dtype=torch.float64))
+
+    @property
+    def num_frames(self) -> int:
+        """T, the number of stored frame times."""
+        return int(self.times.shape[0])
+
+    def frame_index(self, t: float) -> int:
+        """Index of the stored frame time nearest to `t`."""
+        return int(torch.argmin((self.times - float(t)).abs()))
+
+    def bracket(self, t: float) -> tuple[int, int, float]:
+        """Stored frames (j0, j1) around `t` and the interpolation weight of j1 (t is clamped to
+        the stored range)."""
+        times = self.times
+        t = min(max(float(t), float(times[0])), float(times[-1]))
+        j1 = int(torch.searchsorted(times, torch.tensor([t], dtype=times.dtype))[0])
+        j1 = min(max(j1, 0), self.num_frames - 1)
+        if float(times[j1]) == t or j1 == 0:
+            return j1, j1, 0.0
+        j0 = j1 - 1
+        alpha = (t - float(times[j0])) / float(times[j1] - times[j0])
+        return j0, j1, alpha
+
+    def params_at(self, j: int) -> Tensor:
+        """Raw parameters [K, P] at stored frame `j`."""
+        raise NotImplementedError
+
+    def linear_at(self, t: float) -> tuple[Tensor, Tensor]:
+        """(A [K, 3, 3], b [K, 3]) at time `t`: x~ = A x0 + b."""
+        raise NotImplementedError
+
+    def forward(self, x0: Tensor, labels: Tensor, t: float) -> Tensor:
+        """Object-predicted positions x~ [N, 3] (Eq. 5) of canonical means `x0` [N, 3] whose
+        objects are `labels` [N] (long, in [0, K)) at time `t`."""
+        a, b = self.linear_at(t)
+        a, b = a.to(x0.dtype), b.to(x0.dtype)
+        return (a[labels] @ x0.unsqueeze(-1)).squeeze(-1) + b[labels]
+
+    def smoothness(self, j: int) -> Tensor:
+        """Eq. 12: (1/K) sum_k ||p_k[j] - p_k[j-1]||^2 between stored frame `j` and the one
+        before it (0 at the first frame)."""
+        if j <= 0:
+            return self.params_at(0).sum() * 0.0
+        d = self.params_at(j) - self.params_at(j - 1)
+        return (d * d).sum() / self.num_objects
+
+    def identity_prior(self, j: int, static: Tensor) -> Tensor:
+        """Mean over the objects flagged in `static` [K] (bool) of ||p_k[j]||^2: pulls static
+        objects' transforms to the identity (0 when none is static)."""
+        p = self.params_at(j)[static]
+        if p.shape[0] == 0:
+            return p.sum() * 0.0
+        return (p * p).sum() / p.shape[0]
+
+    def fit_to(self, x0: np.ndarray, positions: list[np.ndarray], labels: np.ndarray) -> None:
+        """Set the transforms to the closed-form fit of canonical `x0` [N, 3] onto
+        `positions[j]` [N, 3] (D_theta at stored frame j) per object `labels` [N]."""
+        raise NotImplementedError(f"{type(self).__name__} has no closed-form initialisation")
+
+    @torch.no_grad()
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(A [K, T, 3, 3], b [K, T, 3]) float64 at every stored frame, for export."""
+        mats, offs = [], []
+        for j in range(self.num_frames):
+            a, b = self.linear_at(float(self.times[j]))
+            mats.append(a.double().numpy())
+            offs.append(b.double().numpy())
+        return np.stack(mats, 1), np.stack(offs, 1)
+
+
+class SE3Table(ObjectMotion):
+    """Per-frame SE(3) table: rotation vectors w [K, T, 3] and translations t [K, T, 3]."""
+
+    def __init__(self, num_objects: int, times, init_std: float = 1e-4, generator=None) -> None:
+        super().__init__(num_objects, times)
+        shape = (num_objects, self.num_frames, 3)
+        self.rotvecs = nn.Parameter(torch.randn(shape, generator=generator) * init_std)
+        self.translations = nn.Parameter(torch.randn(shape, generator=generator) * init_std)
+
+    def params_at(self, j: int) -> Tensor:
+        return torch.cat([self.rotvecs[:, j], self.translations[:, j]], dim=-1)
+
+    @torch.no_grad()
+    def fit_to(self, x0: np.ndarray, positions: list[np.ndarray], labels: np.ndarray) -> None:
+        for k in range(self.num_objects):
+            sel = labels == k
+            if sel.sum() < 3:
+                continue
+            fits = robust_fit(kabsch, x0[sel], [pos[sel] for pos in positions])
+            for j, (r, t) in enumerate(fits):
+                self.rotvecs[k, j] = torch.as_tensor(matrix_to_rotvec(r))
+                self.translations[k, j] = torch.as_tensor(t)
+
+    def linear_at(self, t: float) -> tuple[Tensor, Tensor]:
+        j0, j1, alpha = self.bracket(t)
+        if j0 == j1:
+            return rotvec_to_matrix(self.rotvecs[:, j0]), self.translations[:, j0]
+        q = quat_slerp(
+            axis_angle_to_quat(self.rotvecs[:, j0]), axis_angle_to_quat(self.rotvecs[:, j1]), alpha
+        )
+        b = (1 - alpha) * self.translations[:, j0] + alpha * self.translations[:, j1]
+        return quat_to_matrix(q), b
+
+
+class AffineTable(ObjectMotion):
+    """Per-frame affine table: deltas dA [K, T, 3, 3] and offsets b [K, T, 3]."""
+
+    rigid = False
+
+    def __init__(self, num_objects: int, times, init_std: float = 1e-4, generator=None) -> None:
+        super().__init__(num_objects, times)
+        k, n = num_objects, self.num_frames
+        self.deltas = nn.Parameter(torch.randn((k, n, 3, 3), generator=generator) * init_std)
+        self.offsets = nn.Parameter(torch.randn((k, n, 3), generator=generator) * init_std)
+
+    def params_at(self, j: int) -> Tensor:
+        return torch.cat([self.deltas[:, j].flatten(1), self.offsets[:, j]], dim=-1)
+
+    @torch.no_grad()
+    def fit_to(self, x0: np.ndarray, positions: list[np.ndarray], labels: np.ndarray) -> None:
+        for k in range(self.num_objects):
+            sel = labels == k
+            if sel.sum() < 4:
+                continue
+            fits = robust_fit(fit_affine, x0[sel], [pos[sel] for pos in positions])
+            for j, (a, b) in enumerate(fits):
+                self.deltas[k, j] = torch.as_tensor(a - np.eye(3))
+                self.offsets[k, j] = torch.as_tensor(b)
+
+    def linear_at(self, t: float) -> tuple[Tensor, Tensor]:
+        j0, j1, alpha = self.bracket(t)
+        d = (1 - alpha) * self.deltas[:, j0] + alpha * self.deltas[:, j1]
+        b = (1 - alpha) * self.offsets[:, j0] + alpha * self.offsets[:, j1]
+        return torch.eye(3, dtype=d.dtype) + d, b
+
+
+class MotionMLP(ObjectMotion):
+    """The MLP variant: [e_k (16); gamma(t)] -> 64 -> 64 -> 6 (rotation vector, translation)
+    or 12 (affine delta, offset), zero-initialised output, so it starts at the identity."""
+
+    def __init__(
+        self, num_objects: int, times, config: MotionConfig | None = None, generator=None
+    ) -> None:
+        super().__init__(num_objects, times)
+        c = config or MotionConfig(kind="mlp")
+        self.bands = c.mlp_bands
+        self.rigid = not c.mlp_affine
+        out = 6 if self.rigid else 12
+        self.embeddings = nn.Parameter(
+            torch.randn((num_objects, c.mlp_embed_dim), generator=generator) * 0.1
+        )
+        self.net = nn.Sequential(
+            nn.Linear(c.mlp_embed_dim + 1 + 2 * c.mlp_bands, c.mlp_hidden),
+            nn.ReLU(),
+            nn.Linear(c.mlp_hidden, c.mlp_hidden),
+            nn.ReLU(),
+            nn.Linear(c.mlp_hidden, out),
+        )
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def _out(self, t: float) -> Tensor:
+        k = self.num_objects
+        gamma = time_encoding(torch.full((k,), float(t), dtype=torch.float32), self.bands)
+        return self.net(torch.cat([self.embeddings, gamma], dim=-1))
+
+    def params_at(self, j: int) -> Tensor:
+        return self._out(float(self.times[j]))
+
+    def linear_at(self, t: float) -> tuple[Tensor, Tensor]:
+        o = self._out(t)
+        if self.rigid:
+            return rotvec_to_matrix(o[:, :3]), o[:, 3:]
+        return torch.eye(3) + o[:, :9].reshape(-1, 3, 3), o[:, 9:]
+
+
+def make_motion(
+    config: MotionConfig, num_objects: int, times, seed: int = 42
+) -> ObjectMotion:
+    """The M_phi of `config.kind` for `num_objects` objects over stored frame `times`."""
+    g = torch.Generator().manual_seed(seed)
+    if config.kind == "se3":
+        return SE3Table(num_objects, times, config.init_std, g)
+    if config.kind == "affine":
+        return AffineTable(num_objects, times, config.init_std, g)
+    if config.kind == "mlp":
+        return MotionMLP(num_objects, times, config, g)
+    raise ValueError(f"unknown M_phi kind {config.kind!r}: expected one of {MOTION_KINDS}")
+
+
+def cosine_lr(start: float, final: float, frac: float) -> float:
+    """Cosine annealing from `start` to `final` as `frac` goes 0 -> 1."""
+    frac = min(1.0, max(0.0, frac))
+    return final + 0.5 * (start - final) * (1.0 + math.cos(math.pi * frac))

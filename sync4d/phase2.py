@@ -1,0 +1,354 @@
+"""Phase 2: in-loop motion decomposition (paper Sec. 3.2-3.4, Appendix A "Phase 2", App. C).
+
+Training continues from a Phase 1 model. Every Gaussian i has an object label o(i) (from
+`sync4d.assign`); M_phi predicts where each object carries its Gaussians,
+x~_i(t) = M_phi(o(i), t)(x0_i) (Eq. 5), and the residual r_i(t) = x_i(t) - x~_i(t) (Eq. 6)
+enters five regularisers plus the identity prior on static objects. Rendering is untouched: it
+always uses D_theta's x_i(t).
+
+Staged activation (Appendix A): M_phi and the smoothness, rigid-share and identity terms from
+iteration `motion_start` (200), velocity coherence from `velocity_start` (300), the modulated
+residual energy from `residual_start` (600), and a linear warm-up of all auxiliary terms over
+[`warmup_start`, `warmup_end`] (500-1000). The paper's "400-iteration head start lets shared
+transforms capture the dominant rigid component first" needs M_phi to learn before the warm-up
+ends, so the warm-up scales only the gradient the auxiliary terms send into the scene (D_theta,
+Gaussians); M_phi always sees them at full weight from their start iteration. `simultaneous`
+switches every term on at iteration 0 without warm-up (the paper's failing ablation).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sync4d.assign import AssignConfig, Assignment, assign_from_masks, cluster_trajectories
+from sync4d.data.scene import Frame, Scene
+from sync4d.gaussians import DeformableGaussians
+from sync4d.motion import MotionConfig, ObjectMotion, cosine_lr, make_motion
+from sync4d.train import Phase1Config, Phase1Trainer
+
+__all__ = [
+    "Phase2Config",
+    "Phase2Trainer",
+    "assign_objects",
+    "frame_times",
+    "rigid_share",
+]
+
+
+@dataclass(frozen=True)
+class Phase2Config:
+    """Phase 2 hyperparameters (Appendix A; the paper's values as defaults) and ablations."""
+
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    assign: AssignConfig = field(default_factory=AssignConfig)
+    lambda_res: float = 0.02
+    lambda_share: float = 0.01
+    tau: float = 0.35
+    lambda_vel: float = 0.01
+    lambda_smooth: float = 0.01
+    lambda_id: float = 0.001
+    #: EMA factor of the per-Gaussian residual magnitude (Appendix A's modulation).
+    eta: float = 0.95
+    #: Epsilon in the rigid share's denominator (metres).
+    share_eps: float = 1e-6
+    motion_start: int = 200
+    velocity_start: int = 300
+    warmup_start: int = 500
+    warmup_end: int = 1000
+    residual_start: int = 600
+    #: An object whose Gaussians' mean Phase 1 displacement stays below this fraction of the
+    #: scene extent is static (it gets the identity prior); background always is.
+    static_fraction: float = 0.005
+    # Ablation switches.
+    use_motion: bool = True
+    modulation: bool = True
+    hinge: bool = True
+    simultaneous: bool = False
+
+
+def frame_times(scene: Scene) -> np.ndarray:
+    """Sorted distinct training times [T] of `scene` (M_phi's stored frames)."""
+    return np.unique(np.asarray([f.time for f in scene.train], dtype=np.float64))
+
+
+@torch.no_grad()
+def _positions_fn(model: DeformableGaussians):
+    def positions_at(t: float) -> np.ndarray:
+        return model.at_time(float(t))[0].double().numpy()
+
+    return positions_at
+
+
+@torch.no_grad()
+def displacement_curves(model: DeformableGaussians, times: np.ndarray) -> np.ndarray:
+    """[N, S, 3] float64 displacements x_i(t_s) - x_i(t_0) at the given sample times."""
+    pos = np.stack([model.at_time(float(t))[0].double().numpy() for t in times], axis=1)
+    return pos - pos[:, :1]
+
+
+def assign_objects(
+    model: DeformableGaussians, scene: Scene, extent: float, config: AssignConfig | None = None
+) -> Assignment:
+    """Object labels for `model`'s Gaussians: mask voting when the training frames have masks,
+    otherwise trajectory clustering."""
+    config = config or AssignConfig()
+    if scene.has_masks:
+        return assign_from_masks(_positions_fn(model), scene.train, scene.labels, config)
+    times = np.linspace(0.0, 1.0, config.trajectory_samples)
+    return cluster_trajectories(displacement_curves(model, times), extent, config)
+
+
+def rigid_share(x0: Tensor, x_obj: Tensor, residual: Tensor, eps: float = 1e-6) -> Tensor:
+    """Per-Gaussian rigid share ||x~ - x0|| / (||x~ - x0|| + ||r|| + eps) [N] (Eq. 9's terms)."""
+    shared = (x_obj - x0).norm(dim=-1)
+    return shared / (shared + residual.norm(dim=-1) + eps)
+
+
+def _scale_grad(x: Tensor, scale: float) -> Tensor:
+    """`x` in the forward pass, with its gradient multiplied by `scale`."""
+    if scale >= 1.0:
+        return x
+    return x.detach() + scale * (x - x.detach())
+
+
+class Phase2Trainer(Phase1Trainer):
+    """Phase 1's loop plus M_phi and the Phase 2 regularisers, on a Phase 1 model."""
+
+    def __init__(
+        self,
+        model: DeformableGaussians,
+        scene: Scene,
+        config: Phase1Config | None = None,
+        phase2: Phase2Config | None = None,
+        total_iterations: int = 20_000,
+        threads: int | None = None,
+        assignment: Assignment | None = None,
+    ) -> None:
+        super().__init__(model, scene, config, total_iterations, threads)
+        self.phase2 = phase2 or Phase2Config()
+        self.times = frame_times(scene)
+        self.assignment = assignment or assign_objects(
+            model, scene, self.extent, self.phase2.assign
+        )
+        k = self.assignment.num_objects
+        self.motion: ObjectMotion = make_motion(
+            self.phase2.motion, k, self.times, self.config.seed
+        )
+        self.motion_optimizer = torch.optim.Adam(
+            self.motion.parameters(), lr=self.phase2.motion.lr, eps=1e-15
+        )
+        self._set_labels(self.assignment.labels)
+        self.static = self._static_objects()
+        if self.phase2.motion.init == "fit":
+            self.fit_motion()
+        elif self.phase2.motion.init != "identity":
+            raise ValueError(
+                f"phase2.motion.init: expected 'identity' or 'fit', got {self.phase2.motion.init!r}"
+            )
+
+    @torch.no_grad()
+    def fit_motion(self) -> None:
+        """Set M_phi to the closed-form fit of every object's canonical Gaussians onto their
+        D_theta positions at each stored frame (MotionConfig.init = "fit")."""
+        x0 = self.model.means.double().numpy()
+        pos = [self.model.at_time(float(t))[0].double().numpy() for t in self.times]
+        self.motion.fit_to(x0, pos, self.labels.numpy())
+
+    # -- assignment state ----------------------------------------------------------------
+    def _set_labels(self, labels: np.ndarray) -> None:
+        self.labels = torch.as_tensor(labels, dtype=torch.long)
+        self.residual_ema = torch.zeros(len(labels))
+        self._ema_started = False
+
+    @torch.no_grad()
+    def _static_objects(self) -> Tensor:
+        """[K] bool: background and objects that barely move in D_theta."""
+        k = self.assignment.num_objects
+        static = torch.zeros(k, dtype=torch.bool)
+        static[0] = True
+        samples = np.linspace(0.0, 1.0, 9)
+        disp = np.linalg.norm(displacement_curves(self.model, samples), axis=-1).mean(1)
+        labels = self.labels.numpy()
+        for j in range(1, k):
+            sel = labels == j
+            if not sel.any() or disp[sel].mean() < self.phase2.static_fraction * self.extent:
+                static[j] = True
+        return static
+
+    def on_gaussians_changed(self) -> None:
+        """Densification changed N: re-run the assignment and restart the modulation EMA."""
+        a = assign_objects(self.model, self.scene, self.extent, self.phase2.assign)
+        if a.num_objects != self.assignment.num_objects:
+            a.labels = np.minimum(a.labels, self.assignment.num_objects - 1)
+            a.num_objects = self.assignment.num_objects
+        self.assignment = a
+        self._set_labels(a.labels)
+
+    # -- schedule --------------------------------------------------------------------------
+    def _active(self, start: int) -> bool:
+        return self.phase2.simultaneous or self.iteration >= start
+
+    def _warmup(self) -> float:
+        p = self.phase2
+        if p.simultaneous:
+            return 1.0
+        span = max(1, p.warmup_end - p.warmup_start)
+        return min(1.0, max(0.0, (self.iteration - p.warmup_start) / span))
+
+    # -- losses -----------------------------------------------------------------------------
+    def modulation_weights(self, residual_norm: Tensor) -> Tensor:
+        """Update the EMA of ||r_i|| (eta) and return m_i = sigmoid(z-score) [N] (Eq. 8)."""
+        eta = self.phase2.eta
+        r = residual_norm.detach()
+        if not self._ema_started:
+            self.residual_ema = r.clone()
+            self._ema_started = True
+        else:
+            self.residual_ema = eta * self.residual_ema + (1 - eta) * r
+        ema = self.residual_ema
+        return torch.sigmoid((ema - ema.mean()) / (ema.std(unbiased=False) + 1e-6))
+
+    def auxiliary_loss(self, frame: Frame, means: Tensor) -> tuple[Tensor | None, dict[str, float]]:
+        p = self.phase2
+        if not p.use_motion or not self._active(p.motion_start):
+            return None, {}
+        j = self.motion.frame_index(frame.time)
+        x0 = self.model.means
+        # The scene side (D_theta, canonical means) gets the warm-up-scaled gradient.
+        w = self._warmup()
+        x = _scale_grad(means, w)
+        x0s = _scale_grad(x0, w)
+        x_obj = self.motion(x0s, self.labels, float(self.times[j]))
+        r = x - x_obj
+        terms: dict[str, Tensor] = {}
+        terms["smooth"] = p.lambda_smooth * self.motion.smoothness(j)
+        terms["id"] = p.lambda_id * self.motion.identity_prior(j, self.static)
+        rho_i = rigid_share(x0s, x_obj, r, p.share_eps)
+        rho = rho_i.mean()
+        if p.hinge:
+            terms["share"] = p.lambda_share * torch.clamp(p.tau - rho, min=0.0) ** 2
+        if j > 0 and self._active(p.velocity_start):
+            t_prev = float(self.times[j - 1])
+            x_prev = _scale_grad(self.model.at_time(t_prev)[0], w)
+            x_obj_prev = self.motion(x0s, self.labels, t_prev)
+            d = (x - x_prev) - (x_obj - x_obj_prev)
+            terms["vel"] = p.lambda_vel * (d * d).sum(-1).mean()
+        rn = r.norm(dim=-1)
+        m = self.modulation_weights(rn) if p.modulation else torch.zeros_like(rn)
+        if self._active(p.residual_start):
+            terms["res"] = p.lambda_res * ((1.0 - m) * rn * rn).mean()
+        total = sum(terms.values())
+        stats = {f"L_{k}": float(v.detach()) for k, v in terms.items()}
+        stats["rho"] = float(rho.detach())
+        return total, stats
+
+    def _update_learning_rates(self) -> None:
+        super()._update_learning_rates()
+        mc = self.phase2.motion
+        lr = cosine_lr(mc.lr, mc.lr_final, self.iteration / self.total)
+        for g in self.motion_optimizer.param_groups:
+            g["lr"] = lr
+
+    def step(self) -> dict[str, float]:
+        """One Phase 2 iteration: the Phase 1 step with the auxiliary losses, plus an M_phi
+        update once M_phi is active."""
+        stats = super().step()
+        if self.phase2.use_motion and self._active(self.phase2.motion_start):
+            self.motion_optimizer.step()
+        self.motion_optimizer.zero_grad(set_to_none=True)
+        return stats
+
+    # -- diagnostics (Appendix C) -------------------------------------------------------------
+    @torch.no_grad()
+    def residuals_at(self, t: float, labels: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(x_i(t) [N, 3], r_i(t) [N, 3]) at time `t`, optionally with other `labels`."""
+        x = self.model.at_time(float(t))[0]
+        lab = self.labels if labels is None else labels
+        return x, x - self.motion(self.model.means, lab, float(t))
+
+    @torch.no_grad()
+    def diagnostics(self, shuffles: int = 5, seed: int = 0) -> dict:
+        """Appendix C diagnostics over every stored frame: per-object and mean rigid share,
+        residual mean, motion variance, the fraction of Gaussians with m_i > 0.5, and the
+        shuffle test (residual energy under `shuffles` random label permutations over that
+        with the true labels, no retraining)."""
+        k = self.assignment.num_objects
+        x0 = self.model.means
+        labels = self.labels
+        rho_k = np.zeros(k)
+        res_k = np.zeros(k)
+        var_k = np.zeros(k)
+        energy = 0.0
+        rho_all = 0.0
+        for t in self.times:
+            x, r = self.residuals_at(float(t))
+            x_obj = x - r
+            rho_i = rigid_share(x0, x_obj, r, self.phase2.share_eps)
+            rho_all += float(rho_i.mean())
+            rn = r.norm(dim=-1)
+            energy += float((rn * rn).mean())
+            disp = x - x0
+            for j in range(k):
+                sel = labels == j
+                if sel.any():
+                    rho_k[j] += float(rho_i[sel].mean())
+                    res_k[j] += float(rn[sel].mean())
+                    dj = disp[sel]
+                    var_k[j] += float(((dj - dj.mean(0)) ** 2).sum(-1).mean())
+        nt = len(self.times)
+        g = torch.Generator().manual_seed(seed)
+        ratios = []
+        for _ in range(shuffles):
+            perm = labels[torch.randperm(len(labels), generator=g)]
+            e = 0.0
+            for t in self.times:
+                _, r = self.residuals_at(float(t), perm)
+                e += float((r * r).sum(-1).mean())
+            ratios.append(e / max(energy, 1e-30))
+        ema = self.residual_ema
+        m = torch.sigmoid((ema - ema.mean()) / (ema.std(unbiased=False) + 1e-6))
+        counts = self.assignment.counts()
+        names = self.assignment.names
+        return {
+            "objects": [
+                {
+                    "label": j, "name": names.get(j, f"object {j}"), "gaussians": counts[j],
+                    "static": bool(self.static[j]), "rigid_share": rho_k[j] / nt,
+                    "residual_mean": res_k[j] / nt, "motion_variance": var_k[j] / nt,
+                }
+                for j in range(k)
+            ],  # fmt: skip
+            "rigid_share": rho_all / nt,
+            "residual_energy": energy / nt,
+            "modulated_fraction": float((m > 0.5).float().mean()) if self._ema_started else 0.0,
+            "shuffle_ratio": float(np.mean(ratios)) if ratios else math.nan,
+            "shuffle_ratios": ratios,
+            "assignment": self.assignment.source,
+        }
+
+    @torch.no_grad()
+    def motion_export(self) -> dict[str, np.ndarray]:
+        """Per-object per-frame motion for later phases: rotations (linear part) [K, T, 3, 3],
+        translations [K, T, 3], centroids of each object's Gaussians [K, T, 3] and their
+        velocities [K, T, 3] (central differences in world units per unit time), frame times
+        [T] and labels [N]."""
+        a, b = self.motion.trajectory()
+        k, nt = a.shape[0], a.shape[1]
+        cent = np.zeros((k, nt, 3))
+        labels = self.labels.numpy()
+        for i, t in enumerate(self.times):
+            x = self.model.at_time(float(t))[0].double().numpy()
+            for j in range(k):
+                sel = labels == j
+                if sel.any():
+                    cent[j, i] = x[sel].mean(0)
+        vel = np.gradient(cent, self.times, axis=1) if nt > 1 else np.zeros_like(cent)
+        return {
+            "rotations": a, "translations": b, "centroids": cent, "velocities": vel,
+            "times": self.times.copy(), "labels": labels.astype(np.int64),
+        }  # fmt: skip
