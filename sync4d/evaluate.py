@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -13,7 +14,7 @@ from sync4d.data.scene import Frame
 from sync4d.gaussians import DeformableGaussians
 from sync4d.losses import psnr, ssim
 
-__all__ = ["FrameMetrics", "render_frame", "evaluate_frames", "summarize"]
+__all__ = ["FrameMetrics", "evaluate_frames", "render_frame", "save_side_by_side", "summarize"]
 
 
 @dataclass
@@ -50,9 +51,11 @@ def evaluate_frames(
     lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
     images: Callable[[int, Frame], torch.Tensor] | None = None,
     on_frame: Callable[[int, FrameMetrics], None] | None = None,
+    save_dir: Path | None = None,
 ) -> list[FrameMetrics]:
     """Render every frame and compare with its ground-truth image. `images(i, frame)` supplies
-    cached targets (default: load from disk); `lpips(pred, target)` adds LPIPS."""
+    cached targets (default: load from disk); `lpips(pred, target)` adds LPIPS; `save_dir`
+    receives one PNG per frame, the render beside the ground truth."""
     out: list[FrameMetrics] = []
     for i, frame in enumerate(frames):
         if images is not None:
@@ -69,10 +72,23 @@ def evaluate_frames(
         )
         if lpips is not None:
             m.lpips = float(lpips(pred, target))
+        if save_dir is not None:
+            save_side_by_side(pred, target, save_dir / f"{frame.image_path.stem}.png")
         out.append(m)
         if on_frame is not None:
             on_frame(i, m)
     return out
+
+
+def save_side_by_side(pred: torch.Tensor, target: torch.Tensor, path: Path) -> Path:
+    """Write the render [H, W, 3] and the ground truth [H, W, 3] (values in [0, 1]) side by side
+    as an 8-bit PNG."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pair = torch.cat([pred.detach().clamp(0, 1), target.clamp(0, 1)], dim=1)
+    Image.fromarray((pair.numpy() * 255 + 0.5).astype(np.uint8)).save(path)
+    return path
 
 
 def summarize(metrics: Sequence[FrameMetrics]) -> dict[str, float | None]:

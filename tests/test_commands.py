@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from PIL import Image
 from test_data_blender import _write_scene
 
 from sync4d.checkpoint import load_model
@@ -42,6 +43,10 @@ def test_fit_eval_render(data: Path, tmp_path: Path, capsys) -> None:
     assert _iteration(run) == 20
     ev = json.loads((run / "eval.json").read_text())
     assert len(ev["frames"]) == 4 and ev["mean"]["psnr"] > 0
+    side = sorted((run / "renders" / "test").glob("*.png"))
+    assert len(side) == 4
+    with Image.open(side[0]) as im:  # render beside ground truth
+        assert im.size == (48, 24)
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert any("test" in r for r in records) and "final" in records[-1]
     meta = load_model(run / "checkpoint.safetensors")[1]

@@ -19,9 +19,11 @@ from sync4d.lpips import MIN_SIZE, LPIPSAlex, load_lpips
 from sync4d.progress import Progress
 from sync4d.report import align_table
 
-__all__ = ["main", "evaluate_run", "load_run", "EVAL_FILE", "RunError"]
+__all__ = ["main", "evaluate_run", "load_run", "EVAL_FILE", "RENDERS_DIR", "RunError"]
 
 EVAL_FILE = "eval.json"
+#: Folder (inside a run) of the evaluation's side-by-side renders, one subfolder per split.
+RENDERS_DIR = "renders"
 
 
 class RunError(ValueError):
@@ -60,8 +62,10 @@ def evaluate_run(
     threads: int | None = None,
     split: str = "test",
     quiet: bool = False,
+    renders: bool = True,
 ) -> dict:
-    """Evaluate `model` on `scene`'s split, write ``run_dir/eval.json``, print the table;
+    """Evaluate `model` on `scene`'s split, write ``run_dir/eval.json`` (and, with `renders`,
+    ``run_dir/renders/<split>/<frame>.png``: render beside ground truth), print the table;
     returns the summary (mean PSNR, SSIM, LPIPS)."""
     frames = scene.test if split == "test" else scene.train
     if not frames:
@@ -76,6 +80,7 @@ def evaluate_run(
     metrics = evaluate_frames(
         model, frames, tuple(background), threads, lpips=lpips,
         on_frame=lambda i, m: bar.update(i + 1, {"PSNR": f"{m.psnr:.2f}"}),
+        save_dir=run_dir / RENDERS_DIR / split if renders else None,
     )  # fmt: skip
     bar.close()
     summary = summarize(metrics)
@@ -91,7 +96,8 @@ def evaluate_run(
     tmp.replace(path)
     if not quiet:
         print(format_metrics(metrics, summary))
-        print(f"eval: wrote {path}")
+        where = f" and {run_dir / RENDERS_DIR / split}/" if renders else ""
+        print(f"eval: wrote {path}{where}")
     return dict(summary)
 
 
