@@ -1,8 +1,9 @@
 """Checkpoints: one safetensors file holding every tensor (canonical Gaussians, D_theta
-weights, Adam moments, densification statistics) and a JSON header (format version, model
-config, iteration, learning rates, RNG state). Written atomically (temporary file, then
-rename), so an interrupted write never replaces the last good checkpoint. The standalone Rust
-renderer reads the same file.
+weights, Adam moments, densification statistics; in Phase 2 also M_phi, its Adam moments, the
+object labels, the residual EMA and the motion export) and a JSON header (format version, kind
+"sync4d.phase1" or "sync4d.phase2", model config, iteration, learning rates, RNG state).
+Written atomically (temporary file, then rename), so an interrupted write never replaces the
+last good checkpoint. The standalone Rust renderer reads the same file.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from safetensors.torch import load_file, save_file
 from sync4d.deform import DeformConfig
 from sync4d.densify import PER_GAUSSIAN
 from sync4d.gaussians import DeformableGaussians
+from sync4d.phase2 import Phase2Config, Phase2Trainer
 from sync4d.train import Phase1Config, Phase1Trainer
 
 __all__ = [
@@ -88,9 +90,12 @@ def save_checkpoint(trainer: Phase1Trainer, path: str | Path, extra: dict | None
                 steps[f"{gi}.{pi}"] = float(st["step"])
     tensors["densify.grad_accum"] = trainer.densifier.grad_accum
     tensors["densify.count"] = trainer.densifier.count
+    phase2 = None
+    if isinstance(trainer, Phase2Trainer):
+        phase2 = _phase2_state(trainer, tensors)
     meta = {
         "format_version": FORMAT_VERSION,
-        "kind": "sync4d.phase1",
+        "kind": "sync4d.phase2" if phase2 else "sync4d.phase1",
         "iteration": trainer.iteration,
         "total_iterations": trainer.total,
         "sh_degree": m.sh_degree,
@@ -100,6 +105,8 @@ def save_checkpoint(trainer: Phase1Trainer, path: str | Path, extra: dict | None
         "python_rng": _rng_to_json(trainer._rng.getstate()),
         "background": list(trainer.config.background),
     }
+    if phase2:
+        meta["phase2"] = phase2
     if extra:
         meta["run"] = extra
     tmp = path.with_name(path.name + ".tmp")
@@ -110,6 +117,35 @@ def save_checkpoint(trainer: Phase1Trainer, path: str | Path, extra: dict | None
     )
     os.replace(tmp, path)
     return path
+
+
+def _phase2_state(trainer: Phase2Trainer, tensors: dict[str, torch.Tensor]) -> dict:
+    """Add Phase 2's tensors to `tensors`; return its JSON header entry."""
+    for k, v in trainer.motion.state_dict().items():
+        tensors[f"motion.{k}"] = v.detach().float()
+    steps: dict[str, float] = {}
+    for pi, p in enumerate(trainer.motion_optimizer.param_groups[0]["params"]):
+        st = trainer.motion_optimizer.state.get(p)
+        if st:
+            tensors[f"motion_optim.{pi}.exp_avg"] = st["exp_avg"]
+            tensors[f"motion_optim.{pi}.exp_avg_sq"] = st["exp_avg_sq"]
+            steps[str(pi)] = float(st["step"])
+    tensors["phase2.labels"] = trainer.labels.to(torch.int64)
+    tensors["phase2.residual_ema"] = trainer.residual_ema
+    tensors["phase2.static"] = trainer.static.to(torch.uint8)
+    for k, v in trainer.motion_export().items():
+        tensors[f"export.{k}"] = torch.as_tensor(v).float() if k != "labels" else torch.as_tensor(v)
+    a = trainer.assignment
+    return {
+        "num_objects": a.num_objects,
+        "names": {str(k): v for k, v in a.names.items()},
+        "assignment": a.source,
+        "motion_kind": trainer.phase2.motion.kind,
+        "motion_rigid": trainer.motion.rigid,
+        "times": [float(t) for t in trainer.times],
+        "ema_started": trainer._ema_started,
+        "motion_adam_steps": steps,
+    }
 
 
 def _read(path: Path) -> tuple[dict[str, torch.Tensor], dict]:
@@ -167,19 +203,21 @@ def resume_trainer(
     config: Phase1Config | None = None,
     threads: int | None = None,
     total_iterations: int | None = None,
+    phase2: Phase2Config | None = None,
 ) -> Phase1Trainer:
-    """Rebuild a `Phase1Trainer` exactly as it was when `path` was saved (`total_iterations`
-    extends or shortens the run; the learning-rate schedules follow the new length)."""
+    """Rebuild the trainer (`Phase1Trainer`, or `Phase2Trainer` for a Phase 2 checkpoint, with
+    `phase2`'s settings) exactly as it was when `path` was saved (`total_iterations` extends or
+    shortens the run; the learning-rate schedules follow the new length)."""
     path = Path(path)
     model, meta = load_model(path)
     tensors, _ = _read(path)
-    trainer = Phase1Trainer(
-        model,
-        scene,
-        config,
-        total_iterations=total_iterations or meta["total_iterations"],
-        threads=threads,
-    )
+    total = total_iterations or meta["total_iterations"]
+    if meta.get("kind") == "sync4d.phase2":
+        trainer: Phase1Trainer = _resume_phase2(
+            path, tensors, meta, model, scene, config, phase2, threads, total
+        )
+    else:
+        trainer = Phase1Trainer(model, scene, config, total_iterations=total, threads=threads)
     trainer.iteration = meta["iteration"]
     for gi, group in enumerate(trainer.optimizer.param_groups):
         group["lr"] = meta["lrs"][gi]
@@ -199,4 +237,40 @@ def resume_trainer(
         trainer._rng.setstate((version, tuple(internal), gauss))
     except (ValueError, TypeError) as e:
         raise CheckpointError(path, f"bad frame-sampler state ({e})") from None
+    return trainer
+
+
+def _resume_phase2(
+    path: Path, tensors: dict, meta: dict, model, scene, config, phase2, threads, total
+) -> Phase2Trainer:
+    from sync4d.assign import Assignment
+
+    try:
+        info = meta["phase2"]
+        labels = tensors["phase2.labels"].numpy().astype("int64")
+        if len(labels) != model.num_gaussians:
+            raise CheckpointError(path, "'phase2.labels' does not match the Gaussian count")
+        names = {int(k): v for k, v in info["names"].items()}
+        assignment = Assignment(labels, int(info["num_objects"]), names, info["assignment"])
+        trainer = Phase2Trainer(
+            model, scene, config, phase2, total, threads, assignment=assignment
+        )
+        motion = {k[len("motion.") :]: v for k, v in tensors.items() if k.startswith("motion.")}
+        motion["times"] = trainer.motion.times
+        trainer.motion.load_state_dict(motion)
+        for pi, p in enumerate(trainer.motion_optimizer.param_groups[0]["params"]):
+            key = str(pi)
+            if key in info["motion_adam_steps"]:
+                trainer.motion_optimizer.state[p] = {
+                    "step": torch.tensor(info["motion_adam_steps"][key]),
+                    "exp_avg": tensors[f"motion_optim.{key}.exp_avg"].clone(),
+                    "exp_avg_sq": tensors[f"motion_optim.{key}.exp_avg_sq"].clone(),
+                }
+        trainer.residual_ema = tensors["phase2.residual_ema"].clone()
+        trainer._ema_started = bool(info["ema_started"])
+        trainer.static = tensors["phase2.static"].to(torch.bool).clone()
+    except KeyError as e:
+        raise CheckpointError(path, f"missing Phase 2 tensor or field {e}") from None
+    except RuntimeError as e:
+        raise CheckpointError(path, f"inconsistent Phase 2 state ({e})") from None
     return trainer

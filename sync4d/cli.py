@@ -84,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     fit = commands.add_parser(
         "fit",
-        help="train a deformable 4D Gaussian scene (Phase 1)",
+        help="train a deformable 4D Gaussian scene (Phase 1) and decompose its motion (Phase 2)",
         description="Train Phase 1 on a dataset folder (D-NeRF/Blender, nerfstudio, HyperNeRF, "
         "COLMAP, Dynamic-3DGS Panoptic) or, without DATA, on the embedded synthetic scene. "
         "Ctrl-C saves a checkpoint; --resume continues it.",
@@ -100,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "SH schedules are scaled to the new length")
     fit.add_argument("--resolution-scale", type=_positive_float, default=None, metavar="S",
                      help="downsample images by S, e.g. 0.5")  # fmt: skip
+    fit.add_argument("--phases", default=None, metavar="P",
+                     help="1, 2 or 1,2 (default from the config: 1,2): Phase 1 reconstruction, "
+                     "Phase 2 motion decomposition; 2 alone restarts Phase 2 from RUN's Phase 1 "
+                     "checkpoint")  # fmt: skip
     fit.add_argument("--resume", action="store_true", help="continue RUN's checkpoint")
     fit.add_argument("--force", action="store_true", help="start over in an existing RUN")
     fit.set_defaults(handler="sync4d.commands.fit")

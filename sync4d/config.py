@@ -10,9 +10,17 @@ from typing import Any
 import tomllib
 
 from sync4d.deform import DeformConfig
+from sync4d.phase2 import Phase2Config
 from sync4d.train import Phase1Config
 
-__all__ = ["ConfigError", "RunConfig", "apply_overrides", "load_config", "with_budget"]
+__all__ = [
+    "ConfigError",
+    "RunConfig",
+    "apply_overrides",
+    "load_config",
+    "parse_phases",
+    "with_budget",
+]
 
 
 class ConfigError(ValueError):
@@ -21,9 +29,14 @@ class ConfigError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
-    """Everything a Phase 1 run needs besides the data."""
+    """Everything a run (Phase 1, then Phase 2) needs besides the data."""
 
     phase1: Phase1Config = dataclasses.field(default_factory=Phase1Config)
+    phase2: Phase2Config = dataclasses.field(default_factory=Phase2Config)
+    #: Which phases `fit` runs: "1", "2" (from the run's Phase 1 checkpoint) or "1,2".
+    phases: str = "1,2"
+    #: Phase 2 iterations after Phase 1 (Appendix A: 20k).
+    phase2_iterations: int = 20_000
     deform: DeformConfig = dataclasses.field(default_factory=DeformConfig)
     iterations: int = 30_000
     sh_degree: int = 3
@@ -40,6 +53,17 @@ class RunConfig:
     eval_frames: int = 0
     #: Atomic checkpoint every this many iterations (and always at the end and on Ctrl-C).
     checkpoint_every: int = 1_000
+
+
+def parse_phases(text: str) -> tuple[int, ...]:
+    """The phases of a `phases` value ("1", "2", "1,2") as a sorted tuple."""
+    try:
+        phases = tuple(sorted({int(p) for p in str(text).split(",") if p.strip()}))
+    except ValueError:
+        phases = ()
+    if not phases or not set(phases) <= {1, 2}:
+        raise ConfigError(f"phases: expected 1, 2 or 1,2, got {text!r}")
+    return phases
 
 
 def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:

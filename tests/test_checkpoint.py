@@ -60,3 +60,25 @@ def test_bad_checkpoints_are_named(tmp_path: Path) -> None:
     bad = save_checkpoint(trainer, tmp_path / "nan.safetensors")
     with pytest.raises(CheckpointError, match="'gaussians.means' contains NaN"):
         load_model(bad)
+
+
+def test_phase2_checkpoint_resumes_the_same_next_step(tmp_path: Path) -> None:
+    from sync4d.phase2 import Phase2Config, Phase2Trainer
+
+    trainer, scene, cfg = _trainer(tmp_path)
+    trainer.train(3)
+    p2 = Phase2Config(motion_start=0, velocity_start=0, residual_start=0, warmup_start=0,
+                      warmup_end=4)  # fmt: skip
+    t2 = Phase2Trainer(trainer.model, scene, cfg, p2, 30, threads=1)
+    t2.train(5)
+    ck = save_checkpoint(t2, tmp_path / "p2.safetensors")
+    labels = t2.labels.clone()
+    expected = [t2.step()["loss"] for _ in range(3)]
+    resumed = resume_trainer(ck, scene, cfg, threads=1, phase2=p2)
+    assert isinstance(resumed, Phase2Trainer) and resumed.iteration == 5
+    assert torch.equal(resumed.labels, labels)
+    got = [resumed.step()["loss"] for _ in range(3)]
+    assert got == expected
+    _, meta = load_model(ck)
+    assert meta["kind"] == "sync4d.phase2"
+    assert meta["phase2"]["num_objects"] == t2.assignment.num_objects

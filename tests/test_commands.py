@@ -20,7 +20,8 @@ from sync4d.cli import main
 from sync4d.progress import Progress, format_duration
 from sync4d.train import Phase1Trainer
 
-TINY = ["--set", "init_points=300", "--set", "eval_frames=2", "--threads", "1"]
+TINY = ["--set", "init_points=300", "--set", "eval_frames=2", "--threads", "1",
+        "--set", "phases=1"]  # fmt: skip
 
 
 @pytest.fixture
@@ -115,6 +116,30 @@ def test_sigint_in_a_real_process_keeps_a_checkpoint(data: Path, tmp_path: Path)
         proc.kill()
     assert proc.returncode == 130, err
     assert _iteration(run) >= 100
+
+
+def test_fit_runs_phase2_after_phase1_and_restarts_it(data: Path, tmp_path: Path, capsys) -> None:
+    run = tmp_path / "run"
+    base = ["fit", str(data), "--out", str(run), "--iters", "12", *TINY, "--set", "eval_every=0",
+            "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2"]  # fmt: skip
+    assert main(base + ["--phases", "1,2"]) == 0
+    out = capsys.readouterr()
+    assert "Phase 2" in out.out and "masks assignment, K = 3" in out.err
+    model, meta = load_model(run / "checkpoint.safetensors")
+    assert meta["kind"] == "sync4d.phase2" and meta["iteration"] == 8
+    assert load_model(run / "phase1.safetensors")[1]["kind"] == "sync4d.phase1"
+    diag = json.loads((run / "phase2.json").read_text())
+    assert {"rigid_share", "shuffle_ratio", "objects", "residual_energy"} <= set(diag)
+    # Resume continues Phase 2; --phases 2 restarts it from the kept Phase 1 checkpoint.
+    assert main(base + ["--resume", "--phases", "1,2", "--set", "phase2_iterations=10"]) == 0
+    assert _iteration(run) == 10
+    assert main(base + ["--phases", "2", "--set", "phase2_iterations=4"]) == 0
+    assert _iteration(run) == 4
+    # Phase 1 cannot continue a Phase 2 checkpoint.
+    assert main(base + ["--resume", "--phases", "1"]) == 2
+    assert "Phase 2 checkpoint" in capsys.readouterr().err
+    assert main(base + ["--phases", "3"]) == 2
+    assert "phases" in capsys.readouterr().err
 
 
 def test_bad_inputs_give_one_clear_message(data: Path, tmp_path: Path, capsys) -> None:

@@ -60,7 +60,7 @@ def run_grid(
         densify = dataclasses.replace(cfg.phase1.densify, max_gaussians=cap)
         cfg = dataclasses.replace(
             cfg, phase1=dataclasses.replace(cfg.phase1, densify=densify), eval_every=0,
-            checkpoint_every=0,
+            checkpoint_every=0, phases="1",
         )  # fmt: skip
         print(
             f"bench fit: [{k + 1}/{len(grid)}] {iters} iterations, scale {scale}, cap {cap}",

@@ -1,6 +1,7 @@
-"""``python -m sync4d fit [DATA] --out runs/NAME``: Phase 1 training with a progress bar,
-periodic test evaluation, atomic checkpoints every K iterations and on Ctrl-C, ``--resume``,
-and a final evaluation (PSNR, SSIM, LPIPS) written to ``RUN/eval.json``.
+"""``python -m sync4d fit [DATA] --out runs/NAME``: Phase 1 then Phase 2 training (``phases``)
+with a progress bar, periodic test evaluation, atomic checkpoints every K iterations and on
+Ctrl-C, ``--resume``, a final evaluation (PSNR, SSIM, LPIPS) written to ``RUN/eval.json`` and
+Phase 2's diagnostics to ``RUN/phase2.json``.
 
 Without DATA it trains on the embedded synthetic scene (generated once into a cache folder).
 """
@@ -11,6 +12,7 @@ import argparse
 import dataclasses
 import json
 import math
+import shutil
 import signal
 import sys
 import time
@@ -18,11 +20,26 @@ from pathlib import Path
 
 import torch
 
-from sync4d.checkpoint import camera_records, resume_trainer, save_checkpoint
-from sync4d.config import ConfigError, RunConfig, apply_overrides, load_config, with_budget
+from sync4d.checkpoint import (
+    CheckpointError,
+    camera_records,
+    load_model,
+    resume_trainer,
+    save_checkpoint,
+)
+from sync4d.config import (
+    ConfigError,
+    RunConfig,
+    apply_overrides,
+    load_config,
+    parse_phases,
+    with_budget,
+)
 from sync4d.data import DatasetError, Scene, load_scene
 from sync4d.evaluate import evaluate_frames, summarize
+from sync4d.phase2 import Phase2Trainer
 from sync4d.progress import Progress, format_duration
+from sync4d.report import align_table
 from sync4d.train import Phase1Trainer, initial_model
 
 __all__ = [
@@ -37,6 +54,10 @@ __all__ = [
 
 #: File names inside a run directory.
 CHECKPOINT_NAME = "checkpoint.safetensors"
+#: Copy of the Phase 1 checkpoint kept when Phase 2 starts (Phase 2 can restart from it).
+PHASE1_CHECKPOINT_NAME = "phase1.safetensors"
+#: Phase 2 diagnostics (Appendix C) of the final model.
+PHASE2_FILE = "phase2.json"
 RUN_FILE = "run.json"
 METRICS_FILE = "metrics.jsonl"
 
@@ -71,6 +92,8 @@ def _load(args: argparse.Namespace) -> tuple[Path, RunConfig]:
     overrides = list(args.set or [])
     if args.resolution_scale is not None:
         overrides.append(f"resolution_scale={args.resolution_scale}")
+    if getattr(args, "phases", None) is not None:
+        overrides.append(f"phases={args.phases}")
     cfg = load_config(args.config or default_cfg)
     if args.iters is not None:  # scale the file's schedule; explicit overrides still win
         cfg = with_budget(cfg, args.iters)
@@ -85,6 +108,77 @@ def _raise_interrupt(signum, frame) -> None:  # noqa: ARG001
     raise KeyboardInterrupt
 
 
+def _train_loop(
+    trainer: Phase1Trainer,
+    total: int,
+    cfg: RunConfig,
+    ckpt: Path,
+    extra: dict,
+    log,
+    periodic: list,
+    target,
+    n_threads: int,
+    desc: str,
+    log_every: int,
+    train_seconds: float,
+) -> tuple[float, bool]:
+    """Step `trainer` up to `total` iterations with a progress bar, periodic evaluation and
+    checkpoints; returns (training seconds, whether Ctrl-C / SIGTERM stopped it). The last
+    state is always checkpointed."""
+    bar = Progress(total, start=trainer.iteration, desc=desc, log_every=log_every)
+    ema: dict[str, float] = {}
+    previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
+    interrupted = False
+    try:
+        while trainer.iteration < total:
+            t0 = time.perf_counter()
+            stats = trainer.step()
+            train_seconds += time.perf_counter() - t0
+            for k in ("loss", "psnr", "rho"):
+                v = stats.get(k)
+                if v is not None and math.isfinite(v):
+                    ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
+            it = trainer.iteration
+            shown = {
+                "loss": f"{ema.get('loss', float('nan')):.4f}",
+                "PSNR": f"{ema.get('psnr', float('nan')):.2f}",
+                "#G": f"{trainer.model.num_gaussians}",
+            }
+            if "rho" in ema:
+                shown["rho"] = f"{ema['rho']:.3f}"
+            bar.update(it, shown)
+            if it % log_every == 0:
+                log({"phase": desc, "iteration": it, "train_seconds": train_seconds, **stats})
+            if cfg.eval_every and it % cfg.eval_every == 0 and it < total:
+                res = summarize(
+                    evaluate_frames(
+                        trainer.model, periodic, cfg.phase1.background, n_threads, images=target
+                    )
+                )
+                log({"phase": desc, "iteration": it, "train_seconds": train_seconds, "test": res})
+                bar.message(
+                    f"[eval @ {it}] test PSNR {res['psnr']:.2f} dB, SSIM {res['ssim']:.4f} "
+                    f"({res['frames']} frames, {trainer.model.num_gaussians} Gaussians, "
+                    f"{format_duration(train_seconds)} training)"
+                )
+            if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
+                save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        signal.signal(signal.SIGTERM, previous_sigterm)
+        bar.close()
+    save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
+    return train_seconds, interrupted
+
+
+def checkpoint_kind(path: Path) -> str | None:
+    """"sync4d.phase1" or "sync4d.phase2" for an existing checkpoint, None when absent."""
+    if not path.exists():
+        return None
+    return load_model(path)[1].get("kind", "sync4d.phase1")
+
+
 def run_fit(
     scene: Scene,
     cfg: RunConfig,
@@ -95,7 +189,10 @@ def run_fit(
     log_every: int = 100,
     quiet: bool = False,
 ) -> dict:
-    """Train (or resume) Phase 1 on `scene` into `run_dir`; returns the final summary."""
+    """Train (or resume) the phases `cfg.phases` on `scene` into `run_dir`: Phase 1, then Phase 2
+    from its model (the Phase 1 checkpoint is kept as ``phase1.safetensors``); returns the final
+    summary (test metrics, and Phase 2's diagnostics when it ran)."""
+    phases = parse_phases(cfg.phases)
     n_threads = _set_threads(threads)
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt = run_dir / CHECKPOINT_NAME
@@ -107,15 +204,25 @@ def run_fit(
         "config": dataclasses.asdict(cfg),
         "threads": n_threads,
     }
-    if resume:
-        trainer = resume_trainer(ckpt, scene, cfg.phase1, n_threads, cfg.iterations)
+    kind = checkpoint_kind(ckpt)
+    trainer: Phase1Trainer | None = None
+    if kind == "sync4d.phase2" and 2 not in phases:
+        raise ConfigError(f"{ckpt} is a Phase 2 checkpoint; Phase 1 cannot continue it")
+    if resume and kind is not None:
+        total = cfg.phase2_iterations if kind == "sync4d.phase2" else cfg.iterations
+        trainer = resume_trainer(ckpt, scene, cfg.phase1, n_threads, total, cfg.phase2)
         print(f"fit: resumed {ckpt} at iteration {trainer.iteration}", file=sys.stderr)
-    else:
+    elif 1 in phases:
         model = initial_model(
             scene, cfg.init_points, cfg.sh_degree, cfg.deform, cfg.init_box_fraction,
             cfg.phase1.seed,
         )  # fmt: skip
         trainer = Phase1Trainer(model, scene, cfg.phase1, cfg.iterations, threads=n_threads)
+    elif kind is None:
+        raise ConfigError(
+            f"{run_dir}: Phase 2 alone needs the run's Phase 1 checkpoint ({CHECKPOINT_NAME}); "
+            "run with phases=1,2 or fit Phase 1 first"
+        )
     (run_dir / RUN_FILE).write_text(json.dumps(run_info, indent=2) + "\n")
     extra = {**run_info, "cameras": camera_records(scene)}
     metrics_log = (run_dir / METRICS_FILE).open("a")
@@ -136,52 +243,38 @@ def run_fit(
         metrics_log.write(json.dumps(record) + "\n")
         metrics_log.flush()
 
-    bar = Progress(cfg.iterations, start=trainer.iteration, desc="fit", log_every=log_every)
-    ema: dict[str, float] = {}
     wall0 = time.perf_counter()
     train_seconds = 0.0
-    previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
+    loop = dict(cfg=cfg, ckpt=ckpt, extra=extra, log=log, periodic=periodic, target=target,
+                n_threads=n_threads, log_every=log_every)  # fmt: skip
     interrupted = False
-    try:
-        while trainer.iteration < cfg.iterations:
-            t0 = time.perf_counter()
-            stats = trainer.step()
-            train_seconds += time.perf_counter() - t0
-            for k in ("loss", "psnr"):
-                v = stats[k]
-                if math.isfinite(v):
-                    ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
-            it = trainer.iteration
-            bar.update(
-                it,
-                {
-                    "loss": f"{ema.get('loss', float('nan')):.4f}",
-                    "PSNR": f"{ema.get('psnr', float('nan')):.2f}",
-                    "#G": f"{trainer.model.num_gaussians}",
-                },
+    if trainer is not None and not isinstance(trainer, Phase2Trainer) and 1 in phases:
+        train_seconds, interrupted = _train_loop(
+            trainer, cfg.iterations, desc="fit", train_seconds=train_seconds, **loop
+        )
+    if not interrupted and 2 in phases:
+        if not isinstance(trainer, Phase2Trainer):
+            shutil.copyfile(ckpt, run_dir / PHASE1_CHECKPOINT_NAME)
+            model = trainer.model if trainer is not None else load_model(ckpt)[0]
+            print(
+                f"fit: Phase 2 ({cfg.phase2_iterations} iterations) from "
+                f"{run_dir / PHASE1_CHECKPOINT_NAME}: assigning Gaussians to objects ...",
+                file=sys.stderr,
             )
-            if it % log_every == 0:
-                log({"iteration": it, "train_seconds": train_seconds, **stats})
-            if cfg.eval_every and it % cfg.eval_every == 0 and it < cfg.iterations:
-                res = summarize(
-                    evaluate_frames(
-                        trainer.model, periodic, cfg.phase1.background, n_threads, images=target
-                    )
-                )
-                log({"iteration": it, "train_seconds": train_seconds, "test": res})
-                bar.message(
-                    f"[eval @ {it}] test PSNR {res['psnr']:.2f} dB, SSIM {res['ssim']:.4f} "
-                    f"({res['frames']} frames, {trainer.model.num_gaussians} Gaussians, "
-                    f"{format_duration(train_seconds)} training)"
-                )
-            if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
-                save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        signal.signal(signal.SIGTERM, previous_sigterm)
-        bar.close()
-    save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
+            trainer = Phase2Trainer(
+                model, scene, cfg.phase1, cfg.phase2, cfg.phase2_iterations, n_threads
+            )
+            counts = trainer.assignment.counts()
+            names = trainer.assignment.names
+            print(
+                f"fit: {trainer.assignment.source} assignment, K = "
+                f"{trainer.assignment.num_objects}: "
+                + ", ".join(f"{names.get(k, k)} {n}" for k, n in counts.items()),
+                file=sys.stderr,
+            )
+        train_seconds, interrupted = _train_loop(
+            trainer, cfg.phase2_iterations, desc="phase2", train_seconds=train_seconds, **loop
+        )
     if interrupted:
         metrics_log.close()
         print(
@@ -199,9 +292,34 @@ def run_fit(
         {"iterations": trainer.iteration, "train_seconds": train_seconds,
          "wall_seconds": time.perf_counter() - wall0, "gaussians": trainer.model.num_gaussians}
     )  # fmt: skip
+    if isinstance(trainer, Phase2Trainer):
+        diag = trainer.diagnostics()
+        (run_dir / PHASE2_FILE).write_text(json.dumps(diag, indent=2) + "\n")
+        summary["phase2"] = diag
+        if not quiet:
+            print(format_diagnostics(diag))
+            print(f"fit: wrote {run_dir / PHASE2_FILE}")
     log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
     metrics_log.close()
     return summary
+
+
+def format_diagnostics(diag: dict) -> str:
+    """Phase 2 diagnostics (Appendix C) as a table plus a summary line."""
+    rows = [
+        [str(o["label"]), o["name"], f"{o['gaussians']:,}", "yes" if o["static"] else "",
+         f"{o['rigid_share']:.3f}", f"{o['residual_mean']:.4f}", f"{o['motion_variance']:.2e}"]
+        for o in diag["objects"]
+    ]  # fmt: skip
+    table = align_table(
+        ["k", "object", "Gaussians", "static", "rigid share", "residual", "motion var"], rows,
+        left=(1,),
+    )  # fmt: skip
+    return (
+        f"{table}\nmean rigid share {diag['rigid_share']:.3f}, residual energy "
+        f"{diag['residual_energy']:.2e}, modulated fraction {diag['modulated_fraction']:.3f}, "
+        f"shuffle ratio {diag['shuffle_ratio']:.2f} ({diag['assignment']} assignment)"
+    )
 
 
 def main(args: argparse.Namespace) -> int:
@@ -212,15 +330,18 @@ def main(args: argparse.Namespace) -> int:
         if args.resume and not ckpt.exists():
             print(f"fit: {ckpt}: no checkpoint to resume from", file=sys.stderr)
             return 2
-        if ckpt.exists() and not (args.resume or args.force):
+        phase2_only = parse_phases(cfg.phases) == (2,)
+        if ckpt.exists() and not (args.resume or args.force or phase2_only):
             print(
-                f"fit: {run_dir} already holds a run; pass --resume to continue it or --force "
-                "to start over",
+                f"fit: {run_dir} already holds a run; pass --resume to continue it, --force "
+                "to start over or --phases 2 to redo Phase 2 from its Phase 1 checkpoint",
                 file=sys.stderr,
             )
             return 2
-        if args.force and not args.resume:
-            for name in (CHECKPOINT_NAME, METRICS_FILE):
+        if phase2_only and not args.resume:
+            _restart_phase2(run_dir)
+        elif args.force and not args.resume:
+            for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE):
                 (run_dir / name).unlink(missing_ok=True)
         scene = load_scene(data, cfg.resolution_scale, cfg.test_split)
         print(
@@ -230,7 +351,7 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         summary = run_fit(scene, cfg, run_dir, data, args.resume, args.threads)
-    except (ConfigError, DatasetError) as e:
+    except (ConfigError, DatasetError, CheckpointError) as e:
         print(f"fit: {e}", file=sys.stderr)
         return 2
     except FitInterrupted:
@@ -241,4 +362,23 @@ def main(args: argparse.Namespace) -> int:
         f"{'n/a' if summary['lpips'] is None else format(summary['lpips'], '.4f')}, "
         f"{summary['gaussians']} Gaussians; run in {run_dir}"
     )
+    if "phase2" in summary:
+        d = summary["phase2"]
+        print(
+            f"fit: Phase 2: mean rigid share {d['rigid_share']:.3f}, shuffle ratio "
+            f"{d['shuffle_ratio']:.2f}, {len(d['objects'])} labels ({d['assignment']})"
+        )
     return 0
+
+
+def _restart_phase2(run_dir: Path) -> None:
+    """Put the run's Phase 1 checkpoint back in place so Phase 2 starts over from it."""
+    ckpt = run_dir / CHECKPOINT_NAME
+    kept = run_dir / PHASE1_CHECKPOINT_NAME
+    if kept.exists():
+        shutil.copyfile(kept, ckpt)
+    elif checkpoint_kind(ckpt) != "sync4d.phase1":
+        raise ConfigError(
+            f"{run_dir}: --phases 2 needs a Phase 1 checkpoint ({CHECKPOINT_NAME} or "
+            f"{PHASE1_CHECKPOINT_NAME}); fit Phase 1 first"
+        )
