@@ -18,6 +18,7 @@ switches every term on at iteration 0 without warm-up (the paper's failing ablat
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -61,6 +62,10 @@ class Phase2Config:
     warmup_start: int = 500
     warmup_end: int = 1000
     residual_start: int = 600
+    #: Keep densifying (clone/split/prune, opacity reset) on Phase 1's schedule, counted from
+    #: Phase 2's first iteration; every change re-runs the assignment. Off by default: Phase 1's
+    #: densification window is over when Phase 2 starts.
+    densify: bool = False
     #: An object whose Gaussians' mean Phase 1 displacement stays below this fraction of the
     #: scene extent is static (it gets the identity prior); background always is.
     static_fraction: float = 0.005
@@ -131,6 +136,11 @@ class Phase2Trainer(Phase1Trainer):
     ) -> None:
         super().__init__(model, scene, config, total_iterations, threads)
         self.phase2 = phase2 or Phase2Config()
+        if not self.phase2.densify:
+            never = 2**62
+            self.densifier.config = dataclasses.replace(
+                self.densifier.config, start=never, opacity_reset_interval=never
+            )
         self.times = frame_times(scene)
         self.assignment = assignment or assign_objects(
             model, scene, self.extent, self.phase2.assign
@@ -188,6 +198,10 @@ class Phase2Trainer(Phase1Trainer):
             a.num_objects = self.assignment.num_objects
         self.assignment = a
         self._set_labels(a.labels)
+
+    def sh_degree_now(self) -> int:
+        """Phase 1 has reached the full SH degree: Phase 2 renders with it throughout."""
+        return self.model.sh_degree
 
     # -- schedule --------------------------------------------------------------------------
     def _active(self, start: int) -> bool:

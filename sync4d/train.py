@@ -182,7 +182,7 @@ class Phase1Trainer:
         idx = self._rng.randrange(len(self.scene.train))
         frame = self.scene.train[idx]
         target = self._image(idx, frame)
-        degree = min(self.model.sh_degree, (self.iteration - 1) // c.sh_degree_interval)
+        degree = self.sh_degree_now()
         deformed = self.model.at_time(frame.time, deform=self.iteration > c.static_warmup)
         out = self.model.render(
             frame.camera, frame.time, sh_degree=degree, background=self._background,
@@ -209,6 +209,10 @@ class Phase1Trainer:
             "gaussians": float(self.model.num_gaussians),
             **extra_stats,
         }
+
+    def sh_degree_now(self) -> int:
+        """SH degree used at the current iteration: one more every `sh_degree_interval`."""
+        return min(self.model.sh_degree, (self.iteration - 1) // self.config.sh_degree_interval)
 
     def auxiliary_loss(
         self, frame: Frame, means: torch.Tensor

@@ -68,9 +68,12 @@ def test_phase2_checkpoint_resumes_the_same_next_step(tmp_path: Path) -> None:
     trainer, scene, cfg = _trainer(tmp_path)
     trainer.train(3)
     p2 = Phase2Config(motion_start=0, velocity_start=0, residual_start=0, warmup_start=0,
-                      warmup_end=4)  # fmt: skip
+                      warmup_end=4, densify=True)  # fmt: skip
     t2 = Phase2Trainer(trainer.model, scene, cfg, p2, 30, threads=1)
+    n0 = t2.model.num_gaussians
     t2.train(5)
+    assert t2.model.num_gaussians != n0  # densified, so the labels were re-assigned
+    assert len(t2.labels) == t2.model.num_gaussians
     ck = save_checkpoint(t2, tmp_path / "p2.safetensors")
     labels = t2.labels.clone()
     expected = [t2.step()["loss"] for _ in range(3)]
@@ -82,3 +85,15 @@ def test_phase2_checkpoint_resumes_the_same_next_step(tmp_path: Path) -> None:
     _, meta = load_model(ck)
     assert meta["kind"] == "sync4d.phase2"
     assert meta["phase2"]["num_objects"] == t2.assignment.num_objects
+
+
+def test_phase2_keeps_the_phase1_scene_size_and_sh_degree_by_default(tmp_path: Path) -> None:
+    from sync4d.phase2 import Phase2Config, Phase2Trainer
+
+    trainer, scene, cfg = _trainer(tmp_path)
+    trainer.train(3)
+    n0 = trainer.model.num_gaussians
+    t2 = Phase2Trainer(trainer.model, scene, cfg, Phase2Config(motion_start=0), 30, threads=1)
+    t2.train(10)
+    assert t2.model.num_gaussians == n0
+    assert t2.sh_degree_now() == t2.model.sh_degree
