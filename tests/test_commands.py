@@ -103,7 +103,13 @@ def test_sigint_in_a_real_process_keeps_a_checkpoint(data: Path, tmp_path: Path)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RAYON_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "sync4d", "fit", str(data), "--out", str(run), "--iters",
            "1000000", *TINY, "--set", "checkpoint_every=0", "--set", "eval_every=0"]  # fmt: skip
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
+    # A parent started in the background (nohup, `&` in a script) passes SIGINT down as ignored,
+    # and Python then installs no KeyboardInterrupt handler: restore the default, as a terminal
+    # would have it.
+    proc = subprocess.Popen(
+        cmd, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
     try:
         deadline = time.time() + 120
         assert proc.stderr is not None
