@@ -79,7 +79,8 @@ def count_votes(
     num_labels: int,
     progress: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
-    """Vote matrix V [N, num_labels + 1] (int64): for every frame with a mask, each Gaussian
+    """Vote matrix V [N, L + 1] (int64, L = the larger of `num_labels` and the highest label
+    seen in the masks): for every frame with a mask, each Gaussian
     whose position `positions_at(frame.time)` [N, 3] projects inside the image in front of the
     camera adds one vote to the mask label under it (column 0 = background)."""
     votes: np.ndarray | None = None
@@ -99,7 +100,10 @@ def count_votes(
         h, w = mask.shape
         ok = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         lab = mask[v[ok], u[ok]]
-        keep = (lab >= 0) & (lab <= num_labels)
+        top = int(lab.max(initial=0))
+        if top >= votes.shape[1]:  # a label beyond labels.json: widen V
+            votes = np.pad(votes, ((0, 0), (0, top + 1 - votes.shape[1])))
+        keep = lab >= 0
         np.add.at(votes, (np.nonzero(ok)[0][keep], lab[keep]), 1)
         if progress is not None:
             progress(n + 1, len(frames))
@@ -134,13 +138,8 @@ def assign_from_masks(
     """Mask-vote assignment of the Gaussians whose positions at time t are
     `positions_at(t)` [N, 3], over the training `frames` (those with masks vote)."""
     config = config or AssignConfig()
-    max_label = max(label_names) if label_names else 0
-    for f in frames:  # labels.json may be missing or incomplete: size V from the masks
-        if label_names is None or f is frames[0]:
-            m = f.load_mask()
-            if m is not None:
-                max_label = max(max_label, int(m.max()))
-    votes = count_votes(positions_at, frames, max_label, progress)
+    votes = count_votes(positions_at, frames, max(label_names or {0: ""}), progress)
+    max_label = votes.shape[1] - 1  # labels.json may be missing or incomplete
     labels = labels_from_votes(votes, config)
     names = {0: "background"} | {
         k: (label_names or {}).get(k, f"object {k}") for k in range(1, max_label + 1)

@@ -19,6 +19,7 @@ D_theta's x_i(t).
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -163,7 +164,7 @@ def matrix_to_rotvec(r: np.ndarray) -> np.ndarray:
     return v / (2.0 * math.sin(angle)) * angle
 
 
-class ObjectMotion(nn.Module):
+class ObjectMotion(nn.Module, ABC):
     """M_phi for K objects over the stored frame times `times` [T] (sorted, in [0, 1]).
 
     Subclasses provide `params_at(j)` (the raw per-object parameters at stored frame j, [K, P],
@@ -206,13 +207,13 @@ class ObjectMotion(nn.Module):
         alpha = (t - float(times[j0])) / float(times[j1] - times[j0])
         return j0, j1, alpha
 
+    @abstractmethod
     def params_at(self, j: int) -> Tensor:
         """Raw parameters [K, P] at stored frame `j`."""
-        raise NotImplementedError
 
+    @abstractmethod
     def linear_at(self, t: float) -> tuple[Tensor, Tensor]:
         """(A [K, 3, 3], b [K, 3]) at time `t`: x~ = A x0 + b."""
-        raise NotImplementedError
 
     def forward(self, x0: Tensor, labels: Tensor, t: float) -> Tensor:
         """Object-predicted positions x~ [N, 3] (Eq. 5) of canonical means `x0` [N, 3] whose
@@ -237,10 +238,16 @@ class ObjectMotion(nn.Module):
             return p.sum() * 0.0
         return (p * p).sum() / p.shape[0]
 
+    #: Whether `fit_to` exists (the tables); the MLP has no closed-form initialisation.
+    fits_closed_form: bool = True
+
     def fit_to(self, x0: np.ndarray, positions: list[np.ndarray], labels: np.ndarray) -> None:
         """Set the transforms to the closed-form fit of canonical `x0` [N, 3] onto
         `positions[j]` [N, 3] (D_theta at stored frame j) per object `labels` [N]."""
-        raise NotImplementedError(f"{type(self).__name__} has no closed-form initialisation")
+        raise ValueError(
+            f"{type(self).__name__} has no closed-form initialisation: use "
+            "phase2.motion.init=identity with phase2.motion.kind=mlp"
+        )
 
     @torch.no_grad()
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
@@ -322,6 +329,8 @@ class AffineTable(ObjectMotion):
 class MotionMLP(ObjectMotion):
     """The MLP variant: [e_k (16); gamma(t)] -> 64 -> 64 -> 6 (rotation vector, translation)
     or 12 (affine delta, offset), zero-initialised output, so it starts at the identity."""
+
+    fits_closed_form = False
 
     def __init__(
         self, num_objects: int, times, config: MotionConfig | None = None, generator=None

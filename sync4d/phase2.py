@@ -146,20 +146,22 @@ class Phase2Trainer(Phase1Trainer):
             model, scene, self.extent, self.phase2.assign
         )
         k = self.assignment.num_objects
-        self.motion: ObjectMotion = make_motion(
-            self.phase2.motion, k, self.times, self.config.seed
-        )
+        mc = self.phase2.motion
+        if mc.init not in ("identity", "fit"):
+            raise ValueError(f"phase2.motion.init: expected 'identity' or 'fit', got {mc.init!r}")
+        self.motion: ObjectMotion = make_motion(mc, k, self.times, self.config.seed)
+        if mc.init == "fit" and not self.motion.fits_closed_form:
+            raise ValueError(
+                f"phase2.motion.init=fit: the {mc.kind} M_phi has no closed-form start; "
+                "use phase2.motion.init=identity"
+            )
         self.motion_optimizer = torch.optim.Adam(
             self.motion.parameters(), lr=self.phase2.motion.lr, eps=1e-15
         )
         self._set_labels(self.assignment.labels)
         self.static = self._static_objects()
-        if self.phase2.motion.init == "fit":
+        if mc.init == "fit":
             self.fit_motion()
-        elif self.phase2.motion.init != "identity":
-            raise ValueError(
-                f"phase2.motion.init: expected 'identity' or 'fit', got {self.phase2.motion.init!r}"
-            )
 
     @torch.no_grad()
     def fit_motion(self) -> None:

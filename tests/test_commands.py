@@ -146,6 +146,9 @@ def test_fit_runs_phase2_after_phase1_and_restarts_it(data: Path, tmp_path: Path
     assert "Phase 2 checkpoint" in capsys.readouterr().err
     assert main(base + ["--phases", "3"]) == 2
     assert "phases" in capsys.readouterr().err
+    bad = ["--phases", "2", "--set", "phase2.motion.kind=mlp", "--set", "phase2.motion.init=fit"]
+    assert main(base + bad) == 2
+    assert "no closed-form start" in capsys.readouterr().err
 
 
 def test_bad_inputs_give_one_clear_message(data: Path, tmp_path: Path, capsys) -> None:

@@ -186,3 +186,11 @@ def test_unsupervised_assignment_separates_the_moving_objects(oracle):
     ball, box = set(a.labels[truth == 1].tolist()), set(a.labels[truth == 2].tolist())
     assert 0 not in ball and 0 not in box and not (ball & box)
     assert len(ball) == len(box) == 1 and a.num_objects == 3
+
+
+def test_bad_motion_settings_are_named(oracle):
+    scene, model, _, _ = oracle
+    with pytest.raises(ValueError, match="no closed-form start"):
+        _trainer(scene, model, kind="mlp", init="fit")
+    with pytest.raises(ValueError, match="phase2.motion.init"):
+        _trainer(scene, model, init="spline")

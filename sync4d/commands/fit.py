@@ -261,9 +261,12 @@ def run_fit(
                 f"{run_dir / PHASE1_CHECKPOINT_NAME}: assigning Gaussians to objects ...",
                 file=sys.stderr,
             )
-            trainer = Phase2Trainer(
-                model, scene, cfg.phase1, cfg.phase2, cfg.phase2_iterations, n_threads
-            )
+            try:
+                trainer = Phase2Trainer(
+                    model, scene, cfg.phase1, cfg.phase2, cfg.phase2_iterations, n_threads
+                )
+            except ValueError as e:  # bad Phase 2 settings or assignment input
+                raise ConfigError(str(e)) from None
             counts = trainer.assignment.counts()
             names = trainer.assignment.names
             print(
