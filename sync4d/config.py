@@ -43,6 +43,12 @@ class RunConfig:
     resolution_scale: float = 1.0
     #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames.
     test_split: str = "test"
+    #: Where the initial Gaussians come from: "points" (the dataset's point cloud, e.g.
+    #: COLMAP's), "triangulate" (SIFT matches of the training cameras at one instant,
+    #: triangulated with the dataset's poses; multi-view captures), "random" (`init_points`
+    #: uniform in a cube), or "auto": points if the dataset has them, else triangulate when
+    #: several cameras see one instant, else random.
+    init_from: str = "auto"
     #: Random initial Gaussians when the dataset has no point cloud (3DGS uses 100k on a GPU).
     init_points: int = 20_000
     #: Half-size of the random-init cube as a fraction of the mean camera distance.

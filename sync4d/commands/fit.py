@@ -179,6 +179,46 @@ def checkpoint_kind(path: Path) -> str | None:
     return load_model(path)[1].get("kind", "sync4d.phase1")
 
 
+INIT_SOURCES = ("auto", "points", "triangulate", "random")
+
+
+def with_initial_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Scene:
+    """`scene` with the point cloud `cfg.init_from` asks for: its own points, points
+    triangulated from one instant of a multi-view capture, or none (random initialisation)."""
+    from sync4d.data.triangulate import TriangulationConfig, is_multiview, triangulate_scene
+
+    source = cfg.init_from
+    if source not in INIT_SOURCES:
+        raise ConfigError(f"init_from: expected one of {', '.join(INIT_SOURCES)}, got {source!r}")
+    has_points = scene.points is not None and len(scene.points) > 0
+    if source == "auto":
+        source = "points" if has_points else "triangulate" if is_multiview(scene) else "random"
+    if source == "points":
+        if not has_points:
+            raise ConfigError(
+                f"init_from=points: the dataset '{scene.name}' has no point cloud; "
+                "use init_from=triangulate (multi-view) or init_from=random"
+            )
+        return scene
+    if source == "random":
+        return dataclasses.replace(scene, points=None, point_colors=None)
+    if not quiet:
+        print("fit: triangulating initial points (pycolmap, fixed poses)...", file=sys.stderr)
+    tri = triangulate_scene(scene, TriangulationConfig(threads=torch.get_num_threads()))
+    if len(tri.points) == 0:
+        raise DatasetError(
+            scene.train[0].image_path.parent,
+            "triangulation found no points (too little texture?); use init_from=random",
+        )
+    if not quiet:
+        how = "cached" if tri.cached else f"{tri.seconds:.0f} s"
+        print(
+            f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "
+            f"({how})", file=sys.stderr,
+        )  # fmt: skip
+    return dataclasses.replace(scene, points=tri.points, point_colors=tri.colors)
+
+
 def run_fit(
     scene: Scene,
     cfg: RunConfig,
@@ -213,6 +253,7 @@ def run_fit(
         trainer = resume_trainer(ckpt, scene, cfg.phase1, n_threads, total, cfg.phase2)
         print(f"fit: resumed {ckpt} at iteration {trainer.iteration}", file=sys.stderr)
     elif 1 in phases:
+        scene = with_initial_points(scene, cfg, quiet)
         model = initial_model(
             scene, cfg.init_points, cfg.sh_degree, cfg.deform, cfg.init_box_fraction,
             cfg.phase1.seed,

@@ -7,10 +7,20 @@ carry a time in [0, 1] and load their image (and instance mask, if any) lazily.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+
+def cache_dir() -> Path:
+    """Where sync4d caches generated data: `$SYNC4D_CACHE`, else `$XDG_CACHE_HOME/sync4d`,
+    else `~/.cache/sync4d`."""
+    base = os.environ.get("SYNC4D_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "sync4d"
+    )
+    return Path(base)
 
 
 class DatasetError(ValueError):

@@ -23,14 +23,13 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import time as _time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from sync4d.data.scene import DatasetError
+from sync4d.data.scene import DatasetError, cache_dir
 
 __all__ = [
     "SyntheticConfig",
@@ -250,9 +249,9 @@ def _render(cfg: SyntheticConfig, c2w: np.ndarray, t: float) -> tuple[np.ndarray
         depth[near], label[near] = th[near], obj.label
     n = cfg.size
     cover = (label >= 0).reshape(n, ss, n, ss).mean(axis=(1, 3))
-    colour = rgb.reshape(n, ss, n, ss, 3).sum(axis=(1, 3)) / np.maximum(cover * ss * ss, 1)[
-        ..., None
-    ]
+    colour = (
+        rgb.reshape(n, ss, n, ss, 3).sum(axis=(1, 3)) / np.maximum(cover * ss * ss, 1)[..., None]
+    )
     rgba = np.concatenate([colour, cover[..., None]], -1)
     rgba = (np.clip(rgba, 0, 1) * 255 + 0.5).astype(np.uint8)
     centre_sample = label[ss // 2 :: ss, ss // 2 :: ss]
@@ -397,12 +396,8 @@ def load_ground_truth(root: str | Path) -> SyntheticGroundTruth:
 
 
 def default_scene_dir() -> Path:
-    """Where the default scene is cached: `$SYNC4D_CACHE/synthetic-v1`, else
-    `~/.cache/sync4d/synthetic-v1`."""
-    base = os.environ.get("SYNC4D_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "sync4d"
-    )
-    return Path(base) / f"synthetic-v{_VERSION}"
+    """Where the default scene is cached: `synthetic-vN` under :func:`cache_dir`."""
+    return cache_dir() / f"synthetic-v{_VERSION}"
 
 
 def ensure_default_scene(config: SyntheticConfig | None = None) -> Path:
