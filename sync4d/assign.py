@@ -22,7 +22,9 @@ import torch
 from sync4d.data.scene import Frame
 
 __all__ = [
+    "ASSIGN_SOURCES",
     "Assignment",
+    "adjusted_rand_index",
     "AssignConfig",
     "assign_from_masks",
     "cluster_trajectories",
@@ -31,10 +33,17 @@ __all__ = [
 ]
 
 
+#: Values of `AssignConfig.source`.
+ASSIGN_SOURCES = ("auto", "masks", "trajectories")
+
+
 @dataclass(frozen=True)
 class AssignConfig:
     """Assignment thresholds (Appendix A/C: min votes 3, min consistency 0.6)."""
 
+    #: "masks" (mask voting), "trajectories" (unsupervised clustering of Phase 1 motion), or
+    #: "auto": masks when every training frame has one, else trajectories.
+    source: str = "auto"
     min_votes: int = 3
     min_consistency: float = 0.6
     #: Objects assigned fewer Gaussians than this merge into background.
@@ -218,3 +227,30 @@ def cluster_trajectories(
     labels = remap[labels]
     names = {0: "background"} | {k: f"cluster {k}" for k in range(1, len(used) + 1)}
     return Assignment(labels, len(used) + 1, names, "trajectories")
+
+
+def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
+    """Adjusted Rand index of two labelings [N] of the same items (1: identical partitions up
+    to renaming, about 0: no better than chance; Hubert and Arabie 1985)."""
+    a = np.asarray(a).reshape(-1)
+    b = np.asarray(b).reshape(-1)
+    if a.shape != b.shape:
+        raise ValueError(f"labelings differ in length: {a.shape[0]} vs {b.shape[0]}")
+    n = a.shape[0]
+    if n < 2:
+        return 1.0
+    _, ai = np.unique(a, return_inverse=True)
+    _, bi = np.unique(b, return_inverse=True)
+    table = np.zeros((ai.max() + 1, bi.max() + 1), dtype=np.float64)
+    np.add.at(table, (ai, bi), 1.0)
+
+    def pairs(x: np.ndarray) -> float:
+        return float((x * (x - 1.0) / 2.0).sum())
+
+    index = pairs(table)
+    rows, cols = pairs(table.sum(1)), pairs(table.sum(0))
+    expected = rows * cols / (n * (n - 1.0) / 2.0)
+    best = 0.5 * (rows + cols)
+    if best == expected:  # both labelings put everything in one class (or all singletons)
+        return 1.0
+    return (index - expected) / (best - expected)

@@ -26,7 +26,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sync4d.assign import AssignConfig, Assignment, assign_from_masks, cluster_trajectories
+from sync4d.assign import (
+    ASSIGN_SOURCES,
+    AssignConfig,
+    Assignment,
+    adjusted_rand_index,
+    assign_from_masks,
+    cluster_trajectories,
+)
 from sync4d.data.scene import Frame, Scene
 from sync4d.gaussians import DeformableGaussians
 from sync4d.motion import MotionConfig, ObjectMotion, cosine_lr, make_motion
@@ -102,7 +109,18 @@ def assign_objects(
     """Object labels for `model`'s Gaussians: mask voting when the training frames have masks,
     otherwise trajectory clustering."""
     config = config or AssignConfig()
-    if scene.has_masks:
+    if config.source not in ASSIGN_SOURCES:
+        raise ValueError(
+            f"phase2.assign.source: expected one of {', '.join(ASSIGN_SOURCES)}, "
+            f"got {config.source!r}"
+        )
+    use_masks = config.source == "masks" or (config.source == "auto" and scene.has_masks)
+    if use_masks:
+        if not scene.has_masks:
+            raise ValueError(
+                f"phase2.assign.source=masks: scene '{scene.name}' has training frames without "
+                "instance masks; use source=trajectories (unsupervised) or auto"
+            )
         return assign_from_masks(_positions_fn(model), scene.train, scene.labels, config)
     times = np.linspace(0.0, 1.0, config.trajectory_samples)
     return cluster_trajectories(displacement_curves(model, times), extent, config)
@@ -345,6 +363,20 @@ class Phase2Trainer(Phase1Trainer):
             "shuffle_ratio": float(np.mean(ratios)) if ratios else math.nan,
             "shuffle_ratios": ratios,
             "assignment": self.assignment.source,
+            "num_objects": k,
+            **self._mask_agreement(),
+        }
+
+    def _mask_agreement(self) -> dict:
+        """For an unsupervised assignment of a scene that has masks: the adjusted Rand index of
+        the trajectory clusters against mask voting over all Gaussians (empty otherwise)."""
+        if self.assignment.source != "trajectories" or not self.scene.has_masks:
+            return {}
+        cfg = dataclasses.replace(self.phase2.assign, source="masks")
+        reference = assign_objects(self.model, self.scene, self.extent, cfg)
+        return {
+            "mask_agreement_ari": adjusted_rand_index(self.assignment.labels, reference.labels),
+            "mask_objects": reference.num_objects - 1,
         }
 
     @torch.no_grad()

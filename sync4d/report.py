@@ -1,10 +1,13 @@
-"""Plain-text tables for command output."""
+"""Plain-text tables and plots for command output."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
-__all__ = ["align_table"]
+import numpy as np
+
+__all__ = ["align_table", "plot_object_trajectories"]
 
 
 def align_table(
@@ -24,3 +27,40 @@ def align_table(
         if j == 0:
             out.append("  ".join("-" * w for w in widths))
     return "\n".join(out)
+
+
+def plot_object_trajectories(
+    export: dict, names: dict[int, str], path: Path, title: str = "object centroids"
+) -> Path:
+    """Three panels (world x, y, z against time) with one line per object: the centroid of
+    each object's Gaussians from a Phase 2 motion export (`centroids` [K, T, 3], `times` [T]);
+    label 0 (background) is left out. Writes a PNG to `path` and returns it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cent = np.asarray(export["centroids"])
+    times = np.asarray(export["times"])
+    labels = np.asarray(export["labels"])
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), dpi=110, sharex=True)
+    drawn = 0
+    for k in range(1, cent.shape[0]):
+        if not (labels == k).any():
+            continue
+        drawn += 1
+        for axis, ax in enumerate(axes):
+            ax.plot(times, cent[k, :, axis], lw=1.5, label=names.get(k, f"object {k}"))
+    for axis, ax in enumerate(axes):
+        ax.set_xlabel("time")
+        ax.set_ylabel(f"centroid {'xyz'[axis]} (world units)")
+        ax.grid(alpha=0.3)
+    if drawn:
+        axes[0].legend(fontsize=8)
+    else:
+        axes[1].text(0.5, 0.5, "no objects assigned", ha="center", transform=axes[1].transAxes)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

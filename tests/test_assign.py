@@ -104,3 +104,20 @@ def test_trajectory_clustering_of_a_static_scene_is_all_background():
     disp = np.random.default_rng(1).normal(scale=1e-4, size=(300, 8, 3))
     a = cluster_trajectories(disp, extent=2.0)
     assert a.num_objects == 1 and (a.labels == 0).all()
+
+
+def test_adjusted_rand_index():
+    from sync4d.assign import adjusted_rand_index
+
+    a = np.array([0, 0, 1, 1, 2, 2])
+    assert adjusted_rand_index(a, a) == pytest.approx(1.0)
+    assert adjusted_rand_index(a, np.array([5, 5, 3, 3, 9, 9])) == pytest.approx(1.0)  # renamed
+    # Worked example: 1 agreeing pair of 6, expectation 1/3, bound 3/2 -> (2/3) / (7/6) = 4/7.
+    assert adjusted_rand_index([0, 0, 1, 1], [0, 0, 1, 2]) == pytest.approx(4 / 7)
+    rng = np.random.default_rng(0)
+    x, y = rng.integers(0, 4, 20000), rng.integers(0, 4, 20000)
+    assert abs(adjusted_rand_index(x, y)) < 0.01  # independent labelings: chance level
+    assert adjusted_rand_index(np.zeros(5), np.zeros(5)) == 1.0
+    assert adjusted_rand_index(a, np.array([0, 1, 0, 1, 0, 1])) < 0.0  # worse than chance
+    with pytest.raises(ValueError, match="differ in length"):
+        adjusted_rand_index(a, a[:3])

@@ -136,6 +136,8 @@ def test_fit_runs_phase2_after_phase1_and_restarts_it(data: Path, tmp_path: Path
     assert load_model(run / "phase1.safetensors")[1]["kind"] == "sync4d.phase1"
     diag = json.loads((run / "phase2.json").read_text())
     assert {"rigid_share", "shuffle_ratio", "objects", "residual_energy"} <= set(diag)
+    assert len(diag["trajectories"]["times"]) == len(diag["trajectories"]["centroids"]["1"])
+    assert (run / "phase2-trajectories.png").stat().st_size > 1000
     # Resume continues Phase 2; --phases 2 restarts it from the kept Phase 1 checkpoint.
     assert main(base + ["--resume", "--phases", "1,2", "--set", "phase2_iterations=10"]) == 0
     assert _iteration(run) == 10
@@ -149,6 +151,11 @@ def test_fit_runs_phase2_after_phase1_and_restarts_it(data: Path, tmp_path: Path
     bad = ["--phases", "2", "--set", "phase2.motion.kind=mlp", "--set", "phase2.motion.init=fit"]
     assert main(base + bad) == 2
     assert "no closed-form start" in capsys.readouterr().err
+    assert main(base + ["--phases", "2", "--set", "phase2.assign.source=sam"]) == 2
+    assert "phase2.assign.source" in capsys.readouterr().err
+    assert main(base + ["--phases", "2", "--set", "phase2.assign.source=trajectories"]) == 0
+    out = capsys.readouterr()
+    assert "trajectories assignment" in out.out and "adjusted Rand index" in out.out
 
 
 def test_bad_inputs_give_one_clear_message(data: Path, tmp_path: Path, capsys) -> None:

@@ -7,6 +7,7 @@ motion, so any error comes from Phase 2 alone.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -194,3 +195,38 @@ def test_bad_motion_settings_are_named(oracle):
         _trainer(scene, model, kind="mlp", init="fit")
     with pytest.raises(ValueError, match="phase2.motion.init"):
         _trainer(scene, model, init="spline")
+
+
+def test_unsupervised_source_on_a_masked_scene_reports_agreement(oracle, tmp_path):
+    """source=trajectories ignores the masks for the assignment; the diagnostics then compare
+    the clusters with mask voting (the pillar is a mask object but never moves, so the ARI
+    is high but below 1); the trajectory plot is written."""
+    from sync4d.assign import AssignConfig
+    from sync4d.report import plot_object_trajectories
+
+    scene, model, _, _ = oracle
+    p2 = Phase2Config(assign=AssignConfig(source="trajectories"), motion=MotionConfig(init="fit"))
+    tr = Phase2Trainer(model, scene, Phase1Config(), p2, 100, threads=1)
+    d = tr.diagnostics(shuffles=1)
+    assert d["assignment"] == "trajectories" and d["num_objects"] == 3
+    assert d["mask_objects"] == 3
+    assert 0.5 < d["mask_agreement_ari"] < 1.0
+    masks = _trainer(scene, model, init="fit").diagnostics(shuffles=0)
+    assert "mask_agreement_ari" not in masks
+    png = plot_object_trajectories(tr.motion_export(), tr.assignment.names, tmp_path / "t.png")
+    assert png.stat().st_size > 1000
+
+
+def test_unknown_or_impossible_assignment_source_is_named(oracle):
+    from sync4d.assign import AssignConfig
+
+    scene, model, _, _ = oracle
+    with pytest.raises(ValueError, match="phase2.assign.source"):
+        Phase2Trainer(model, scene, Phase1Config(), Phase2Config(assign=AssignConfig(source="x")),
+                      10, threads=1)  # fmt: skip
+    unmasked = dataclasses.replace(
+        scene, train=[dataclasses.replace(f, mask_path=None) for f in scene.train]
+    )
+    with pytest.raises(ValueError, match="has training frames without instance masks"):
+        Phase2Trainer(model, unmasked, Phase1Config(),
+                      Phase2Config(assign=AssignConfig(source="masks")), 10, threads=1)  # fmt: skip

@@ -39,7 +39,7 @@ from sync4d.data import DatasetError, Scene, load_scene
 from sync4d.evaluate import evaluate_frames, summarize
 from sync4d.phase2 import Phase2Trainer
 from sync4d.progress import Progress, format_duration
-from sync4d.report import align_table
+from sync4d.report import align_table, plot_object_trajectories
 from sync4d.train import Phase1Trainer, initial_model
 
 __all__ = [
@@ -58,6 +58,8 @@ CHECKPOINT_NAME = "checkpoint.safetensors"
 PHASE1_CHECKPOINT_NAME = "phase1.safetensors"
 #: Phase 2 diagnostics (Appendix C) of the final model.
 PHASE2_FILE = "phase2.json"
+#: Phase 2's per-object centroid curves (x, y, z against time).
+TRAJECTORY_PLOT = "phase2-trajectories.png"
 RUN_FILE = "run.json"
 METRICS_FILE = "metrics.jsonl"
 
@@ -338,11 +340,21 @@ def run_fit(
     )  # fmt: skip
     if isinstance(trainer, Phase2Trainer):
         diag = trainer.diagnostics()
+        export = trainer.motion_export()
+        cent = export["centroids"]
+        diag["trajectories"] = {
+            "times": export["times"].tolist(),
+            "centroids": {str(k): cent[k].tolist() for k in range(len(cent))},
+        }
         (run_dir / PHASE2_FILE).write_text(json.dumps(diag, indent=2) + "\n")
+        plot = plot_object_trajectories(
+            export, trainer.assignment.names, run_dir / TRAJECTORY_PLOT,
+            f"{scene.name}: object centroids after Phase 2 ({diag['assignment']} assignment)",
+        )  # fmt: skip
         summary["phase2"] = diag
         if not quiet:
             print(format_diagnostics(diag))
-            print(f"fit: wrote {run_dir / PHASE2_FILE}")
+            print(f"fit: wrote {run_dir / PHASE2_FILE} and {plot}")
     log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
     metrics_log.close()
     return summary
@@ -363,6 +375,12 @@ def format_diagnostics(diag: dict) -> str:
         f"{table}\nmean rigid share {diag['rigid_share']:.3f}, residual energy "
         f"{diag['residual_energy']:.2e}, modulated fraction {diag['modulated_fraction']:.3f}, "
         f"shuffle ratio {diag['shuffle_ratio']:.2f} ({diag['assignment']} assignment)"
+        + (
+            f"\nagreement with mask voting: adjusted Rand index {diag['mask_agreement_ari']:.3f} "
+            f"({diag['num_objects'] - 1} clusters vs {diag['mask_objects']} mask objects)"
+            if "mask_agreement_ari" in diag
+            else ""
+        )
     )
 
 
@@ -385,7 +403,8 @@ def main(args: argparse.Namespace) -> int:
         if phase2_only and not args.resume:
             _restart_phase2(run_dir)
         elif args.force and not args.resume:
-            for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE):
+            for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE,
+                         TRAJECTORY_PLOT):  # fmt: skip
                 (run_dir / name).unlink(missing_ok=True)
         scene = load_scene(data, cfg.resolution_scale, cfg.test_split)
         print(
