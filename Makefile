@@ -2,7 +2,7 @@
 #
 #   make setup   create .venv, install the Python requirements (only when they changed), build and
 #                install the Rust extension sync4d._core in release mode (only when sources changed)
-#   make test    setup + cargo test (release) + pytest
+#   make test    setup + lavapipe + cargo test (release) + pytest
 #   make lint    cargo fmt --check, clippy -D warnings, ruff
 #   make bench   setup + python -m sync4d bench raster $(BENCH_ARGS)
 #   make fit     setup + train the embedded synthetic scene (runs/synthetic) and print test PSNR
@@ -50,7 +50,7 @@ endif
 
 PIP_FLAGS := --disable-pip-version-check $(if $(CI),--progress-bar off --no-input)
 
-.PHONY: setup test lint bench fit clean distclean FORCE
+.PHONY: setup lavapipe test lint bench fit clean distclean FORCE
 
 setup: $(EXT_STAMP)
 
@@ -85,12 +85,33 @@ $(EXT_STAMP): $(DEPS_STAMP) $(RUST_SOURCES) $(if $(EXT_SO),,FORCE)
 
 FORCE:
 
+# lavapipe (Mesa's CPU Vulkan driver), so the wgpu tests run without a GPU: installed from Debian's
+# packages when missing (as root, or through sudo). In CI a failed install fails the build; elsewhere
+# the wgpu tests then skip with a message (they use any real GPU adapter there is).
+lavapipe:
+	@if ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 && \
+		{ ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1'; }; then \
+		echo ">>> lavapipe: present"; \
+	elif command -v apt-get >/dev/null; then \
+		echo ">>> installing lavapipe (mesa-vulkan-drivers, libvulkan1) for the wgpu tests"; \
+		sudo=""; [ "$$(id -u)" = 0 ] || sudo=sudo; \
+		$$sudo apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$sudo apt-get install -y -qq mesa-vulkan-drivers libvulkan1 \
+			|| { echo "lavapipe install failed"; [ -z "$(CI)" ]; }; \
+	else \
+		echo ">>> no apt-get: install a Vulkan driver to run the wgpu tests (they skip otherwise)"; \
+		[ -z "$(CI)" ]; \
+	fi
+
 # Deterministic thread counts for the test suite (2-core CI machines); exported to every recipe
 # this target runs, including its prerequisites.
 test: export OMP_NUM_THREADS := 2
 test: export MKL_NUM_THREADS := 2
 test: export RAYON_NUM_THREADS := 2
-test: setup
+# In CI the wgpu tests must find an adapter (lavapipe); Mesa wants a runtime dir.
+test: export SYNC4D_REQUIRE_GPU := $(if $(CI),1,0)
+test: export XDG_RUNTIME_DIR := $(or $(XDG_RUNTIME_DIR),/tmp)
+test: setup lavapipe
 	cargo test --workspace --release
 	$(VPY) -m pytest -q
 

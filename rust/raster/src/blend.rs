@@ -168,6 +168,15 @@ pub struct ImageMut<'a, F> {
     pub depth: &'a mut [F],
 }
 
+impl<F> ImageMut<'_, F> {
+    /// Check the output lengths for `npix` pixels of `channels` features.
+    pub fn check_len(&self, npix: usize, channels: usize) -> Result<()> {
+        check_len("out_features", self.features, npix * channels)?;
+        check_len("out_alpha", self.alpha, npix)?;
+        check_len("out_depth", self.depth, npix)
+    }
+}
+
 /// Gradients of the loss w.r.t. the image outputs (layout of [`ImageMut`]).
 #[derive(Debug, Clone, Copy)]
 pub struct ImageGrads<'a, F> {
@@ -177,6 +186,18 @@ pub struct ImageGrads<'a, F> {
     pub alpha: &'a [F],
     /// dL/d accumulated depth, H*W.
     pub depth: &'a [F],
+}
+
+impl<F: Real> ImageGrads<'_, F> {
+    /// Check lengths for `npix` pixels of `channels` features, and finiteness.
+    pub fn validate(&self, npix: usize, channels: usize) -> Result<()> {
+        check_len("v_features", self.features, npix * channels)?;
+        check_len("v_alpha", self.alpha, npix)?;
+        check_len("v_depth", self.depth, npix)?;
+        check_finite("v_features", self.features)?;
+        check_finite("v_alpha", self.alpha)?;
+        check_finite("v_depth", self.depth)
+    }
 }
 
 /// Gradients w.r.t. the splats (layout of [`Splats`]), overwritten by the backward.
@@ -192,6 +213,17 @@ pub struct SplatGradsMut<'a, F> {
     pub opacities: &'a mut [F],
     /// dL/d features, N*C.
     pub features: &'a mut [F],
+}
+
+impl<F> SplatGradsMut<'_, F> {
+    /// Check the gradient buffer lengths for `n` splats of `channels` features.
+    pub fn check_len(&self, n: usize, channels: usize) -> Result<()> {
+        check_len("grad_means2d", self.means2d, n * 2)?;
+        check_len("grad_conics", self.conics, n * 3)?;
+        check_len("grad_depths", self.depths, n)?;
+        check_len("grad_opacities", self.opacities, n)?;
+        check_len("grad_features", self.features, n * channels)
+    }
 }
 
 /// What the forward keeps for the backward, plus reusable buffers. Reuse one state per
@@ -694,9 +726,7 @@ pub fn rasterize_forward(
     check_image_size(width, height)?;
     let npix = (width * height) as usize;
     let ch = splats.channels;
-    check_len("out_features", out.features, npix * ch)?;
-    check_len("out_alpha", out.alpha, npix)?;
-    check_len("out_depth", out.depth, npix)?;
+    out.check_len(npix, ch)?;
     state
         .bins
         .build(splats.means2d, splats.radii, splats.depths, width, height)?;
@@ -932,17 +962,8 @@ pub fn rasterize_backward(
     let npix = (width * height) as usize;
     let n = splats.len();
     let ch = splats.channels;
-    check_len("v_features", v.features, npix * ch)?;
-    check_len("v_alpha", v.alpha, npix)?;
-    check_len("v_depth", v.depth, npix)?;
-    check_finite("v_features", v.features)?;
-    check_finite("v_alpha", v.alpha)?;
-    check_finite("v_depth", v.depth)?;
-    check_len("grad_means2d", grads.means2d, n * 2)?;
-    check_len("grad_conics", grads.conics, n * 3)?;
-    check_len("grad_depths", grads.depths, n)?;
-    check_len("grad_opacities", grads.opacities, n)?;
-    check_len("grad_features", grads.features, n * ch)?;
+    v.validate(npix, ch)?;
+    grads.check_len(n, ch)?;
     let c1 = ch + 1;
     let stride = 6 + c1;
     let m = state.bins.len();
@@ -1005,8 +1026,8 @@ pub fn rasterize_backward(
     Ok(())
 }
 
-/// Check an image size.
-pub(crate) fn check_image_size(width: u32, height: u32) -> Result<()> {
+/// Check an image size (each side in 1..=[`crate::camera::MAX_IMAGE_SIDE`]).
+pub fn check_image_size(width: u32, height: u32) -> Result<()> {
     let max = crate::camera::MAX_IMAGE_SIDE;
     for (name, v) in [("width", width), ("height", height)] {
         if v == 0 || v > max {

@@ -34,7 +34,7 @@ impl RasterError {
 pub type Result<T> = std::result::Result<T, RasterError>;
 
 /// Check that `values` has exactly `expected` entries.
-pub(crate) fn check_len<T>(arg: &'static str, values: &[T], expected: usize) -> Result<()> {
+pub fn check_len<T>(arg: &'static str, values: &[T], expected: usize) -> Result<()> {
     if values.len() != expected {
         return Err(RasterError::invalid(
             arg,
@@ -45,7 +45,7 @@ pub(crate) fn check_len<T>(arg: &'static str, values: &[T], expected: usize) -> 
 }
 
 /// Check that every value is finite; report the first offending index.
-pub(crate) fn check_finite<F: num_traits::Float>(arg: &'static str, values: &[F]) -> Result<()> {
+pub fn check_finite<F: num_traits::Float>(arg: &'static str, values: &[F]) -> Result<()> {
     if let Some(i) = values.iter().position(|v| !v.is_finite()) {
         return Err(RasterError::invalid(
             arg,

@@ -154,6 +154,17 @@ pub struct ProjectionMut<'a, F> {
     pub radii: &'a mut [i32],
 }
 
+impl<F> ProjectionMut<'_, F> {
+    /// Check the output lengths for `n` Gaussians.
+    pub fn check_len(&self, n: usize) -> Result<()> {
+        check_len("means2d", self.means2d, n * 2)?;
+        check_len("conics", self.conics, n * 3)?;
+        check_len("depths", self.depths, n)?;
+        check_len("opacities_out", self.opacities, n)?;
+        check_len("radii", self.radii, n * 2)
+    }
+}
+
 /// Borrowed projection outputs (the same layout as [`ProjectionMut`]).
 #[derive(Debug, Clone, Copy)]
 pub struct Projection<'a, F> {
@@ -182,6 +193,20 @@ pub struct ProjectionGrads<'a, F> {
     pub opacities: &'a [F],
 }
 
+impl<F: Real> ProjectionGrads<'_, F> {
+    /// Check lengths for `n` Gaussians and finiteness.
+    pub fn validate(&self, n: usize) -> Result<()> {
+        check_len("v_means2d", self.means2d, n * 2)?;
+        check_len("v_conics", self.conics, n * 3)?;
+        check_len("v_depths", self.depths, n)?;
+        check_len("v_opacities", self.opacities, n)?;
+        check_finite("v_means2d", self.means2d)?;
+        check_finite("v_conics", self.conics)?;
+        check_finite("v_depths", self.depths)?;
+        check_finite("v_opacities", self.opacities)
+    }
+}
+
 /// Gradients of the loss w.r.t. the 3D Gaussian parameters (same layout as [`Gaussians`]).
 #[derive(Debug)]
 pub struct GaussianGradsMut<'a, F> {
@@ -193,6 +218,16 @@ pub struct GaussianGradsMut<'a, F> {
     pub scales: &'a mut [F],
     /// dL/d opacities, N.
     pub opacities: &'a mut [F],
+}
+
+impl<F> GaussianGradsMut<'_, F> {
+    /// Check the gradient buffer lengths for `n` Gaussians.
+    pub fn check_len(&self, n: usize) -> Result<()> {
+        check_len("grad_means", self.means, n * 3)?;
+        check_len("grad_quats", self.quats, n * 4)?;
+        check_len("grad_scales", self.scales, n * 3)?;
+        check_len("grad_opacities", self.opacities, n)
+    }
 }
 
 /// Camera quantities shared by every Gaussian, in f64.
@@ -580,11 +615,7 @@ pub fn project_forward<F: Real>(
     camera.validate()?;
     settings.validate()?;
     let n = gaussians.len();
-    check_len("means2d", out.means2d, n * 2)?;
-    check_len("conics", out.conics, n * 3)?;
-    check_len("depths", out.depths, n)?;
-    check_len("opacities_out", out.opacities, n)?;
-    check_len("radii", out.radii, n * 2)?;
+    out.check_len(n)?;
     let k = CameraConsts::new(camera);
     let g = gaussians;
     let visible: usize = out
@@ -648,18 +679,8 @@ pub fn project_backward<F: Real>(
     camera.validate()?;
     settings.validate()?;
     let n = gaussians.len();
-    check_len("v_means2d", v_out.means2d, n * 2)?;
-    check_len("v_conics", v_out.conics, n * 3)?;
-    check_len("v_depths", v_out.depths, n)?;
-    check_len("v_opacities", v_out.opacities, n)?;
-    check_finite("v_means2d", v_out.means2d)?;
-    check_finite("v_conics", v_out.conics)?;
-    check_finite("v_depths", v_out.depths)?;
-    check_finite("v_opacities", v_out.opacities)?;
-    check_len("grad_means", grads.means, n * 3)?;
-    check_len("grad_quats", grads.quats, n * 4)?;
-    check_len("grad_scales", grads.scales, n * 3)?;
-    check_len("grad_opacities", grads.opacities, n)?;
+    v_out.validate(n)?;
+    grads.check_len(n)?;
     let k = CameraConsts::new(camera);
     let g = gaussians;
     grads

@@ -9,7 +9,7 @@
 use crate::blend::{
     BlendSettings, Counters, ImageGrads, ImageMut, SplatGradsMut, Splats, ALPHA_MIN, T_MIN,
 };
-use crate::error::{check_finite, check_len, Result};
+use crate::error::Result;
 
 /// Visible splats sorted by (depth, index).
 fn depth_order(sp: &Splats<'_, f64>) -> Vec<usize> {
@@ -84,9 +84,7 @@ pub fn rasterize_forward_reference(
     crate::blend::check_image_size(width, height)?;
     let ch = sp.channels;
     let npix = (width * height) as usize;
-    check_len("out_features", out.features, npix * ch)?;
-    check_len("out_alpha", out.alpha, npix)?;
-    check_len("out_depth", out.depth, npix)?;
+    out.check_len(npix, ch)?;
     let order = depth_order(sp);
     let mut counters = Counters {
         visible: order.len() as u64,
@@ -141,17 +139,8 @@ pub fn rasterize_backward_reference(
     let ch = sp.channels;
     let n = sp.len();
     let npix = (width * height) as usize;
-    check_len("v_features", v.features, npix * ch)?;
-    check_len("v_alpha", v.alpha, npix)?;
-    check_len("v_depth", v.depth, npix)?;
-    check_finite("v_features", v.features)?;
-    check_finite("v_alpha", v.alpha)?;
-    check_finite("v_depth", v.depth)?;
-    check_len("grad_means2d", grads.means2d, n * 2)?;
-    check_len("grad_conics", grads.conics, n * 3)?;
-    check_len("grad_depths", grads.depths, n)?;
-    check_len("grad_opacities", grads.opacities, n)?;
-    check_len("grad_features", grads.features, n * ch)?;
+    v.validate(npix, ch)?;
+    grads.check_len(n, ch)?;
     for buf in [
         &mut *grads.means2d,
         &mut *grads.conics,

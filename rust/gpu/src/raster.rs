@@ -1,0 +1,940 @@
+//! The rasterizer on a wgpu device: the same stages, inputs, outputs and validation as
+//! sync4d-raster's CPU path (projection, depth sort, tile binning, compositing), with host
+//! slices in and out. Buffers grow as needed and are reused across calls.
+
+use std::collections::HashMap;
+
+use sync4d_raster::blend::check_image_size;
+use sync4d_raster::{
+    BlendSettings, Camera, Counters, GaussianGradsMut, Gaussians, ImageGrads, ImageMut,
+    ProjectSettings, ProjectionGrads, ProjectionMut, RasterError, SplatGradsMut, Splats, TILE_SIZE,
+};
+use wgpu::util::DeviceExt;
+
+use crate::device::GpuDevice;
+use crate::error::{GpuError, Result};
+
+const PROJECT_WGSL: &str = include_str!("shaders/project.wgsl");
+const SORT_WGSL: &str = include_str!("shaders/sort.wgsl");
+const SCAN_WGSL: &str = include_str!("shaders/scan.wgsl");
+const BIN_WGSL: &str = include_str!("shaders/bin.wgsl");
+const BLEND_WGSL: &str = include_str!("shaders/blend.wgsl");
+
+/// Invocations per workgroup of the 1D kernels.
+const WG: u32 = 256;
+/// Values per scan block (256 invocations x 4).
+const SCAN_BLOCK: u32 = 1024;
+/// Most chunks the binning cuts the depth order into (bounds the count table to
+/// tiles x this many entries).
+const MAX_CHUNKS: u32 = 1024;
+/// Floats per packed splat: mean x, mean y, conic a, b, c, opacity, depth, padding.
+const SPLAT_FLOATS: usize = 8;
+/// Compositing thresholds, as in sync4d-raster.
+const ALPHA_MIN: f32 = 1.0 / 255.0;
+const T_MIN: f32 = 1e-4;
+
+/// Parameters of the projection kernel (layout of `Params` in project.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ProjectParams {
+    rot: [[f32; 4]; 3],
+    intr: [f32; 4],
+    size: [f32; 4],
+    lims: [f32; 4],
+    clip: [f32; 4],
+    count: [u32; 4],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct SortParams {
+    k: u32,
+    j: u32,
+    n: u32,
+    p: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ScanParams {
+    len: u32,
+    blocks: u32,
+    pad: [u32; 2],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct BinParams {
+    visible: u32,
+    chunks: u32,
+    chunk_size: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    num_tiles: u32,
+    pad: [u32; 2],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct BlendParams {
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    alpha_min: f32,
+    alpha_max: f32,
+    t_min: f32,
+    n: u32,
+}
+
+/// Compiled kernels.
+struct Kernels {
+    project: wgpu::ComputePipeline,
+    project_backward: wgpu::ComputePipeline,
+    depth_keys: wgpu::ComputePipeline,
+    bitonic: wgpu::ComputePipeline,
+    scan_blocks: wgpu::ComputePipeline,
+    scan_sums: wgpu::ComputePipeline,
+    scan_add: wgpu::ComputePipeline,
+    count_chunks: wgpu::ComputePipeline,
+    tile_ranges: wgpu::ComputePipeline,
+    scatter: wgpu::ComputePipeline,
+    /// Forward and backward compositing, one pair per channel count.
+    blend: HashMap<usize, (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
+}
+
+fn module(dev: &wgpu::Device, label: &str, src: &str) -> wgpu::ShaderModule {
+    dev.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(src.into()),
+    })
+}
+
+fn pipeline(dev: &wgpu::Device, m: &wgpu::ShaderModule, entry: &str) -> wgpu::ComputePipeline {
+    dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry),
+        layout: None,
+        module: m,
+        entry_point: Some(entry),
+        compilation_options: Default::default(),
+        cache: None,
+    })
+}
+
+impl Kernels {
+    fn new(dev: &wgpu::Device) -> Self {
+        let project = module(dev, "project", PROJECT_WGSL);
+        let sort = module(dev, "sort", SORT_WGSL);
+        let scan = module(dev, "scan", SCAN_WGSL);
+        let bin = module(dev, "bin", BIN_WGSL);
+        Kernels {
+            project: pipeline(dev, &project, "project_forward"),
+            project_backward: pipeline(dev, &project, "project_backward"),
+            depth_keys: pipeline(dev, &sort, "depth_keys"),
+            bitonic: pipeline(dev, &sort, "bitonic_step"),
+            scan_blocks: pipeline(dev, &scan, "scan_blocks"),
+            scan_sums: pipeline(dev, &scan, "scan_sums"),
+            scan_add: pipeline(dev, &scan, "scan_add"),
+            count_chunks: pipeline(dev, &bin, "count_chunks"),
+            tile_ranges: pipeline(dev, &bin, "tile_ranges"),
+            scatter: pipeline(dev, &bin, "scatter"),
+            blend: HashMap::new(),
+        }
+    }
+
+    /// The (forward, backward) compositing pipelines for `channels` feature channels.
+    fn blend(
+        &mut self,
+        dev: &wgpu::Device,
+        channels: usize,
+    ) -> &(wgpu::ComputePipeline, wgpu::ComputePipeline) {
+        self.blend.entry(channels).or_insert_with(|| {
+            let stride = channels + 7;
+            let batch = (2048 / stride).clamp(4, 64);
+            let src = BLEND_WGSL
+                .replace("{{CHANNELS}}", &channels.to_string())
+                .replace("{{BATCH}}", &batch.to_string())
+                .replace("{{ACC}}", &(batch * stride).to_string());
+            let m = module(dev, "blend", &src);
+            (
+                pipeline(dev, &m, "blend_forward"),
+                pipeline(dev, &m, "blend_backward"),
+            )
+        })
+    }
+}
+
+/// Grow-only named storage buffers, reused across calls.
+#[derive(Default)]
+struct Pool {
+    buffers: HashMap<&'static str, wgpu::Buffer>,
+}
+
+const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_DST)
+    .union(wgpu::BufferUsages::COPY_SRC);
+
+impl Pool {
+    /// A buffer of at least `bytes` bytes (and at least 16) under `name`.
+    fn get(
+        &mut self,
+        dev: &wgpu::Device,
+        name: &'static str,
+        bytes: u64,
+        usage: wgpu::BufferUsages,
+    ) -> wgpu::Buffer {
+        let bytes = bytes.max(16).next_multiple_of(16);
+        if let Some(b) = self.buffers.get(name) {
+            if b.size() >= bytes {
+                return b.clone();
+            }
+        }
+        let b = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(name),
+            size: bytes.next_power_of_two().max(bytes),
+            usage,
+            mapped_at_creation: false,
+        });
+        self.buffers.insert(name, b.clone());
+        b
+    }
+}
+
+/// What a forward rasterization leaves on the device for its backward (tile lists, depth
+/// order, per-pixel last contributor and final transmittance, the splats and features), like
+/// sync4d-raster's `RasterState`. Reuse one per concurrent render; buffers grow as needed.
+#[derive(Default)]
+pub struct GpuRasterState {
+    pool: Pool,
+    shape: Option<ForwardShape>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct ForwardShape {
+    n: usize,
+    channels: usize,
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    alpha_max: f32,
+}
+
+impl GpuRasterState {
+    /// A fresh state with no buffers.
+    pub fn new() -> Self {
+        Self::default()
+    }
+}
+
+/// The rasterizer on one wgpu device. Not `Sync`: use one per thread (or a lock).
+pub struct GpuRasterizer {
+    gpu: GpuDevice,
+    kernels: Kernels,
+    pool: Pool,
+}
+
+/// Workgroup grid for `groups` workgroups of a 1D kernel (2D when beyond the per-dimension
+/// limit; the kernels flatten the id).
+fn grid(groups: u32) -> (u32, u32) {
+    let x = groups.clamp(1, 65_535);
+    (x, groups.div_ceil(x).max(1))
+}
+
+fn check_binding(gpu: &GpuDevice, what: &str, bytes: u64) -> Result<()> {
+    let max = gpu
+        .limits
+        .max_storage_buffer_binding_size
+        .min(gpu.limits.max_buffer_size);
+    if bytes > max {
+        return Err(GpuError::TooLarge(format!(
+            "{what} needs {bytes} bytes but the adapter ({}) binds at most {max}; render fewer \
+             Gaussians or a smaller image, or use the CPU backend",
+            gpu.adapter
+        )));
+    }
+    Ok(())
+}
+
+/// A storage buffer of `bytes` from `pool`, after checking the device's limits.
+fn storage_in(
+    gpu: &GpuDevice,
+    pool: &mut Pool,
+    name: &'static str,
+    bytes: u64,
+) -> Result<wgpu::Buffer> {
+    check_binding(gpu, name, bytes)?;
+    Ok(pool.get(&gpu.device, name, bytes, STORAGE))
+}
+
+/// `data` in a storage buffer from `pool`.
+fn upload_in<T: bytemuck::Pod>(
+    gpu: &GpuDevice,
+    pool: &mut Pool,
+    name: &'static str,
+    data: &[T],
+) -> Result<wgpu::Buffer> {
+    let bytes = std::mem::size_of_val(data) as u64;
+    let buf = storage_in(gpu, pool, name, bytes)?;
+    if bytes > 0 {
+        gpu.queue.write_buffer(&buf, 0, bytemuck::cast_slice(data));
+    }
+    Ok(buf)
+}
+
+impl GpuRasterizer {
+    /// Compile the kernels on `gpu`.
+    pub fn new(gpu: GpuDevice) -> Self {
+        let kernels = Kernels::new(&gpu.device);
+        GpuRasterizer {
+            gpu,
+            kernels,
+            pool: Pool::default(),
+        }
+    }
+
+    /// The device this rasterizer runs on.
+    pub fn device(&self) -> &GpuDevice {
+        &self.gpu
+    }
+
+    fn upload<T: bytemuck::Pod>(&mut self, name: &'static str, data: &[T]) -> Result<wgpu::Buffer> {
+        upload_in(&self.gpu, &mut self.pool, name, data)
+    }
+
+    fn storage(&mut self, name: &'static str, bytes: u64) -> Result<wgpu::Buffer> {
+        storage_in(&self.gpu, &mut self.pool, name, bytes)
+    }
+
+    fn uniform<T: bytemuck::Pod>(&self, value: &T) -> wgpu::Buffer {
+        self.gpu
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("params"),
+                contents: bytemuck::bytes_of(value),
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+    }
+
+    fn bind(
+        &self,
+        pipe: &wgpu::ComputePipeline,
+        buffers: &[(u32, &wgpu::Buffer)],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .map(|(b, buf)| wgpu::BindGroupEntry {
+                binding: *b,
+                resource: buf.as_entire_binding(),
+            })
+            .collect();
+        self.gpu
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &pipe.get_bind_group_layout(0),
+                entries: &entries,
+            })
+    }
+
+    /// Copy the first `bytes` of `src` to the host.
+    fn read(&mut self, src: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>> {
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
+        let staging = self.pool.get(
+            &self.gpu.device,
+            "staging",
+            bytes,
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        );
+        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(src, 0, &staging, 0, bytes);
+        self.gpu.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, ..bytes, move |r| {
+            let _ = tx.send(r);
+        });
+        self.gpu
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| GpuError::Readback(e.to_string()))?
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let data = staging
+            .get_mapped_range(..bytes)
+            .map_err(|e| GpuError::Readback(e.to_string()))?
+            .to_vec();
+        staging.unmap();
+        Ok(data)
+    }
+
+    fn read_f32(&mut self, src: &wgpu::Buffer, count: usize) -> Result<Vec<f32>> {
+        Ok(bytemuck::pod_collect_to_vec(
+            &self.read(src, count as u64 * 4)?,
+        ))
+    }
+
+    fn dispatch(
+        enc: &mut wgpu::CommandEncoder,
+        pipe: &wgpu::ComputePipeline,
+        group: &wgpu::BindGroup,
+        groups: (u32, u32),
+    ) {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        pass.set_pipeline(pipe);
+        pass.set_bind_group(0, group, &[]);
+        pass.dispatch_workgroups(groups.0, groups.1, 1);
+    }
+
+    /// Upload the Gaussians and the projection parameters.
+    fn gaussians_in(
+        &mut self,
+        gaussians: &Gaussians<'_, f32>,
+        camera: &Camera,
+        settings: &ProjectSettings,
+    ) -> Result<[wgpu::Buffer; 5]> {
+        let n = gaussians.len();
+        if n > (1 << 27) {
+            return Err(
+                RasterError::invalid("means", "too many Gaussians for the GPU path").into(),
+            );
+        }
+        Ok([
+            self.uniform(&project_params(camera, settings, n as u32)),
+            self.upload("means", gaussians.means)?,
+            self.upload("quats", gaussians.quats)?,
+            self.upload("scales", gaussians.scales)?,
+            self.upload("opacities", gaussians.opacities)?,
+        ])
+    }
+
+    /// Project every Gaussian through `camera` (as [`sync4d_raster::project_forward`]);
+    /// returns the number of visible Gaussians. Computed in f32 on the device, so outputs
+    /// agree with the CPU path (f64 inside) to f32 rounding, and radii to +-1 pixel.
+    pub fn project_forward(
+        &mut self,
+        gaussians: &Gaussians<'_, f32>,
+        camera: &Camera,
+        settings: &ProjectSettings,
+        out: ProjectionMut<'_, f32>,
+    ) -> Result<usize> {
+        gaussians.validate()?;
+        camera.validate()?;
+        settings.validate()?;
+        let n = gaussians.len();
+        out.check_len(n)?;
+        if n == 0 {
+            return Ok(0);
+        }
+        let [params, means, quats, scales, opac] =
+            self.gaussians_in(gaussians, camera, settings)?;
+        let splats = self.storage("projected", (n * SPLAT_FLOATS * 4) as u64)?;
+        let radii = self.storage("projected_radii", (n * 8) as u64)?;
+        let group = self.bind(
+            &self.kernels.project,
+            &[
+                (0, &params),
+                (1, &means),
+                (2, &quats),
+                (3, &scales),
+                (4, &opac),
+                (5, &splats),
+                (6, &radii),
+            ],
+        );
+        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        Self::dispatch(
+            &mut enc,
+            &self.kernels.project,
+            &group,
+            grid((n as u32).div_ceil(WG)),
+        );
+        self.gpu.queue.submit([enc.finish()]);
+        let packed = self.read_f32(&splats, n * SPLAT_FLOATS)?;
+        let rad: Vec<i32> = bytemuck::pod_collect_to_vec(&self.read(&radii, (n * 8) as u64)?);
+        let mut visible = 0;
+        for i in 0..n {
+            let s = &packed[SPLAT_FLOATS * i..SPLAT_FLOATS * (i + 1)];
+            out.means2d[2 * i] = s[0];
+            out.means2d[2 * i + 1] = s[1];
+            out.conics[3 * i..3 * i + 3].copy_from_slice(&s[2..5]);
+            out.opacities[i] = s[5];
+            out.depths[i] = s[6];
+            out.radii[2 * i] = rad[2 * i];
+            out.radii[2 * i + 1] = rad[2 * i + 1];
+            visible += usize::from(rad[2 * i] > 0 && rad[2 * i + 1] > 0);
+        }
+        Ok(visible)
+    }
+
+    /// Backward of [`GpuRasterizer::project_forward`] (as [`sync4d_raster::project_backward`]):
+    /// dL/d(means, quats, scales, opacities) from dL/d(projection outputs), in f32.
+    pub fn project_backward(
+        &mut self,
+        gaussians: &Gaussians<'_, f32>,
+        camera: &Camera,
+        settings: &ProjectSettings,
+        v_out: &ProjectionGrads<'_, f32>,
+        grads: GaussianGradsMut<'_, f32>,
+    ) -> Result<()> {
+        gaussians.validate()?;
+        camera.validate()?;
+        settings.validate()?;
+        let n = gaussians.len();
+        v_out.validate(n)?;
+        grads.check_len(n)?;
+        if n == 0 {
+            return Ok(());
+        }
+        let [params, means, quats, scales, opac] =
+            self.gaussians_in(gaussians, camera, settings)?;
+        let mut v = vec![0.0f32; n * 8];
+        for i in 0..n {
+            v[8 * i] = v_out.means2d[2 * i];
+            v[8 * i + 1] = v_out.means2d[2 * i + 1];
+            v[8 * i + 2..8 * i + 5].copy_from_slice(&v_out.conics[3 * i..3 * i + 3]);
+            v[8 * i + 5] = v_out.depths[i];
+            v[8 * i + 6] = v_out.opacities[i];
+        }
+        let v_buf = self.upload("v_projected", &v)?;
+        let out = self.storage("gaussian_grads", (n * 12 * 4) as u64)?;
+        let group = self.bind(
+            &self.kernels.project_backward,
+            &[
+                (0, &params),
+                (1, &means),
+                (2, &quats),
+                (3, &scales),
+                (4, &opac),
+                (7, &v_buf),
+                (8, &out),
+            ],
+        );
+        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        Self::dispatch(
+            &mut enc,
+            &self.kernels.project_backward,
+            &group,
+            grid((n as u32).div_ceil(WG)),
+        );
+        self.gpu.queue.submit([enc.finish()]);
+        let g = self.read_f32(&out, n * 12)?;
+        for i in 0..n {
+            let r = &g[12 * i..12 * i + 12];
+            grads.means[3 * i..3 * i + 3].copy_from_slice(&r[0..3]);
+            grads.quats[4 * i..4 * i + 4].copy_from_slice(&r[3..7]);
+            grads.scales[3 * i..3 * i + 3].copy_from_slice(&r[7..10]);
+            grads.opacities[i] = r[10];
+        }
+        Ok(())
+    }
+
+    /// Composite `splats` into a `width` x `height` image (as
+    /// [`sync4d_raster::rasterize_forward`]): features plus `T_final * background`, alpha and
+    /// accumulated depth; `state` keeps what the backward needs. Counters: `visible`,
+    /// `intersections` and `blended` equal the CPU path's; `evaluated` counts every
+    /// (live pixel, listed splat) pair (the CPU path skips pixels outside each splat's
+    /// support box, so its count is lower).
+    #[allow(clippy::too_many_arguments)]
+    pub fn rasterize_forward(
+        &mut self,
+        splats: &Splats<'_, f32>,
+        width: u32,
+        height: u32,
+        background: &[f32],
+        settings: &BlendSettings,
+        state: &mut GpuRasterState,
+        out: ImageMut<'_, f32>,
+    ) -> Result<Counters> {
+        splats.validate(background)?;
+        settings.validate()?;
+        check_image_size(width, height)?;
+        let ch = splats.channels;
+        let n = splats.len();
+        let npix = (width * height) as usize;
+        out.check_len(npix, ch)?;
+        if n > (1 << 27) {
+            return Err(RasterError::invalid("means2d", "too many splats for the GPU path").into());
+        }
+        state.shape = None;
+        let dev = self.gpu.device.clone();
+        let gpu = &self.gpu;
+        let sp = &mut state.pool;
+
+        // Inputs: packed splats, radii, features with the background appended.
+        let mut packed = vec![0.0f32; n.max(1) * SPLAT_FLOATS];
+        let mut visible = 0u32;
+        for i in 0..n {
+            let s = &mut packed[SPLAT_FLOATS * i..SPLAT_FLOATS * (i + 1)];
+            s[0] = splats.means2d[2 * i];
+            s[1] = splats.means2d[2 * i + 1];
+            s[2..5].copy_from_slice(&splats.conics[3 * i..3 * i + 3]);
+            s[5] = splats.opacities[i];
+            s[6] = splats.depths[i];
+            visible += u32::from(splats.radii[2 * i] > 0 && splats.radii[2 * i + 1] > 0);
+        }
+        let mut feats = Vec::with_capacity(n * ch + ch);
+        feats.extend_from_slice(splats.features);
+        feats.extend_from_slice(background);
+        let splat_buf = upload_in(gpu, sp, "splats", &packed)?;
+        let radii_buf = upload_in(gpu, sp, "radii", if n > 0 { splats.radii } else { &[0, 0] })?;
+        let feat_buf = upload_in(gpu, sp, "features", &feats)?;
+        let p = (n as u32).next_power_of_two().max(2);
+        let keys = storage_in(gpu, sp, "keys", u64::from(p) * 8)?;
+        let tiles_x = width.div_ceil(TILE_SIZE);
+        let tiles_y = height.div_ceil(TILE_SIZE);
+        let num_tiles = tiles_x * tiles_y;
+        let tile_offsets = storage_in(gpu, sp, "tile_offsets", (u64::from(num_tiles) + 1) * 4)?;
+        let pixel_state = storage_in(gpu, sp, "pixel_state", npix as u64 * 8)?;
+
+        // 1. Depth order: bitonic sort of (depth key, index) over a power-of-two array.
+        let mut enc = dev.create_command_encoder(&Default::default());
+        let sort_params = self.uniform(&SortParams {
+            k: 0,
+            j: 0,
+            n: n as u32,
+            p,
+        });
+        let g = self.bind(
+            &self.kernels.depth_keys,
+            &[
+                (0, &sort_params),
+                (1, &keys),
+                (2, &splat_buf),
+                (3, &radii_buf),
+            ],
+        );
+        Self::dispatch(&mut enc, &self.kernels.depth_keys, &g, grid(p.div_ceil(WG)));
+        let mut k = 2;
+        while k <= p {
+            let mut j = k / 2;
+            while j > 0 {
+                let prm = self.uniform(&SortParams {
+                    k,
+                    j,
+                    n: n as u32,
+                    p,
+                });
+                let g = self.bind(&self.kernels.bitonic, &[(0, &prm), (1, &keys)]);
+                Self::dispatch(&mut enc, &self.kernels.bitonic, &g, grid(p.div_ceil(WG)));
+                j /= 2;
+            }
+            k *= 2;
+        }
+
+        // 2. Tile binning: per (tile, chunk) counts, their scan, tile ranges.
+        let chunk_size = visible.div_ceil(MAX_CHUNKS).max(256);
+        let chunks = visible.div_ceil(chunk_size).max(1);
+        let table = u64::from(num_tiles) * u64::from(chunks);
+        if table >= u64::from(u32::MAX) {
+            return Err(GpuError::TooLarge(format!(
+                "tile table of {table} entries; render a smaller image"
+            )));
+        }
+        let counts = self.storage("counts", table * 4)?;
+        let cursors = self.storage("cursors", (table + 1) * 4)?;
+        enc.clear_buffer(&counts, 0, Some(table * 4));
+        let bin_params = self.uniform(&BinParams {
+            visible,
+            chunks,
+            chunk_size,
+            tiles_x,
+            tiles_y,
+            num_tiles,
+            pad: [0; 2],
+        });
+        // Auto layouts hold only the bindings an entry point uses.
+        let g = self.bind(
+            &self.kernels.count_chunks,
+            &[
+                (0, &bin_params),
+                (1, &keys),
+                (2, &splat_buf),
+                (3, &radii_buf),
+                (4, &counts),
+            ],
+        );
+        Self::dispatch(
+            &mut enc,
+            &self.kernels.count_chunks,
+            &g,
+            grid(visible.div_ceil(WG)),
+        );
+        self.scan(&mut enc, &counts, &cursors, table as u32)?;
+        let g = self.bind(
+            &self.kernels.tile_ranges,
+            &[(0, &bin_params), (5, &cursors), (7, &tile_offsets)],
+        );
+        Self::dispatch(
+            &mut enc,
+            &self.kernels.tile_ranges,
+            &g,
+            grid((num_tiles + 1).div_ceil(WG)),
+        );
+        self.gpu.queue.submit([enc.finish()]);
+        let total = {
+            let off = u64::from(num_tiles) * 4;
+            let all = self.read(&tile_offsets, off + 4)?;
+            u32::from_le_bytes([
+                all[off as usize],
+                all[off as usize + 1],
+                all[off as usize + 2],
+                all[off as usize + 3],
+            ])
+        };
+
+        // 3. Scatter ranks into tile lists, then composite.
+        let ids = storage_in(&self.gpu, &mut state.pool, "ids", u64::from(total) * 4)?;
+        let mut enc = dev.create_command_encoder(&Default::default());
+        let g = self.bind(
+            &self.kernels.scatter,
+            &[
+                (0, &bin_params),
+                (1, &keys),
+                (2, &splat_buf),
+                (3, &radii_buf),
+                (5, &cursors),
+                (6, &ids),
+            ],
+        );
+        Self::dispatch(
+            &mut enc,
+            &self.kernels.scatter,
+            &g,
+            (chunks.div_ceil(64), 1),
+        );
+        let image_len = npix * (ch + 2);
+        let image = self.storage("image", image_len as u64 * 4)?;
+        let counters = self.storage("counters", 16)?;
+        enc.clear_buffer(&counters, 0, Some(16));
+        let alpha_max = settings.alpha_max as f32;
+        let blend_params = self.uniform(&BlendParams {
+            width,
+            height,
+            tiles_x,
+            tiles_y,
+            alpha_min: ALPHA_MIN,
+            alpha_max,
+            t_min: T_MIN,
+            n: n as u32,
+        });
+        let pipe = self.kernels.blend(&dev, ch).0.clone();
+        let g = self.bind(
+            &pipe,
+            &[
+                (0, &blend_params),
+                (1, &splat_buf),
+                (2, &keys),
+                (3, &ids),
+                (4, &tile_offsets),
+                (5, &feat_buf),
+                (6, &image),
+                (7, &pixel_state),
+                (8, &counters),
+            ],
+        );
+        Self::dispatch(&mut enc, &pipe, &g, (tiles_x, tiles_y));
+        self.gpu.queue.submit([enc.finish()]);
+        let img = self.read_f32(&image, image_len)?;
+        let cnt: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(&counters, 16)?);
+        out.features.copy_from_slice(&img[..npix * ch]);
+        out.alpha.copy_from_slice(&img[npix * ch..npix * (ch + 1)]);
+        out.depth
+            .copy_from_slice(&img[npix * (ch + 1)..npix * (ch + 2)]);
+        state.shape = Some(ForwardShape {
+            n,
+            channels: ch,
+            width,
+            height,
+            tiles_x,
+            tiles_y,
+            alpha_max,
+        });
+        let wide = |lo: u32, hi: u32| u64::from(lo) | (u64::from(hi) << 32);
+        Ok(Counters {
+            visible: u64::from(visible),
+            intersections: u64::from(total),
+            evaluated: wide(cnt[0], cnt[1]),
+            blended: wide(cnt[2], cnt[3]),
+        })
+    }
+
+    /// Backward of [`GpuRasterizer::rasterize_forward`] (as
+    /// [`sync4d_raster::rasterize_backward`]): dL/d(splats) from dL/d(image outputs).
+    /// `splats`, `background`, `settings` and `state` must be the forward's.
+    #[allow(clippy::too_many_arguments)]
+    pub fn rasterize_backward(
+        &mut self,
+        splats: &Splats<'_, f32>,
+        width: u32,
+        height: u32,
+        background: &[f32],
+        settings: &BlendSettings,
+        state: &mut GpuRasterState,
+        v: &ImageGrads<'_, f32>,
+        grads: SplatGradsMut<'_, f32>,
+    ) -> Result<()> {
+        splats.validate(background)?;
+        settings.validate()?;
+        let ch = splats.channels;
+        let n = splats.len();
+        let shape =
+            match state.shape {
+                Some(s)
+                    if s.n == n
+                        && s.channels == ch
+                        && s.width == width
+                        && s.height == height
+                        && s.alpha_max == settings.alpha_max as f32 =>
+                {
+                    s
+                }
+                _ => return Err(RasterError::invalid(
+                    "state",
+                    "backward needs the state of a forward call with the same splats, image size \
+                     and channels",
+                )
+                .into()),
+            };
+        let npix = (width * height) as usize;
+        v.validate(npix, ch)?;
+        grads.check_len(n, ch)?;
+        if n == 0 {
+            return Ok(());
+        }
+        let stride = ch + 7;
+        let dev = self.gpu.device.clone();
+        let mut vimg = Vec::with_capacity(npix * (ch + 2));
+        vimg.extend_from_slice(v.features);
+        vimg.extend_from_slice(v.alpha);
+        vimg.extend_from_slice(v.depth);
+        let v_buf = self.upload("v_image", &vimg)?;
+        let out = self.storage("splat_grads", (n * stride * 4) as u64)?;
+        let sp = &mut state.pool;
+        let get = |sp: &mut Pool, name| sp.buffers.get(name).cloned();
+        let (
+            Some(splat_buf),
+            Some(keys),
+            Some(ids),
+            Some(tile_offsets),
+            Some(feat_buf),
+            Some(pixel_state),
+        ) = (
+            get(sp, "splats"),
+            get(sp, "keys"),
+            get(sp, "ids"),
+            get(sp, "tile_offsets"),
+            get(sp, "features"),
+            get(sp, "pixel_state"),
+        )
+        else {
+            return Err(GpuError::State(
+                "rasterize_backward: the forward state is incomplete".into(),
+            ));
+        };
+        let mut enc = dev.create_command_encoder(&Default::default());
+        enc.clear_buffer(&out, 0, Some((n * stride * 4) as u64));
+        let blend_params = self.uniform(&BlendParams {
+            width,
+            height,
+            tiles_x: shape.tiles_x,
+            tiles_y: shape.tiles_y,
+            alpha_min: ALPHA_MIN,
+            alpha_max: shape.alpha_max,
+            t_min: T_MIN,
+            n: n as u32,
+        });
+        let pipe = self.kernels.blend(&dev, ch).1.clone();
+        let g = self.bind(
+            &pipe,
+            &[
+                (0, &blend_params),
+                (1, &splat_buf),
+                (2, &keys),
+                (3, &ids),
+                (4, &tile_offsets),
+                (5, &feat_buf),
+                (7, &pixel_state),
+                (9, &v_buf),
+                (10, &out),
+            ],
+        );
+        Self::dispatch(&mut enc, &pipe, &g, (shape.tiles_x, shape.tiles_y));
+        self.gpu.queue.submit([enc.finish()]);
+        let r = self.read_f32(&out, n * stride)?;
+        for i in 0..n {
+            let s = &r[stride * i..stride * (i + 1)];
+            grads.means2d[2 * i..2 * i + 2].copy_from_slice(&s[0..2]);
+            grads.conics[3 * i..3 * i + 3].copy_from_slice(&s[2..5]);
+            grads.opacities[i] = s[5];
+            grads.features[ch * i..ch * (i + 1)].copy_from_slice(&s[6..6 + ch]);
+            grads.depths[i] = s[6 + ch];
+        }
+        Ok(())
+    }
+
+    /// Exclusive scan of `len` u32 values of `values` into `out` (`len + 1` entries; the last
+    /// is the total).
+    fn scan(
+        &mut self,
+        enc: &mut wgpu::CommandEncoder,
+        values: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+        len: u32,
+    ) -> Result<()> {
+        let blocks = len.div_ceil(SCAN_BLOCK);
+        let sums = self.storage("scan_sums", u64::from(blocks.max(1)) * 4)?;
+        let prm = self.uniform(&ScanParams {
+            len,
+            blocks,
+            pad: [0; 2],
+        });
+        let k = &self.kernels;
+        let g = self.bind(
+            &k.scan_blocks,
+            &[(0, &prm), (1, values), (2, out), (3, &sums)],
+        );
+        Self::dispatch(enc, &k.scan_blocks, &g, grid(blocks.max(1)));
+        let g = self.bind(&k.scan_sums, &[(0, &prm), (2, out), (3, &sums)]);
+        Self::dispatch(enc, &k.scan_sums, &g, (1, 1));
+        let g = self.bind(&k.scan_add, &[(0, &prm), (2, out), (3, &sums)]);
+        Self::dispatch(enc, &k.scan_add, &g, grid(blocks.max(1)));
+        Ok(())
+    }
+}
+
+/// Camera and settings in the layout of project.wgsl's `Params`.
+fn project_params(cam: &Camera, s: &ProjectSettings, n: u32) -> ProjectParams {
+    let m = &cam.world_to_camera;
+    let (w, h) = (cam.width as f64, cam.height as f64);
+    let tan_fovx = 0.5 * w / cam.fx;
+    let tan_fovy = 0.5 * h / cam.fy;
+    let row = |r: usize| {
+        [
+            m[r][0] as f32,
+            m[r][1] as f32,
+            m[r][2] as f32,
+            m[r][3] as f32,
+        ]
+    };
+    ProjectParams {
+        rot: [row(0), row(1), row(2)],
+        intr: [cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32],
+        size: [
+            w as f32,
+            h as f32,
+            s.eps2d as f32,
+            f32::from(u8::from(s.antialiased)),
+        ],
+        lims: [
+            ((w - cam.cx) / cam.fx + 0.3 * tan_fovx) as f32,
+            (cam.cx / cam.fx + 0.3 * tan_fovx) as f32,
+            ((h - cam.cy) / cam.fy + 0.3 * tan_fovy) as f32,
+            (cam.cy / cam.fy + 0.3 * tan_fovy) as f32,
+        ],
+        clip: [s.near as f32, s.far.min(f32::MAX as f64) as f32, 0.0, 0.0],
+        count: [n, 0, 0, 0],
+    }
+}

@@ -1,0 +1,427 @@
+//! The wgpu path against the CPU path on random scenes: projection outputs, composited
+//! images and work counters. Runs on whatever adapter `AdapterChoice::Auto` finds (lavapipe in
+//! CI). Without any adapter the tests print why and pass, unless `SYNC4D_REQUIRE_GPU=1`
+//! (set by `make test`), which turns a missing adapter into a failure.
+
+#[path = "../../raster/tests/common/mod.rs"]
+mod common;
+
+use common::*;
+use std::sync::{Mutex, OnceLock};
+use sync4d_gpu::{AdapterChoice, GpuDevice, GpuRasterState, GpuRasterizer};
+use sync4d_raster::*;
+
+/// One rasterizer shared by the tests (kernel compilation is the slow part on lavapipe).
+fn gpu() -> Option<&'static Mutex<GpuRasterizer>> {
+    static GPU: OnceLock<Option<Mutex<GpuRasterizer>>> = OnceLock::new();
+    GPU.get_or_init(|| match GpuDevice::new(AdapterChoice::Auto) {
+        Ok(dev) => {
+            eprintln!("wgpu adapter: {}", dev.adapter);
+            Some(Mutex::new(GpuRasterizer::new(dev)))
+        }
+        Err(e) => {
+            if std::env::var("SYNC4D_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                panic!("SYNC4D_REQUIRE_GPU=1 but {e}");
+            }
+            eprintln!("skipping wgpu tests: {e}");
+            None
+        }
+    })
+    .as_ref()
+}
+
+fn max_abs(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+fn gpu_project(r: &mut GpuRasterizer, s: &Scene, ps: &ProjectSettings) -> (Proj<f32>, usize) {
+    let n = s.n();
+    let (m, q, sc, o) = (
+        to_f32(&s.means),
+        to_f32(&s.quats),
+        to_f32(&s.scales),
+        to_f32(&s.opacities),
+    );
+    let mut p = Proj {
+        means2d: vec![0.0; 2 * n],
+        conics: vec![0.0; 3 * n],
+        depths: vec![0.0; n],
+        opacities: vec![0.0; n],
+        radii: vec![0; 2 * n],
+    };
+    let visible = r
+        .project_forward(
+            &Gaussians {
+                means: &m,
+                quats: &q,
+                scales: &sc,
+                opacities: &o,
+            },
+            &s.camera,
+            ps,
+            ProjectionMut {
+                means2d: &mut p.means2d,
+                conics: &mut p.conics,
+                depths: &mut p.depths,
+                opacities: &mut p.opacities,
+                radii: &mut p.radii,
+            },
+        )
+        .unwrap();
+    (p, visible)
+}
+
+fn cpu_project(s: &Scene, ps: &ProjectSettings) -> Proj<f32> {
+    let (m, q, sc, o) = (
+        to_f32(&s.means),
+        to_f32(&s.quats),
+        to_f32(&s.scales),
+        to_f32(&s.opacities),
+    );
+    project(&m, &q, &sc, &o, &s.camera, ps)
+}
+
+fn composite(
+    r: Option<&mut GpuRasterizer>,
+    p: &Proj<f32>,
+    s: &Scene,
+    bs: &BlendSettings,
+) -> (Image<f32>, Counters) {
+    let (w, h) = (s.camera.width, s.camera.height);
+    let feats = to_f32(&s.features);
+    let bg = to_f32(&s.background);
+    let sp = splats(p, &feats, s.channels);
+    let mut img = Image::zeros((w * h) as usize, s.channels);
+    let counters = match r {
+        Some(r) => {
+            let mut state = GpuRasterState::new();
+            r.rasterize_forward(&sp, w, h, &bg, bs, &mut state, img.as_mut())
+                .unwrap()
+        }
+        None => {
+            let mut state = RasterState::new();
+            rasterize_forward(&sp, w, h, &bg, bs, &mut state, img.as_mut()).unwrap()
+        }
+    };
+    (img, counters)
+}
+
+#[test]
+fn projection_matches_the_cpu_path() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    for (seed, antialiased) in [(1u64, false), (2, true), (3, false)] {
+        let s = random_scene(400, 96, 80, 3, seed);
+        let ps = ProjectSettings {
+            antialiased,
+            ..Default::default()
+        };
+        let cpu = cpu_project(&s, &ps);
+        let (gpu, _) = gpu_project(&mut r, &s, &ps);
+        for i in 0..s.n() {
+            let (rc, rg) = (&cpu.radii[2 * i..2 * i + 2], &gpu.radii[2 * i..2 * i + 2]);
+            assert!(
+                (rc[0] - rg[0]).abs() <= 1 && (rc[1] - rg[1]).abs() <= 1,
+                "radii {rc:?} {rg:?}"
+            );
+            if rc[0] == 0 || rg[0] == 0 {
+                continue;
+            }
+            let close = |a: f32, b: f32, what: &str| {
+                let tol = 2e-4 * a.abs().max(b.abs()).max(1.0);
+                assert!(
+                    (a - b).abs() <= tol,
+                    "seed {seed} splat {i} {what}: cpu {a} gpu {b}"
+                );
+            };
+            close(cpu.means2d[2 * i], gpu.means2d[2 * i], "mean x");
+            close(cpu.means2d[2 * i + 1], gpu.means2d[2 * i + 1], "mean y");
+            for c in 0..3 {
+                close(cpu.conics[3 * i + c], gpu.conics[3 * i + c], "conic");
+            }
+            close(cpu.depths[i], gpu.depths[i], "depth");
+            close(cpu.opacities[i], gpu.opacities[i], "opacity");
+        }
+    }
+}
+
+#[test]
+fn compositing_matches_the_cpu_path_exactly_in_decisions() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    for (seed, n, w, h, ch) in [
+        (4u64, 300, 64, 64, 3),
+        (5, 900, 130, 75, 1),
+        (6, 200, 33, 47, 5),
+    ] {
+        let s = random_scene(n, w, h, ch, seed);
+        let ps = ProjectSettings::default();
+        let bs = BlendSettings::default();
+        let p = cpu_project(&s, &ps);
+        let (ci, cc) = composite(None, &p, &s, &bs);
+        let (gi, gc) = composite(Some(&mut r), &p, &s, &bs);
+        assert!(
+            max_abs(&ci.features, &gi.features) <= 1e-5,
+            "features seed {seed}"
+        );
+        assert!(max_abs(&ci.alpha, &gi.alpha) <= 1e-5, "alpha seed {seed}");
+        assert!(max_abs(&ci.depth, &gi.depth) <= 1e-4, "depth seed {seed}");
+        assert_eq!(cc.visible, gc.visible);
+        assert_eq!(cc.intersections, gc.intersections, "seed {seed}");
+        assert_eq!(cc.blended, gc.blended, "seed {seed}");
+        assert!(
+            cc.blended > (w * h) as u64,
+            "seed {seed}: too few blends to compare"
+        );
+        assert!(gc.evaluated >= gc.blended && gc.evaluated >= cc.evaluated);
+    }
+}
+
+#[test]
+fn full_forward_matches_the_cpu_path() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    for seed in [7u64, 8, 9] {
+        let s = random_scene(500, 80, 72, 3, seed);
+        let ps = ProjectSettings::default();
+        let bs = BlendSettings::default();
+        let (ci, _) = composite(None, &cpu_project(&s, &ps), &s, &bs);
+        let (p, _) = gpu_project(&mut r, &s, &ps);
+        let (gi, _) = composite(Some(&mut r), &p, &s, &bs);
+        let err = max_abs(&ci.features, &gi.features);
+        assert!(err <= 1e-4, "seed {seed}: max abs error {err}");
+        assert!(max_abs(&ci.alpha, &gi.alpha) <= 1e-4);
+    }
+}
+
+#[test]
+fn empty_and_fully_culled_scenes() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut s = random_scene(0, 20, 20, 2, 1);
+    let bs = BlendSettings::default();
+    let (img, c) = composite(
+        Some(&mut r),
+        &cpu_project(&s, &ProjectSettings::default()),
+        &s,
+        &bs,
+    );
+    assert_eq!(c.visible, 0);
+    assert!(img.features.chunks(2).all(|px| px == [0.1f32, 0.3f32]));
+    s = random_scene(50, 20, 20, 2, 1);
+    for z in s.means.iter_mut().skip(2).step_by(3) {
+        *z = -10.0; // behind the camera
+    }
+    let (p, visible) = gpu_project(&mut r, &s, &ProjectSettings::default());
+    assert_eq!(visible, 0);
+    let (img, c) = composite(Some(&mut r), &p, &s, &bs);
+    assert_eq!(c.intersections, 0);
+    assert!(img.alpha.iter().all(|a| *a == 0.0));
+}
+
+#[test]
+fn bad_input_is_an_error_not_a_panic() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let s = random_scene(10, 16, 16, 3, 1);
+    let mut p = cpu_project(&s, &ProjectSettings::default());
+    p.opacities[3] = f32::NAN;
+    let feats = to_f32(&s.features);
+    let mut img = Image::zeros(256, 3);
+    let err = r
+        .rasterize_forward(
+            &splats(&p, &feats, 3),
+            16,
+            16,
+            &[0.0; 3],
+            &BlendSettings::default(),
+            &mut GpuRasterState::new(),
+            img.as_mut(),
+        )
+        .unwrap_err();
+    assert!(err.to_string().contains("opacities"), "{err}");
+}
+
+/// Largest |a - b| relative to the largest |a| of the array (gradients of different splats
+/// differ by orders of magnitude, so a per-array scale is the meaningful one).
+fn rel_err(a: &[f32], b: &[f32]) -> f32 {
+    let scale = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
+    max_abs(a, b) / scale
+}
+
+fn random_image(npix: usize, ch: usize, seed: u64) -> Image<f32> {
+    let mut rng = Rng::new(seed);
+    let mut v = || rng.uniform(-1.0, 1.0) as f32;
+    Image {
+        features: (0..npix * ch).map(|_| v()).collect(),
+        alpha: (0..npix).map(|_| v()).collect(),
+        depth: (0..npix).map(|_| 0.1 * v()).collect(),
+    }
+}
+
+#[test]
+fn compositing_gradients_match_the_cpu_path() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    for (seed, n, w, h, ch) in [
+        (11u64, 300, 64, 48, 3),
+        (12, 150, 40, 40, 1),
+        (13, 200, 37, 29, 6),
+    ] {
+        let s = random_scene(n, w, h, ch, seed);
+        let bs = BlendSettings::default();
+        let p = cpu_project(&s, &ProjectSettings::default());
+        let feats = to_f32(&s.features);
+        let bg = to_f32(&s.background);
+        let sp = splats(&p, &feats, ch);
+        let npix = (w * h) as usize;
+        let v = random_image(npix, ch, seed);
+        // CPU
+        let mut cstate = RasterState::new();
+        let mut img = Image::zeros(npix, ch);
+        rasterize_forward(&sp, w, h, &bg, &bs, &mut cstate, img.as_mut()).unwrap();
+        let mut cg = splat_grad_bufs::<f32>(n, ch);
+        rasterize_backward(
+            &sp,
+            w,
+            h,
+            &bg,
+            &bs,
+            &mut cstate,
+            &v.as_grads(),
+            grads_mut(&mut cg),
+        )
+        .unwrap();
+        // GPU
+        let mut gstate = GpuRasterState::new();
+        let mut img = Image::zeros(npix, ch);
+        r.rasterize_forward(&sp, w, h, &bg, &bs, &mut gstate, img.as_mut())
+            .unwrap();
+        let mut gg = splat_grad_bufs::<f32>(n, ch);
+        r.rasterize_backward(
+            &sp,
+            w,
+            h,
+            &bg,
+            &bs,
+            &mut gstate,
+            &v.as_grads(),
+            grads_mut(&mut gg),
+        )
+        .unwrap();
+        for (name, a, b) in [
+            ("means2d", &cg[0], &gg[0]),
+            ("conics", &cg[1], &gg[1]),
+            ("depths", &cg[2], &gg[2]),
+            ("opacities", &cg[3], &gg[3]),
+            ("features", &cg[4], &gg[4]),
+        ] {
+            let e = rel_err(a, b);
+            assert!(e <= 1e-3, "seed {seed} {name}: relative error {e}");
+            assert!(a.iter().any(|x| *x != 0.0), "seed {seed} {name}: all zero");
+        }
+    }
+}
+
+#[test]
+fn projection_gradients_match_the_cpu_path() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    for (seed, antialiased) in [(21u64, false), (22, true)] {
+        let s = random_scene(300, 80, 64, 3, seed);
+        let ps = ProjectSettings {
+            antialiased,
+            ..Default::default()
+        };
+        let n = s.n();
+        let (m, q, sc, o) = (
+            to_f32(&s.means),
+            to_f32(&s.quats),
+            to_f32(&s.scales),
+            to_f32(&s.opacities),
+        );
+        let g = Gaussians {
+            means: &m,
+            quats: &q,
+            scales: &sc,
+            opacities: &o,
+        };
+        let mut rng = Rng::new(seed);
+        let mut rv = |k: usize| {
+            (0..k)
+                .map(|_| rng.uniform(-1.0, 1.0) as f32)
+                .collect::<Vec<_>>()
+        };
+        let (vm, vc, vd, vo) = (rv(2 * n), rv(3 * n), rv(n), rv(n));
+        let vout = ProjectionGrads {
+            means2d: &vm,
+            conics: &vc,
+            depths: &vd,
+            opacities: &vo,
+        };
+        let mut cpu = [
+            vec![0.0f32; 3 * n],
+            vec![0.0; 4 * n],
+            vec![0.0; 3 * n],
+            vec![0.0; n],
+        ];
+        let mut gpu_g = cpu.clone();
+        {
+            let [a, bq, c, d] = &mut cpu;
+            let out = GaussianGradsMut {
+                means: a,
+                quats: bq,
+                scales: c,
+                opacities: d,
+            };
+            project_backward(&g, &s.camera, &ps, &vout, out).unwrap();
+        }
+        {
+            let [a, bq, c, d] = &mut gpu_g;
+            let out = GaussianGradsMut {
+                means: a,
+                quats: bq,
+                scales: c,
+                opacities: d,
+            };
+            r.project_backward(&g, &s.camera, &ps, &vout, out).unwrap();
+        }
+        for (name, a, b) in [
+            ("means", &cpu[0], &gpu_g[0]),
+            ("quats", &cpu[1], &gpu_g[1]),
+            ("scales", &cpu[2], &gpu_g[2]),
+            ("opacities", &cpu[3], &gpu_g[3]),
+        ] {
+            let e = rel_err(a, b);
+            assert!(e <= 1e-3, "seed {seed} {name}: relative error {e}");
+        }
+    }
+}
+
+#[test]
+fn backward_without_its_forward_is_an_error() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let s = random_scene(10, 16, 16, 3, 1);
+    let p = cpu_project(&s, &ProjectSettings::default());
+    let feats = to_f32(&s.features);
+    let v = random_image(256, 3, 1);
+    let mut gg = splat_grad_bufs::<f32>(10, 3);
+    let err = r
+        .rasterize_backward(
+            &splats(&p, &feats, 3),
+            16,
+            16,
+            &[0.0; 3],
+            &BlendSettings::default(),
+            &mut GpuRasterState::new(),
+            &v.as_grads(),
+            grads_mut(&mut gg),
+        )
+        .unwrap_err();
+    assert!(err.to_string().contains("state"), "{err}");
+}
