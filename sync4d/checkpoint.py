@@ -99,6 +99,7 @@ def save_checkpoint(trainer: Phase1Trainer, path: str | Path, extra: dict | None
         "iteration": trainer.iteration,
         "total_iterations": trainer.total,
         "sh_degree": m.sh_degree,
+        "near": m.near,
         "deform_config": asdict(m.config),
         "lrs": [g["lr"] for g in trainer.optimizer.param_groups],
         "adam_steps": steps,
@@ -179,6 +180,7 @@ def load_model(path: str | Path) -> tuple[DeformableGaussians, dict]:
         model = DeformableGaussians(
             means, None, sh_degree=meta["sh_degree"], config=DeformConfig(**meta["deform_config"])
         )
+        model.near = float(meta.get("near", 0.01))
         with torch.no_grad():
             for n in PER_GAUSSIAN:
                 src = tensors[f"gaussians.{n}"]

@@ -43,6 +43,11 @@ class RunConfig:
     resolution_scale: float = 1.0
     #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames.
     test_split: str = "test"
+    #: Near clipping plane of every render (training, evaluation, `render`), world units;
+    #: Gaussians whose centre is closer to the camera are not drawn. Capture domes need more
+    #: than the default: each camera's own housing, reconstructed from the cameras facing it,
+    #: sits a few centimetres in front of its lens and would cover its whole view.
+    near: float = 0.01
     #: Where the initial Gaussians come from: "points" (the dataset's point cloud, e.g.
     #: COLMAP's), "triangulate" (SIFT matches of the training cameras at one instant,
     #: triangulated with the dataset's poses; multi-view captures), "random" (`init_points`

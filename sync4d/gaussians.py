@@ -55,6 +55,9 @@ class DeformableGaussians(nn.Module):
             raise ValueError(f"colors: expected shape [{n}, 3], got {list(colors.shape)}")
         self.config = config or DeformConfig()
         self.sh_degree = sh_degree
+        #: Near clipping plane of every render, world units: Gaussians whose centre is closer
+        #: to the camera are not drawn (see `RunConfig.near`).
+        self.near = 0.01
         k = (sh_degree + 1) ** 2
         f32 = torch.float32
         self.means = nn.Parameter(points.to(f32).clone())
@@ -112,6 +115,7 @@ class DeformableGaussians(nn.Module):
         degree = self.sh_degree if sh_degree is None else sh_degree
         colors = raster.sh_features(means, coeffs, viewmat, degree)
         K = torch.as_tensor(camera.K, dtype=torch.float32)
+        raster_kw.setdefault("near", self.near)
         return raster.rasterize(
             means, quats, scales, torch.sigmoid(self.opacity_logits), colors, viewmat, K,
             camera.width, camera.height, background=background, **raster_kw,

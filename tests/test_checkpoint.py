@@ -97,3 +97,22 @@ def test_phase2_keeps_the_phase1_scene_size_and_sh_degree_by_default(tmp_path: P
     t2.train(10)
     assert t2.model.num_gaussians == n0
     assert t2.sh_degree_now() == t2.model.sh_degree
+
+
+def test_near_plane_is_a_model_setting_saved_with_it(tmp_path: Path) -> None:
+    """`near` culls Gaussians closer to the camera in every render, and checkpoints keep it."""
+    trainer, scene, _ = _trainer(tmp_path)
+    model = trainer.model
+    frame = scene.train[0]
+    c = torch.as_tensor(frame.camera.center, dtype=torch.float32)
+    axis = torch.as_tensor(frame.camera.viewmat[2, :3], dtype=torch.float32)
+    with torch.no_grad():  # one opaque Gaussian 5 cm in front of the lens
+        model.means[0] = c + 0.05 * axis
+        model.opacity_logits[0] = 8.0
+        model.log_scales[0] = math.log(0.02)
+        near_img = model.render(frame.camera, frame.time, background=torch.ones(3), threads=1)
+        model.near = 0.1
+        far_img = model.render(frame.camera, frame.time, background=torch.ones(3), threads=1)
+    assert near_img.alpha.mean() > far_img.alpha.mean() + 0.3
+    ck = save_checkpoint(trainer, tmp_path / "near.safetensors")
+    assert load_model(ck)[0].near == 0.1

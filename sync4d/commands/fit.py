@@ -253,6 +253,7 @@ def run_fit(
     if resume and kind is not None:
         total = cfg.phase2_iterations if kind == "sync4d.phase2" else cfg.iterations
         trainer = resume_trainer(ckpt, scene, cfg.phase1, n_threads, total, cfg.phase2)
+        trainer.model.near = cfg.near
         print(f"fit: resumed {ckpt} at iteration {trainer.iteration}", file=sys.stderr)
     elif 1 in phases:
         scene = with_initial_points(scene, cfg, quiet)
@@ -260,6 +261,7 @@ def run_fit(
             scene, cfg.init_points, cfg.sh_degree, cfg.deform, cfg.init_box_fraction,
             cfg.phase1.seed,
         )  # fmt: skip
+        model.near = cfg.near
         trainer = Phase1Trainer(model, scene, cfg.phase1, cfg.iterations, threads=n_threads)
     elif kind is None:
         raise ConfigError(
@@ -299,6 +301,7 @@ def run_fit(
         if not isinstance(trainer, Phase2Trainer):
             shutil.copyfile(ckpt, run_dir / PHASE1_CHECKPOINT_NAME)
             model = trainer.model if trainer is not None else load_model(ckpt)[0]
+            model.near = cfg.near
             print(
                 f"fit: Phase 2 ({cfg.phase2_iterations} iterations) from "
                 f"{run_dir / PHASE1_CHECKPOINT_NAME}: assigning Gaussians to objects ...",

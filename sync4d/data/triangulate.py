@@ -80,7 +80,8 @@ def _native_intrinsics(frame: Frame) -> tuple[int, int, list[float]]:
 
 def _cache_key(frames: list[Frame], cfg: TriangulationConfig) -> str:
     h = hashlib.sha256()
-    h.update(json.dumps([_VERSION, cfg.__dict__], sort_keys=True).encode())
+    options = {k: v for k, v in cfg.__dict__.items() if k != "threads"}
+    h.update(json.dumps([_VERSION, options], sort_keys=True).encode())
     for f in frames:
         st = f.image_path.stat()
         h.update(str(f.image_path.resolve()).encode())
