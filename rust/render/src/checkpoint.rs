@@ -1,0 +1,363 @@
+//! Reading the checkpoints Python writes (`sync4d/checkpoint.py`): one safetensors file whose
+//! header metadata `"sync4d"` holds JSON (SH degree, near plane, background, D_theta's
+//! hyperparameters, the cameras of the run) and whose tensors hold the canonical Gaussians
+//! (`gaussians.*`) and D_theta's weights (`deform.*`). Every problem is an error naming the file
+//! and what is wrong; nothing here panics on bad bytes.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use safetensors::{Dtype, SafeTensors};
+use serde_json::Value;
+
+/// A checkpoint that could not be read.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {problem}")]
+pub struct CheckpointError {
+    /// The file.
+    pub path: PathBuf,
+    /// What is wrong with it.
+    pub problem: String,
+}
+
+/// One camera of the run, as `camera_records` in Python stores it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraRecord {
+    /// "train" or "test".
+    pub split: String,
+    /// Image file name of the frame.
+    pub name: String,
+    /// Frame time in [0, 1].
+    pub time: f64,
+    /// World-to-camera 4x4, row-major, OpenCV axes.
+    pub viewmat: [f64; 16],
+    /// Focal lengths and principal point, pixels.
+    pub fx: f64,
+    /// Focal length y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+}
+
+/// One linear layer `y = W x + b`, `weight` row-major [out, in].
+#[derive(Debug, Clone)]
+pub struct Linear {
+    /// Row-major [out, in].
+    pub weight: Vec<f32>,
+    /// [out].
+    pub bias: Vec<f32>,
+    /// Input width.
+    pub inputs: usize,
+    /// Output width.
+    pub outputs: usize,
+}
+
+/// D_theta: ReLU trunk layers, then the 9-output head, and the output scales.
+#[derive(Debug, Clone)]
+pub struct DeformMlp {
+    /// Hidden layers (each followed by ReLU).
+    pub trunk: Vec<Linear>,
+    /// Output layer: (dx, dw, dl), 9 values.
+    pub head: Linear,
+    /// Frequency bands L of the time encoding (1 + 2L values).
+    pub bands: usize,
+    /// Output scales of dx, dw and dl.
+    pub scales: [f32; 3],
+}
+
+/// Everything the renderer needs from a checkpoint.
+#[derive(Debug, Clone)]
+pub struct Checkpoint {
+    /// Number of Gaussians N.
+    pub n: usize,
+    /// Canonical means, N*3.
+    pub means: Vec<f32>,
+    /// Canonical quaternions (w, x, y, z; not necessarily unit), N*4.
+    pub quats: Vec<f32>,
+    /// Canonical log standard deviations, N*3.
+    pub log_scales: Vec<f32>,
+    /// Opacity logits, N.
+    pub opacity_logits: Vec<f32>,
+    /// SH coefficients, N*K*3 (DC first), K = (sh_degree + 1)^2.
+    pub sh: Vec<f32>,
+    /// SH degree.
+    pub sh_degree: u32,
+    /// Per-Gaussian embeddings, N*E.
+    pub embeddings: Vec<f32>,
+    /// Embedding width E.
+    pub embed_dim: usize,
+    /// The deformation MLP.
+    pub mlp: DeformMlp,
+    /// Near clipping plane of the run's renders, world units.
+    pub near: f64,
+    /// Background colour.
+    pub background: [f32; 3],
+    /// The run's cameras (empty when the checkpoint was written without them).
+    pub cameras: Vec<CameraRecord>,
+}
+
+fn err(path: &Path, problem: impl Into<String>) -> CheckpointError {
+    CheckpointError {
+        path: path.to_path_buf(),
+        problem: problem.into(),
+    }
+}
+
+/// Read and check the checkpoint at `path`.
+pub fn read_checkpoint(path: &Path) -> Result<Checkpoint, CheckpointError> {
+    let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read ({e})")))?;
+    parse_checkpoint(&bytes, path)
+}
+
+struct Tensors<'a> {
+    st: SafeTensors<'a>,
+    path: &'a Path,
+}
+
+impl Tensors<'_> {
+    /// The f32 tensor `name`, which must have `shape`; finite values only.
+    fn get(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, CheckpointError> {
+        let t = self.st.tensor(name).map_err(|_| {
+            err(
+                self.path,
+                format!("tensor '{name}' is missing (not a sync4d checkpoint?)"),
+            )
+        })?;
+        if t.dtype() != Dtype::F32 {
+            return Err(err(
+                self.path,
+                format!("tensor '{name}' is {:?}, expected F32", t.dtype()),
+            ));
+        }
+        if t.shape() != shape {
+            return Err(err(
+                self.path,
+                format!(
+                    "tensor '{name}' has shape {:?}, expected {shape:?}",
+                    t.shape()
+                ),
+            ));
+        }
+        let data = t.data();
+        if data.len() != 4 * shape.iter().product::<usize>() {
+            return Err(err(self.path, format!("tensor '{name}' is truncated")));
+        }
+        let v: Vec<f32> = data
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(err(
+                self.path,
+                format!("tensor '{name}' holds NaN or inf (at flat index {i})"),
+            ));
+        }
+        Ok(v)
+    }
+
+    /// The shape of tensor `name`.
+    fn shape(&self, name: &str) -> Result<Vec<usize>, CheckpointError> {
+        self.st
+            .tensor(name)
+            .map(|t| t.shape().to_vec())
+            .map_err(|_| {
+                err(
+                    self.path,
+                    format!("tensor '{name}' is missing (not a sync4d checkpoint?)"),
+                )
+            })
+    }
+}
+
+fn num(meta: &Value, key: &str, path: &Path) -> Result<f64, CheckpointError> {
+    meta.get(key)
+        .and_then(Value::as_f64)
+        .ok_or_else(|| err(path, format!("metadata lacks the number '{key}'")))
+}
+
+fn camera_record(v: &Value, path: &Path) -> Result<CameraRecord, CheckpointError> {
+    let bad = || err(path, format!("malformed camera record {v}"));
+    let f = |k: &str| v.get(k).and_then(Value::as_f64).ok_or_else(bad);
+    let vm: Vec<f64> = v
+        .get("viewmat")
+        .and_then(Value::as_array)
+        .ok_or_else(bad)?
+        .iter()
+        .map(|x| x.as_f64().ok_or_else(bad))
+        .collect::<Result<_, _>>()?;
+    let viewmat: [f64; 16] = vm.try_into().map_err(|_| bad())?;
+    let size = |k: &str| -> Result<u32, CheckpointError> {
+        let s = f(k)?;
+        if (1.0..=16384.0).contains(&s) && s.fract() == 0.0 {
+            Ok(s as u32)
+        } else {
+            Err(bad())
+        }
+    };
+    Ok(CameraRecord {
+        split: v
+            .get("split")
+            .and_then(Value::as_str)
+            .unwrap_or("")
+            .to_string(),
+        name: v
+            .get("name")
+            .and_then(Value::as_str)
+            .unwrap_or("")
+            .to_string(),
+        time: f("time")?,
+        viewmat,
+        fx: f("fx")?,
+        fy: f("fy")?,
+        cx: f("cx")?,
+        cy: f("cy")?,
+        width: size("width")?,
+        height: size("height")?,
+    })
+}
+
+/// Parse checkpoint `bytes` (errors name `path`).
+pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, CheckpointError> {
+    let (_, header) = SafeTensors::read_metadata(bytes)
+        .map_err(|e| err(path, format!("not a readable safetensors file ({e})")))?;
+    let st = SafeTensors::deserialize(bytes)
+        .map_err(|e| err(path, format!("not a readable safetensors file ({e})")))?;
+    let empty = HashMap::new();
+    let text = header
+        .metadata()
+        .as_ref()
+        .unwrap_or(&empty)
+        .get("sync4d")
+        .ok_or_else(|| {
+            err(
+                path,
+                "no 'sync4d' metadata: not a checkpoint written by sync4d",
+            )
+        })?;
+    let meta: Value = serde_json::from_str(text)
+        .map_err(|e| err(path, format!("'sync4d' metadata is not valid JSON ({e})")))?;
+    let t = Tensors { st, path };
+
+    let sh_degree = num(&meta, "sh_degree", path)?;
+    if !(0.0..=3.0).contains(&sh_degree) || sh_degree.fract() != 0.0 {
+        return Err(err(
+            path,
+            format!("sh_degree must be 0..=3, got {sh_degree}"),
+        ));
+    }
+    let sh_degree = sh_degree as u32;
+    let dc = meta
+        .get("deform_config")
+        .ok_or_else(|| err(path, "metadata lacks 'deform_config'"))?;
+    let int = |k: &str| -> Result<usize, CheckpointError> {
+        let v = num(dc, k, path)?;
+        if (1.0..=4096.0).contains(&v) && v.fract() == 0.0 {
+            Ok(v as usize)
+        } else {
+            Err(err(
+                path,
+                format!("deform_config.{k} must be a positive integer, got {v}"),
+            ))
+        }
+    };
+    let (embed_dim, bands, hidden, layers) = (
+        int("embed_dim")?,
+        int("bands")?,
+        int("hidden")?,
+        int("layers")?,
+    );
+    let scales = [
+        num(dc, "scale_position", path)? as f32,
+        num(dc, "scale_rotation", path)? as f32,
+        num(dc, "scale_log_scale", path)? as f32,
+    ];
+    if bands > 30 {
+        return Err(err(
+            path,
+            format!("deform_config.bands = {bands} is out of range"),
+        ));
+    }
+
+    let n = *t.shape("gaussians.means")?.first().unwrap_or(&0);
+    let k = ((sh_degree + 1) * (sh_degree + 1)) as usize;
+    let means = t.get("gaussians.means", &[n, 3])?;
+    let quats = t.get("gaussians.quats", &[n, 4])?;
+    let log_scales = t.get("gaussians.log_scales", &[n, 3])?;
+    let opacity_logits = t.get("gaussians.opacity_logits", &[n])?;
+    let sh_dc = t.get("gaussians.sh_dc", &[n, 1, 3])?;
+    let sh_rest = t.get("gaussians.sh_rest", &[n, k - 1, 3])?;
+    let embeddings = t.get("gaussians.embeddings", &[n, embed_dim])?;
+    let mut sh = Vec::with_capacity(n * k * 3);
+    for i in 0..n {
+        sh.extend_from_slice(&sh_dc[3 * i..3 * i + 3]);
+        sh.extend_from_slice(&sh_rest[3 * (k - 1) * i..3 * (k - 1) * (i + 1)]);
+    }
+
+    let input = 3 + embed_dim + 1 + 2 * bands;
+    let mut trunk = Vec::new();
+    let mut width = input;
+    for l in 0..layers - 1 {
+        let name = format!("deform.trunk.{}", 2 * l);
+        trunk.push(Linear {
+            weight: t.get(&format!("{name}.weight"), &[hidden, width])?,
+            bias: t.get(&format!("{name}.bias"), &[hidden])?,
+            inputs: width,
+            outputs: hidden,
+        });
+        width = hidden;
+    }
+    let head = Linear {
+        weight: t.get("deform.head.weight", &[9, width])?,
+        bias: t.get("deform.head.bias", &[9])?,
+        inputs: width,
+        outputs: 9,
+    };
+    let near = meta.get("near").and_then(Value::as_f64).unwrap_or(0.01);
+    if !(near.is_finite() && near > 0.0) {
+        return Err(err(
+            path,
+            format!("near must be finite and > 0, got {near}"),
+        ));
+    }
+    let bg: Vec<f64> = meta
+        .get("background")
+        .and_then(Value::as_array)
+        .map(|a| a.iter().filter_map(Value::as_f64).collect())
+        .unwrap_or_else(|| vec![1.0, 1.0, 1.0]);
+    if bg.len() != 3 || bg.iter().any(|v| !v.is_finite()) {
+        return Err(err(path, "background must be 3 finite numbers"));
+    }
+    let cameras = match meta.get("run").and_then(|r| r.get("cameras")) {
+        Some(Value::Array(list)) => list
+            .iter()
+            .map(|c| camera_record(c, path))
+            .collect::<Result<_, _>>()?,
+        _ => Vec::new(),
+    };
+    Ok(Checkpoint {
+        n,
+        means,
+        quats,
+        log_scales,
+        opacity_logits,
+        sh,
+        sh_degree,
+        embeddings,
+        embed_dim,
+        mlp: DeformMlp {
+            trunk,
+            head,
+            bands,
+            scales,
+        },
+        near,
+        background: [bg[0] as f32, bg[1] as f32, bg[2] as f32],
+        cameras,
+    })
+}

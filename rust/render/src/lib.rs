@@ -1,0 +1,9 @@
+//! sync4d-render: render sync4d checkpoints without Python. [`checkpoint`] reads the
+//! safetensors checkpoints Python writes, [`deform`] evaluates the deformation MLP at any time,
+//! [`render`] draws a camera's view with the CPU or wgpu rasterizer. The `sync4d-render`
+//! binary wraps them in a command line (one view, a time sweep or an orbit, as PNGs).
+#![warn(missing_docs)]
+
+pub mod checkpoint;
+pub mod deform;
+pub mod render;
