@@ -49,8 +49,11 @@ def plot_object_trajectories(
         if not (labels == k).any():
             continue
         drawn += 1
+        name = names.get(k, f"object {k}")
+        # Objects named by colour ("red ball") are drawn in that colour.
+        colour = next((w for w in name.split() if matplotlib.colors.is_color_like(w)), None)
         for axis, ax in enumerate(axes):
-            ax.plot(times, cent[k, :, axis], lw=1.5, label=names.get(k, f"object {k}"))
+            ax.plot(times, cent[k, :, axis], lw=1.5, label=name, color=colour)
     for axis, ax in enumerate(axes):
         ax.set_xlabel("time")
         ax.set_ylabel(f"centroid {'xyz'[axis]} (world units)")
