@@ -1,0 +1,175 @@
+//! Time the CPU path and the wgpu path on the same seeded random scene (forward: projection and
+//! compositing; backward: both backwards), median of repeated calls after a warm-up.
+//!
+//! cargo run --release -p sync4d-gpu --example cpu_vs_wgpu -- [N] [WIDTH] [HEIGHT] [REPEATS]
+
+#[path = "../../raster/tests/common/mod.rs"]
+mod common;
+
+use common::*;
+use std::time::Instant;
+use sync4d_gpu::{AdapterChoice, GpuDevice, GpuRasterState, GpuRasterizer};
+use sync4d_raster::*;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() {
+    let args: Vec<usize> = std::env::args()
+        .skip(1)
+        .filter_map(|a| a.parse().ok())
+        .collect();
+    let n = args.first().copied().unwrap_or(100_000);
+    let w = args.get(1).copied().unwrap_or(800) as u32;
+    let h = args.get(2).copied().unwrap_or(800) as u32;
+    let reps = args.get(3).copied().unwrap_or(5).max(1);
+    let s = random_scene(n, w, h, 3, 7);
+    let (m, q, sc, o) = (
+        to_f32(&s.means),
+        to_f32(&s.quats),
+        to_f32(&s.scales),
+        to_f32(&s.opacities),
+    );
+    let feats = to_f32(&s.features);
+    let bg = to_f32(&s.background);
+    let g = Gaussians {
+        means: &m,
+        quats: &q,
+        scales: &sc,
+        opacities: &o,
+    };
+    let ps = ProjectSettings::default();
+    let bs = BlendSettings::default();
+    let npix = (w * h) as usize;
+    let v = Image {
+        features: vec![0.01f32; npix * 3],
+        alpha: vec![0.01; npix],
+        depth: vec![0.0; npix],
+    };
+    let dev = GpuDevice::new(AdapterChoice::Auto).expect("no wgpu adapter");
+    println!("adapter: {}  |  N = {n}, {w}x{h}", dev.adapter);
+    let mut gpu = GpuRasterizer::new(dev);
+
+    let mut results = Vec::new();
+    for backend in ["cpu", "wgpu"] {
+        let (mut fwd, mut full) = (Vec::new(), Vec::new());
+        let mut cstate = RasterState::new();
+        let mut gstate = GpuRasterState::new();
+        for rep in 0..reps + 1 {
+            let t0 = Instant::now();
+            let mut p = Proj {
+                means2d: vec![0.0; 2 * n],
+                conics: vec![0.0; 3 * n],
+                depths: vec![0.0; n],
+                opacities: vec![0.0; n],
+                radii: vec![0; 2 * n],
+            };
+            let out = ProjectionMut {
+                means2d: &mut p.means2d,
+                conics: &mut p.conics,
+                depths: &mut p.depths,
+                opacities: &mut p.opacities,
+                radii: &mut p.radii,
+            };
+            let mut img = Image::zeros(npix, 3);
+            let sp_feats = feats.clone();
+            if backend == "cpu" {
+                project_forward(&g, &s.camera, &ps, out).unwrap();
+                rasterize_forward(
+                    &splats(&p, &sp_feats, 3),
+                    w,
+                    h,
+                    &bg,
+                    &bs,
+                    &mut cstate,
+                    img.as_mut(),
+                )
+                .unwrap();
+            } else {
+                gpu.project_forward(&g, &s.camera, &ps, out).unwrap();
+                gpu.rasterize_forward(
+                    &splats(&p, &sp_feats, 3),
+                    w,
+                    h,
+                    &bg,
+                    &bs,
+                    &mut gstate,
+                    img.as_mut(),
+                )
+                .unwrap();
+            }
+            let t_fwd = t0.elapsed().as_secs_f64();
+            let mut sg = splat_grad_bufs::<f32>(n, 3);
+            let mut gg = [
+                vec![0.0f32; 3 * n],
+                vec![0.0; 4 * n],
+                vec![0.0; 3 * n],
+                vec![0.0; n],
+            ];
+            let sp = splats(&p, &sp_feats, 3);
+            if backend == "cpu" {
+                rasterize_backward(
+                    &sp,
+                    w,
+                    h,
+                    &bg,
+                    &bs,
+                    &mut cstate,
+                    &v.as_grads(),
+                    grads_mut(&mut sg),
+                )
+                .unwrap();
+            } else {
+                gpu.rasterize_backward(
+                    &sp,
+                    w,
+                    h,
+                    &bg,
+                    &bs,
+                    &mut gstate,
+                    &v.as_grads(),
+                    grads_mut(&mut sg),
+                )
+                .unwrap();
+            }
+            let [g2, gc, gd, go, _] = &sg;
+            let vout = ProjectionGrads {
+                means2d: g2,
+                conics: gc,
+                depths: gd,
+                opacities: go,
+            };
+            let [a, b, c, d] = &mut gg;
+            let outg = GaussianGradsMut {
+                means: a,
+                quats: b,
+                scales: c,
+                opacities: d,
+            };
+            if backend == "cpu" {
+                project_backward(&g, &s.camera, &ps, &vout, outg).unwrap();
+            } else {
+                gpu.project_backward(&g, &s.camera, &ps, &vout, outg)
+                    .unwrap();
+            }
+            let t_full = t0.elapsed().as_secs_f64();
+            if rep > 0 {
+                fwd.push(t_fwd);
+                full.push(t_full);
+            }
+        }
+        results.push((backend, median(fwd), median(full)));
+    }
+    println!("backend   forward      fwd+bwd");
+    for (b, f, ff) in &results {
+        println!("{b:<8} {:>8.1} ms  {:>8.1} ms", f * 1e3, ff * 1e3);
+    }
+    let (cpu, wgpu) = (&results[0], &results[1]);
+    println!(
+        "wgpu / cpu: forward {:.2}x, fwd+bwd {:.2}x",
+        wgpu.1 / cpu.1,
+        wgpu.2 / cpu.2
+    );
+}
