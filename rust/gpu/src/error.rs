@@ -20,9 +20,6 @@ pub enum GpuError {
     /// Reading results back failed (device lost, out of memory).
     #[error("wgpu: reading results back failed: {0}")]
     Readback(String),
-    /// A backward call without the matching forward.
-    #[error("{0}")]
-    State(String),
 }
 
 /// Result of the GPU path.

@@ -206,7 +206,32 @@ impl Pool {
 #[derive(Default)]
 pub struct GpuRasterState {
     pool: Pool,
-    shape: Option<ForwardShape>,
+    forward: Option<Forward>,
+}
+
+/// The last forward: its sizes and the device buffers the backward reads.
+struct Forward {
+    shape: ForwardShape,
+    splats: wgpu::Buffer,
+    keys: wgpu::Buffer,
+    ids: wgpu::Buffer,
+    tile_offsets: wgpu::Buffer,
+    features: wgpu::Buffer,
+    pixel_state: wgpu::Buffer,
+}
+
+impl Forward {
+    /// Bindings both compositing kernels read (blend.wgsl 1-5 and 7).
+    fn inputs(&self) -> [(u32, &wgpu::Buffer); 6] {
+        [
+            (1, &self.splats),
+            (2, &self.keys),
+            (3, &self.ids),
+            (4, &self.tile_offsets),
+            (5, &self.features),
+            (7, &self.pixel_state),
+        ]
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -218,6 +243,22 @@ struct ForwardShape {
     tiles_x: u32,
     tiles_y: u32,
     alpha_max: f32,
+}
+
+impl ForwardShape {
+    /// The compositing kernels' parameters (blend.wgsl `BlendParams`).
+    fn blend_params(&self) -> BlendParams {
+        BlendParams {
+            width: self.width,
+            height: self.height,
+            tiles_x: self.tiles_x,
+            tiles_y: self.tiles_y,
+            alpha_min: ALPHA_MIN,
+            alpha_max: self.alpha_max,
+            t_min: T_MIN,
+            n: self.n as u32,
+        }
+    }
 }
 
 impl GpuRasterState {
@@ -558,7 +599,7 @@ impl GpuRasterizer {
         if n > (1 << 27) {
             return Err(RasterError::invalid("means2d", "too many splats for the GPU path").into());
         }
-        state.shape = None;
+        state.forward = None;
         let dev = self.gpu.device.clone();
         let gpu = &self.gpu;
         let sp = &mut state.pool;
@@ -709,32 +750,28 @@ impl GpuRasterizer {
         let image = self.storage("image", image_len as u64 * 4)?;
         let counters = self.storage("counters", 16)?;
         enc.clear_buffer(&counters, 0, Some(16));
-        let alpha_max = settings.alpha_max as f32;
-        let blend_params = self.uniform(&BlendParams {
-            width,
-            height,
-            tiles_x,
-            tiles_y,
-            alpha_min: ALPHA_MIN,
-            alpha_max,
-            t_min: T_MIN,
-            n: n as u32,
-        });
+        let forward = Forward {
+            shape: ForwardShape {
+                n,
+                channels: ch,
+                width,
+                height,
+                tiles_x,
+                tiles_y,
+                alpha_max: settings.alpha_max as f32,
+            },
+            splats: splat_buf,
+            keys,
+            ids,
+            tile_offsets,
+            features: feat_buf,
+            pixel_state,
+        };
+        let blend_params = self.uniform(&forward.shape.blend_params());
         let pipe = self.kernels.blend(&dev, ch).0.clone();
-        let g = self.bind(
-            &pipe,
-            &[
-                (0, &blend_params),
-                (1, &splat_buf),
-                (2, &keys),
-                (3, &ids),
-                (4, &tile_offsets),
-                (5, &feat_buf),
-                (6, &image),
-                (7, &pixel_state),
-                (8, &counters),
-            ],
-        );
+        let mut bindings = vec![(0, &blend_params), (6, &image), (8, &counters)];
+        bindings.extend(forward.inputs());
+        let g = self.bind(&pipe, &bindings);
         Self::dispatch(&mut enc, &pipe, &g, (tiles_x, tiles_y));
         self.gpu.queue.submit([enc.finish()]);
         let img = self.read_f32(&image, image_len)?;
@@ -743,15 +780,7 @@ impl GpuRasterizer {
         out.alpha.copy_from_slice(&img[npix * ch..npix * (ch + 1)]);
         out.depth
             .copy_from_slice(&img[npix * (ch + 1)..npix * (ch + 2)]);
-        state.shape = Some(ForwardShape {
-            n,
-            channels: ch,
-            width,
-            height,
-            tiles_x,
-            tiles_y,
-            alpha_max,
-        });
+        state.forward = Some(forward);
         let wide = |lo: u32, hi: u32| u64::from(lo) | (u64::from(hi) << 32);
         Ok(Counters {
             visible: u64::from(visible),
@@ -780,16 +809,16 @@ impl GpuRasterizer {
         settings.validate()?;
         let ch = splats.channels;
         let n = splats.len();
-        let shape =
-            match state.shape {
-                Some(s)
-                    if s.n == n
-                        && s.channels == ch
-                        && s.width == width
-                        && s.height == height
-                        && s.alpha_max == settings.alpha_max as f32 =>
+        let forward =
+            match &state.forward {
+                Some(f)
+                    if f.shape.n == n
+                        && f.shape.channels == ch
+                        && f.shape.width == width
+                        && f.shape.height == height
+                        && f.shape.alpha_max == settings.alpha_max as f32 =>
                 {
-                    s
+                    f
                 }
                 _ => return Err(RasterError::invalid(
                     "state",
@@ -812,56 +841,15 @@ impl GpuRasterizer {
         vimg.extend_from_slice(v.depth);
         let v_buf = self.upload("v_image", &vimg)?;
         let out = self.storage("splat_grads", (n * stride * 4) as u64)?;
-        let sp = &mut state.pool;
-        let get = |sp: &mut Pool, name| sp.buffers.get(name).cloned();
-        let (
-            Some(splat_buf),
-            Some(keys),
-            Some(ids),
-            Some(tile_offsets),
-            Some(feat_buf),
-            Some(pixel_state),
-        ) = (
-            get(sp, "splats"),
-            get(sp, "keys"),
-            get(sp, "ids"),
-            get(sp, "tile_offsets"),
-            get(sp, "features"),
-            get(sp, "pixel_state"),
-        )
-        else {
-            return Err(GpuError::State(
-                "rasterize_backward: the forward state is incomplete".into(),
-            ));
-        };
         let mut enc = dev.create_command_encoder(&Default::default());
         enc.clear_buffer(&out, 0, Some((n * stride * 4) as u64));
-        let blend_params = self.uniform(&BlendParams {
-            width,
-            height,
-            tiles_x: shape.tiles_x,
-            tiles_y: shape.tiles_y,
-            alpha_min: ALPHA_MIN,
-            alpha_max: shape.alpha_max,
-            t_min: T_MIN,
-            n: n as u32,
-        });
+        let blend_params = self.uniform(&forward.shape.blend_params());
         let pipe = self.kernels.blend(&dev, ch).1.clone();
-        let g = self.bind(
-            &pipe,
-            &[
-                (0, &blend_params),
-                (1, &splat_buf),
-                (2, &keys),
-                (3, &ids),
-                (4, &tile_offsets),
-                (5, &feat_buf),
-                (7, &pixel_state),
-                (9, &v_buf),
-                (10, &out),
-            ],
-        );
-        Self::dispatch(&mut enc, &pipe, &g, (shape.tiles_x, shape.tiles_y));
+        let mut bindings = vec![(0, &blend_params), (9, &v_buf), (10, &out)];
+        bindings.extend(forward.inputs());
+        let g = self.bind(&pipe, &bindings);
+        let tiles = (forward.shape.tiles_x, forward.shape.tiles_y);
+        Self::dispatch(&mut enc, &pipe, &g, tiles);
         self.gpu.queue.submit([enc.finish()]);
         let r = self.read_f32(&out, n * stride)?;
         for i in 0..n {

@@ -82,8 +82,8 @@ pub struct Checkpoint {
     pub quats: Vec<f32>,
     /// Canonical log standard deviations, N*3.
     pub log_scales: Vec<f32>,
-    /// Opacity logits, N.
-    pub opacity_logits: Vec<f32>,
+    /// Opacities in (0, 1) (the sigmoid of the stored logits), N.
+    pub opacities: Vec<f32>,
     /// SH coefficients, N*K*3 (DC first), K = (sh_degree + 1)^2.
     pub sh: Vec<f32>,
     /// SH degree.
@@ -289,7 +289,11 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
     let means = t.get("gaussians.means", &[n, 3])?;
     let quats = t.get("gaussians.quats", &[n, 4])?;
     let log_scales = t.get("gaussians.log_scales", &[n, 3])?;
-    let opacity_logits = t.get("gaussians.opacity_logits", &[n])?;
+    let opacities: Vec<f32> = t
+        .get("gaussians.opacity_logits", &[n])?
+        .iter()
+        .map(|x| 1.0 / (1.0 + (-x).exp()))
+        .collect();
     let sh_dc = t.get("gaussians.sh_dc", &[n, 1, 3])?;
     let sh_rest = t.get("gaussians.sh_rest", &[n, k - 1, 3])?;
     let embeddings = t.get("gaussians.embeddings", &[n, embed_dim])?;
@@ -345,7 +349,7 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         means,
         quats,
         log_scales,
-        opacity_logits,
+        opacities,
         sh,
         sh_degree,
         embeddings,

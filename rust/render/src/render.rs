@@ -1,6 +1,6 @@
 //! Rendering a checkpoint: SH colours (3DGS convention: SH of the direction camera centre ->
-//! mean, plus 0.5, clamped at 0), sigmoid opacities, then the CPU or wgpu rasterizer with the
-//! run's near plane and background.
+//! mean, plus 0.5, clamped at 0) and the checkpoint's opacities, then the CPU or wgpu
+//! rasterizer with the run's near plane and background.
 
 use sync4d_gpu::{GpuRasterState, GpuRasterizer};
 use sync4d_raster::{
@@ -45,16 +45,11 @@ pub fn render(
     for c in colors.iter_mut() {
         *c = (*c + 0.5).max(0.0);
     }
-    let opacities: Vec<f32> = ck
-        .opacity_logits
-        .iter()
-        .map(|x| 1.0 / (1.0 + (-x).exp()))
-        .collect();
     let gaussians = Gaussians {
         means: &g.means,
         quats: &g.quats,
         scales: &g.scales,
-        opacities: &opacities,
+        opacities: &ck.opacities,
     };
     let ps = ProjectSettings {
         near: ck.near,
