@@ -170,6 +170,12 @@ def test_bad_inputs_give_one_clear_message(data: Path, tmp_path: Path, capsys) -
     assert "nope" in capsys.readouterr().err
 
 
+def test_bad_near_plane_is_one_clear_message(data: Path, tmp_path: Path, capsys) -> None:
+    args = ["fit", str(data), "--out", str(tmp_path / "r"), "--iters", "3", *TINY]
+    assert main(args + ["--set", "near=-1"]) == 2
+    assert "near: must be a finite distance > 0" in capsys.readouterr().err
+
+
 def test_bench_fit_writes_json_and_plot(data: Path, tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
     out = tmp_path / "bench.json"

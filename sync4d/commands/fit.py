@@ -235,6 +235,8 @@ def run_fit(
     from its model (the Phase 1 checkpoint is kept as ``phase1.safetensors``); returns the final
     summary (test metrics, and Phase 2's diagnostics when it ran)."""
     phases = parse_phases(cfg.phases)
+    if not (math.isfinite(cfg.near) and cfg.near > 0):
+        raise ConfigError(f"near: must be a finite distance > 0 (world units), got {cfg.near}")
     n_threads = _set_threads(threads)
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt = run_dir / CHECKPOINT_NAME
