@@ -59,7 +59,7 @@ def camera_records(scene) -> list[dict]:
             out.append(
                 {
                     "split": split,
-                    "name": f.image_path.name,
+                    "name": f.name,
                     "time": float(f.time),
                     "viewmat": [float(v) for v in c.viewmat.reshape(-1)],
                     "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
@@ -90,6 +90,7 @@ def save_checkpoint(trainer: Phase1Trainer, path: str | Path, extra: dict | None
                 steps[f"{gi}.{pi}"] = float(st["step"])
     tensors["densify.grad_accum"] = trainer.densifier.grad_accum
     tensors["densify.count"] = trainer.densifier.count
+    tensors["densify.max_radius"] = trainer.densifier.max_radius
     phase2 = None
     if isinstance(trainer, Phase2Trainer):
         phase2 = _phase2_state(trainer, tensors)
@@ -233,6 +234,8 @@ def resume_trainer(
                 }
     trainer.densifier.grad_accum = tensors["densify.grad_accum"].clone()
     trainer.densifier.count = tensors["densify.count"].clone()
+    if "densify.max_radius" in tensors:  # absent in checkpoints before sync4d 0.2
+        trainer.densifier.max_radius = tensors["densify.max_radius"].clone()
     try:
         version, internal, gauss = meta["python_rng"]
         trainer._rng = random.Random()

@@ -133,7 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     rd.add_argument("--frames", type=_positive_int, default=48, metavar="N",
                     help="frames in the default time sweep (default 48)")
     rd.add_argument("--camera", default=None, metavar="CAM",
-                    help="test:K, train:K, K (a test camera) or a frame name; default test:0")
+                    help="test:K / train:K (K-th frame of that split), K (a test frame) or a "
+                    "frame name such as cam10_000000.jpg; default test:0")
     rd.add_argument("--out", default=None, metavar="DIR",
                     help="output folder (default RUN/renders)")
     rd.add_argument("--fps", type=_positive_float, default=15.0, help="GIF frame rate")

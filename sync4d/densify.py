@@ -35,6 +35,14 @@ class DensifyConfig:
     percent_dense: float = 0.01
     split_count: int = 2
     max_gaussians: int = 1_000_000
+    #: After the first opacity reset, also prune Gaussians whose largest world-space scale
+    #: exceeds this fraction of the scene extent (3DGS / gsplat: 0.1; 0 disables). Without
+    #: it, metre-sized blobs fill empty space as fog in wide captures and cover novel views.
+    prune_world_scale: float = 0.1
+    #: ...and, when > 0, those whose projected radius exceeded this fraction of the image's
+    #: larger side in some view since the last densification (gsplat's optional 0.15; off by
+    #: default as in gsplat and, effectively, 3DGS).
+    prune_screen_fraction: float = 0.0
 
 
 def _replace_rows(optimizer: torch.optim.Optimizer, model: DeformableGaussians, fn) -> None:
@@ -63,11 +71,16 @@ class Densifier:
         self.config = config or DensifyConfig()
         self.grad_accum = torch.zeros(0)
         self.count = torch.zeros(0)
+        #: Largest projected radius of each Gaussian since the last densification, as a
+        #: fraction of the image's larger side.
+        self.max_radius = torch.zeros(0)
 
     def _ensure(self, n: int) -> None:
         if self.grad_accum.shape[0] != n:
             self.grad_accum = torch.zeros(n)
             self.count = torch.zeros(n)
+        if self.max_radius.shape[0] != n:
+            self.max_radius = torch.zeros(n)
 
     def accumulate(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:
         """Add one view's screen-space gradient norms (pixels -> NDC units) for visible
@@ -78,6 +91,8 @@ class Densifier:
         g = means2d_grad.detach() * torch.tensor([0.5 * width, 0.5 * height])
         self.grad_accum[visible] += g[visible].norm(dim=-1)
         self.count[visible] += 1
+        r = radii.detach().to(self.max_radius.dtype).amax(dim=-1) / max(width, height)
+        self.max_radius = torch.maximum(self.max_radius, torch.where(visible, r, 0.0))
 
     def step(
         self,
@@ -91,7 +106,8 @@ class Densifier:
         c = self.config
         out = {"cloned": 0, "split": 0, "pruned": 0}
         if c.start <= iteration < c.stop and iteration % c.interval == 0 and iteration > 0:
-            out = self.densify_and_prune(model, optimizer, scene_extent)
+            prune_big = iteration > c.opacity_reset_interval
+            out = self.densify_and_prune(model, optimizer, scene_extent, prune_big)
         return out
 
     def reset_due(self, iteration: int) -> bool:
@@ -103,12 +119,21 @@ class Densifier:
 
     @torch.no_grad()
     def densify_and_prune(
-        self, model: DeformableGaussians, optimizer: torch.optim.Optimizer, scene_extent: float
+        self,
+        model: DeformableGaussians,
+        optimizer: torch.optim.Optimizer,
+        scene_extent: float,
+        prune_big: bool = False,
     ) -> dict[str, int]:
-        """Clone small high-gradient Gaussians, split large ones, prune transparent ones."""
+        """Clone small high-gradient Gaussians, split large ones, prune transparent ones and,
+        when `prune_big`, those too large on screen or in the world (see `DensifyConfig`)."""
         c = self.config
         n = model.num_gaussians
         self._ensure(n)
+        # Screen sizes are per row before the rows move; clones inherit them, children not.
+        big_on_screen = torch.zeros(n, dtype=torch.bool)
+        if prune_big and c.prune_screen_fraction > 0:
+            big_on_screen = self.max_radius > c.prune_screen_fraction
         avg = self.grad_accum / self.count.clamp_min(1)
         big = model.log_scales.exp().max(dim=-1).values > c.percent_dense * scene_extent
         hot = avg >= c.grad_threshold
@@ -151,14 +176,20 @@ class Densifier:
             _replace_rows(optimizer, model, grow)
             keep = torch.ones(model.num_gaussians, dtype=torch.bool)
             keep[:n][split] = False
+            kids = torch.zeros(n_split * c.split_count, dtype=torch.bool)
+            big_on_screen = torch.cat([big_on_screen, big_on_screen[clone], kids])[keep]
             self._keep(model, optimizer, keep)
         opacity = torch.sigmoid(model.opacity_logits.data)
-        prune = opacity < c.prune_opacity
+        prune = (opacity < c.prune_opacity) | big_on_screen
+        if prune_big and c.prune_world_scale > 0:
+            world = model.log_scales.data.exp().max(dim=-1).values
+            prune |= world > c.prune_world_scale * scene_extent
         n_prune = int(prune.sum())
         if n_prune and n_prune < model.num_gaussians:
             self._keep(model, optimizer, ~prune)
         self.grad_accum = torch.zeros(model.num_gaussians)
         self.count = torch.zeros(model.num_gaussians)
+        self.max_radius = torch.zeros(model.num_gaussians)
         return {"cloned": n_clone, "split": n_split, "pruned": n_prune}
 
     def _keep(

@@ -65,7 +65,7 @@ def evaluate_frames(
         pred = render_frame(model, frame, background, threads)
         m = FrameMetrics(
             index=i,
-            name=frame.image_path.name,
+            name=frame.name,
             time=float(frame.time),
             psnr=psnr(pred, target),
             ssim=float(ssim(pred, target)),
@@ -73,7 +73,7 @@ def evaluate_frames(
         if lpips is not None:
             m.lpips = float(lpips(pred, target))
         if save_dir is not None:
-            save_side_by_side(pred, target, save_dir / f"{frame.image_path.stem}.png")
+            save_side_by_side(pred, target, save_dir / f"{Path(frame.name).stem}.png")
         out.append(m)
         if on_frame is not None:
             on_frame(i, m)

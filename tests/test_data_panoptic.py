@@ -51,6 +51,9 @@ def test_cameras_times_and_masks(tmp_path: Path) -> None:
     scene = load_panoptic(tmp_path)
     assert len(scene.train) == 3 * 2 and len(scene.test) == 3
     assert sorted({f.time for f in scene.train}) == [0.0, 0.5, 1.0]
+    # Every camera folder holds the same file names: frame names carry the camera.
+    names = [f.name for f in scene.train]
+    assert len(set(names)) == len(names) and names[1].startswith("cam")
     f = scene.train[1]
     # w2c is stored in OpenCV axes already: the world origin sits 5 units ahead.
     uv, z = f.camera.project(np.zeros((1, 3)))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -84,3 +85,34 @@ def test_accumulate_uses_visible_gaussians_in_ndc_units() -> None:
     d.accumulate(grad, radii, width=100, height=50)
     assert torch.allclose(d.grad_accum, torch.tensor([50.0, 0.0]))
     assert torch.equal(d.count, torch.tensor([1.0, 0.0]))
+
+
+def test_too_big_gaussians_pruned_only_after_first_reset() -> None:
+    """World-space giants (> prune_world_scale x extent) and, when enabled, screen-space
+    giants go once the first opacity reset has passed, as in 3DGS / gsplat."""
+    cfg = DensifyConfig(
+        grad_threshold=1e9, start=0, stop=10_000, interval=100, opacity_reset_interval=3000,
+        prune_world_scale=0.1, prune_screen_fraction=0.15,
+    )  # fmt: skip
+    model, opt = _setup()
+    with torch.no_grad():
+        model.log_scales[:] = math.log(0.05)
+        model.log_scales[1, 2] = math.log(2.0)  # 2.0 > 0.1 x extent 10: too big in the world
+    d = Densifier(cfg)
+    radii = torch.full((6, 2), 5, dtype=torch.int32)
+    radii[4] = 40  # 40 / 200 px = 0.2 > 0.15 of the image: too big on screen
+    d.accumulate(torch.zeros(6, 2), radii, width=200, height=100)
+    assert torch.allclose(d.max_radius[[0, 4]], torch.tensor([0.025, 0.2]))
+    # Before the first reset only the transparent Gaussian 5 goes.
+    assert d.step(model, opt, 1000, scene_extent=10.0)["pruned"] == 1
+    assert model.num_gaussians == 5
+    d.accumulate(torch.zeros(5, 2), radii[:5], width=200, height=100)
+    out = d.step(model, opt, 3100, scene_extent=10.0)
+    assert out["pruned"] == 2 and model.num_gaussians == 3
+    assert torch.allclose(model.log_scales.data.exp(), torch.full((3, 3), 0.05))
+    assert d.max_radius.shape == (3,) and d.max_radius.abs().max() == 0
+    # Disabled thresholds prune nothing but the transparent.
+    model, opt = _setup()
+    off = Densifier(dataclasses.replace(cfg, prune_world_scale=0.0, prune_screen_fraction=0.0))
+    off.accumulate(torch.zeros(6, 2), radii, width=200, height=100)
+    assert off.step(model, opt, 3100, scene_extent=0.01)["pruned"] == 1

@@ -31,7 +31,7 @@ def camera_from_record(rec: dict) -> Camera:
 
 
 def pick_camera(records: list[dict], spec: str | None) -> dict:
-    """The record chosen by `spec`: ``test:K`` / ``train:K`` (K-th camera of that split), a
+    """The record chosen by `spec`: ``test:K`` / ``train:K`` (K-th frame of that split), a
     bare integer (a test camera), or a frame's file name; default the first test camera."""
     if not records:
         raise ValueError("the checkpoint stores no cameras (written by an older sync4d?)")

@@ -54,7 +54,8 @@ def _load_meta(root: Path, name: str, resolution_scale: float) -> list[Frame]:
             if resolution_scale != 1.0:
                 cam = cam.scaled(resolution_scale)
             seg = root / "seg" / Path(fn).with_suffix(".png")
-            frames.append(Frame(img, cam, time, seg if seg.exists() else None, (w, h)))
+            label = f"cam{Path(fn).parent.name}_{Path(fn).name}"
+            frames.append(Frame(img, cam, time, seg if seg.exists() else None, (w, h), label))
     return frames
 
 

@@ -105,6 +105,13 @@ class Frame:
     mask_path: Path | None = None
     #: (width, height) of the files on disk; `camera` may be scaled from it.
     native_size: tuple[int, int] | None = None
+    #: Unique name of the frame within its split (reports, render file names); defaults to
+    #: the image's file name. Multi-view loaders prefix the camera (`cam10_000000.jpg`).
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.name:
+            self.name = self.image_path.name
 
     def load_image(self, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:
         """The image as float32 [H, W, 3] in [0, 1], RGBA composited on `background`, resized
