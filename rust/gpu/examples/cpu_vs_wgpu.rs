@@ -2,6 +2,9 @@
 //! compositing; backward: both backwards), median of repeated calls after a warm-up.
 //!
 //! cargo run --release -p sync4d-gpu --example cpu_vs_wgpu -- [N] [WIDTH] [HEIGHT] [REPEATS]
+//!
+//! With SYNC4D_GPU_PROFILE=1 the wgpu calls also report per-stage times (each stage then waits
+//! for the device, so the totals grow a little).
 
 #[path = "../../raster/tests/common/mod.rs"]
 mod common;
@@ -51,6 +54,9 @@ fn main() {
     let dev = GpuDevice::new(AdapterChoice::Auto).expect("no wgpu adapter");
     println!("adapter: {}  |  N = {n}, {w}x{h}", dev.adapter);
     let mut gpu = GpuRasterizer::new(dev);
+    let profiling = std::env::var("SYNC4D_GPU_PROFILE").is_ok_and(|v| v == "1");
+    gpu.set_profiling(profiling);
+    let mut stages: Vec<(&'static str, Vec<f64>)> = Vec::new();
 
     let mut results = Vec::new();
     for backend in ["cpu", "wgpu"] {
@@ -77,7 +83,7 @@ fn main() {
             let sp_feats = feats.clone();
             if backend == "cpu" {
                 project_forward(&g, &s.camera, &ps, out).unwrap();
-                rasterize_forward(
+                let c = rasterize_forward(
                     &splats(&p, &sp_feats, 3),
                     w,
                     h,
@@ -87,6 +93,12 @@ fn main() {
                     img.as_mut(),
                 )
                 .unwrap();
+                if rep == 0 {
+                    println!(
+                        "work: {} visible, {} tile intersections, {} splat-pixel evaluations",
+                        c.visible, c.intersections, c.evaluated
+                    );
+                }
             } else {
                 gpu.project_forward(&g, &s.camera, &ps, out).unwrap();
                 gpu.rasterize_forward(
@@ -155,9 +167,16 @@ fn main() {
                     .unwrap();
             }
             let t_full = t0.elapsed().as_secs_f64();
+            let profile = gpu.take_profile();
             if rep > 0 {
                 fwd.push(t_fwd);
                 full.push(t_full);
+                for (name, secs) in profile {
+                    match stages.iter_mut().find(|(s, _)| *s == name) {
+                        Some((_, v)) => v.push(secs),
+                        None => stages.push((name, vec![secs])),
+                    }
+                }
             }
         }
         results.push((backend, median(fwd), median(full)));
@@ -165,6 +184,12 @@ fn main() {
     println!("backend   forward      fwd+bwd");
     for (b, f, ff) in &results {
         println!("{b:<8} {:>8.1} ms  {:>8.1} ms", f * 1e3, ff * 1e3);
+    }
+    if profiling {
+        println!("wgpu stage        median");
+        for (name, v) in stages {
+            println!("{name:<16} {:>8.1} ms", median(v) * 1e3);
+        }
     }
     let (cpu, wgpu) = (&results[0], &results[1]);
     println!(

@@ -6,7 +6,8 @@
 //! 2. depth order of the visible splats (bitonic sort of unique (depth, index) keys);
 //! 3. tile binning (per-chunk tile counts, an exclusive scan, an in-order scatter: a stable
 //!    counting sort by tile of the depth order, deterministic on any hardware);
-//! 4. per-tile front-to-back compositing, one workgroup per 16x16 tile.
+//! 4. per-tile front-to-back compositing, one workgroup per 16x16 tile ([`BlendLayout`]: one
+//!    pixel per invocation on GPUs, many on CPU adapters).
 //!
 //! [`GpuDevice`] picks the adapter ([`AdapterChoice`]); [`GpuRasterizer`] owns the compiled
 //! kernels and reusable buffers. Inputs are validated exactly as on the CPU path and every
@@ -19,4 +20,4 @@ pub mod raster;
 
 pub use device::{list_adapters, AdapterChoice, AdapterSummary, GpuDevice};
 pub use error::{GpuError, Result};
-pub use raster::{GpuRasterState, GpuRasterizer};
+pub use raster::{BlendLayout, GpuRasterState, GpuRasterizer};

@@ -1,11 +1,18 @@
-// Front-to-back compositing of 16x16 tiles, one workgroup per tile and one invocation per
-// pixel; splats are staged through workgroup memory in batches. Same rules and arithmetic as
+// Front-to-back compositing of 16x16 tiles, one workgroup per tile; each invocation composites
+// PIXELS pixels of the tile (1 on GPUs; more on CPU adapters such as lavapipe, where every
+// read from workgroup or storage memory costs a per-lane loop and is better amortised), and
+// splats are staged through workgroup memory in batches of 256. Same rules and arithmetic as
 // sync4d-raster's f32 path: alpha = min(opacity exp(-sigma), alpha_max) with the same
 // polynomial exp, skipped below 1/255 or when sigma < 0, and a pixel stops (excluding the
 // current splat) when its transmittance would fall below t_min. CHANNELS is substituted by
 // the host (one pipeline per channel count).
 
 const C: u32 = {{CHANNELS}}u;
+// Pixels per invocation (a divisor of 256) and invocations per tile.
+const P: u32 = {{PIXELS}}u;
+const WG: u32 = 256u / P;
+// Splats per forward batch.
+const FB: u32 = 256u;
 
 struct BlendParams {
     width: u32,
@@ -34,11 +41,10 @@ struct BlendParams {
 // evaluated lo/hi, blended lo/hi.
 @group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>>;
 
-const WG: u32 = 256u;
-
-var<workgroup> sh_pos: array<vec4<f32>, 256>;   // mean x, mean y, opacity, depth
-var<workgroup> sh_conic: array<vec4<f32>, 256>; // a, b, c, -
-var<workgroup> sh_index: array<u32, 256>;
+var<workgroup> sh_pos: array<vec4<f32>, FB>;   // mean x, mean y, opacity, depth
+var<workgroup> sh_conic: array<vec4<f32>, FB>; // a, b, c, -
+var<workgroup> sh_box: array<vec4<f32>, FB>;   // support_box
+var<workgroup> sh_index: array<u32, FB>;
 var<workgroup> done_count: atomic<u32>;
 var<workgroup> stop_flag: u32;
 var<workgroup> range_start: u32;
@@ -61,6 +67,40 @@ fn fast_exp(x_in: f32) -> f32 {
     return poly * bitcast<f32>(u32(i32(n) + 127) << 23u);
 }
 
+// Splat g's mean x, mean y, opacity, depth.
+fn splat_pos(g: u32) -> vec4<f32> {
+    return vec4<f32>(splats[8u * g], splats[8u * g + 1u], splats[8u * g + 5u], splats[8u * g + 6u]);
+}
+
+// Splat g's conic a, b, c (and 0).
+fn splat_conic(g: u32) -> vec4<f32> {
+    return vec4<f32>(splats[8u * g + 2u], splats[8u * g + 3u], splats[8u * g + 4u], 0.0);
+}
+
+// The pixel-centre box [x_lo, x_hi] x [y_lo, y_hi] outside which the splat's alpha is below
+// 1/255 (where sigma > ln(255 opacity)), padded so that f32 rounding never culls a pixel the
+// alpha test would keep; no culling when the conic is not safely positive definite.
+fn support_box(pos: vec4<f32>, con: vec4<f32>) -> vec4<f32> {
+    let op = pos.z;
+    if !(op * 255.0 >= 1.0) {
+        return vec4<f32>(1.0, -1.0, 1.0, -1.0); // alpha < 1/255 everywhere: empty
+    }
+    let a = con.x;
+    let c = con.z;
+    let det_lo = a * c - con.y * con.y - 4.8e-7 * (abs(a * c) + con.y * con.y);
+    if !(a > 0.0 && c > 0.0 && det_lo > 0.0) {
+        return vec4<f32>(-3e38, 3e38, -3e38, 3e38);
+    }
+    let smax = log(255.0 * op) * 1.01 + 0.01;
+    let ex = sqrt(2.0 * smax * c / det_lo) + 0.05;
+    let ey = sqrt(2.0 * smax * a / det_lo) + 0.05;
+    return vec4<f32>(pos.x - ex, pos.x + ex, pos.y - ey, pos.y + ey);
+}
+
+fn in_box(b: vec4<f32>, x: f32, y: f32) -> bool {
+    return x >= b.x && x <= b.y && y >= b.z && y <= b.w;
+}
+
 fn add_wide(lo: u32, v: u32) {
     if v == 0u {
         return;
@@ -71,14 +111,16 @@ fn add_wide(lo: u32, v: u32) {
     }
 }
 
-@compute @workgroup_size(16, 16)
-fn blend_forward(@builtin(local_invocation_id) lid3: vec3<u32>,
-                 @builtin(local_invocation_index) lid: u32,
+// Pixel j of invocation `lid`: tile-local (x, y).
+fn tile_pixel(lid: u32, j: u32) -> vec2<u32> {
+    let i = lid + j * WG;
+    return vec2<u32>(i % 16u, i / 16u);
+}
+
+@compute @workgroup_size(WG)
+fn blend_forward(@builtin(local_invocation_index) lid: u32,
                  @builtin(workgroup_id) wid: vec3<u32>) {
     let tile = wid.y * F.tiles_x + wid.x;
-    let px = wid.x * 16u + lid3.x;
-    let py = wid.y * 16u + lid3.y;
-    let inside = px < F.width && py < F.height;
     if lid == 0u {
         atomicStore(&done_count, 0u);
         atomicStore(&wg_evaluated, 0u);
@@ -88,19 +130,29 @@ fn blend_forward(@builtin(local_invocation_id) lid3: vec3<u32>,
     }
     let start = workgroupUniformLoad(&range_start);
     let end = workgroupUniformLoad(&range_end);
-    var t = 1.0;
-    var acc: array<f32, C>;
-    var depth = 0.0;
-    var last = 0u;
-    var done = !inside;
+    var t: array<f32, P>;
+    var acc: array<f32, P * C>;
+    var depth: array<f32, P>;
+    var last: array<u32, P>;
+    var done: array<bool, P>;
+    var fx: array<f32, P>;
+    var fy: array<f32, P>;
+    var live = 0u;
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+        t[j] = 1.0;
+        done[j] = q.x >= F.width || q.y >= F.height;
+        live += select(1u, 0u, done[j]);
+        fx[j] = f32(q.x) + 0.5;
+        fy[j] = f32(q.y) + 0.5;
+    }
     var evaluated = 0u;
     var blended = 0u;
-    if done {
+    if live == 0u {
         atomicAdd(&done_count, 1u);
     }
-    let fx = f32(px) + 0.5;
-    let fy = f32(py) + 0.5;
-    for (var batch = start; batch < end; batch += WG) {
+    var f: array<f32, C>;
+    for (var batch = start; batch < end; batch += FB) {
         workgroupBarrier();
         if lid == 0u {
             stop_flag = atomicLoad(&done_count);
@@ -108,57 +160,70 @@ fn blend_forward(@builtin(local_invocation_id) lid3: vec3<u32>,
         if workgroupUniformLoad(&stop_flag) == WG {
             break;
         }
-        let at = batch + lid;
-        if at < end {
-            let g = keys[ids[at]].y;
-            sh_pos[lid] = vec4<f32>(splats[8u * g], splats[8u * g + 1u], splats[8u * g + 5u],
-                                    splats[8u * g + 6u]);
-            sh_conic[lid] = vec4<f32>(splats[8u * g + 2u], splats[8u * g + 3u],
-                                      splats[8u * g + 4u], 0.0);
-            sh_index[lid] = g;
+        for (var i = lid; i < FB && batch + i < end; i += WG) {
+            let g = keys[ids[batch + i]].y;
+            sh_pos[i] = splat_pos(g);
+            sh_conic[i] = splat_conic(g);
+            sh_index[i] = g;
+            sh_box[i] = support_box(sh_pos[i], sh_conic[i]);
         }
         workgroupBarrier();
-        let count = min(WG, end - batch);
-        for (var k = 0u; k < count && !done; k++) {
+        let count = min(FB, end - batch);
+        for (var k = 0u; k < count && live > 0u; k++) {
             let pos = sh_pos[k];
             let con = sh_conic[k];
-            let dx = fx - pos.x;
-            let dy = fy - pos.y;
-            let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
-            let alpha = min(pos.z * fast_exp(-sigma), F.alpha_max);
-            evaluated += 1u;
-            if !(sigma >= 0.0) || !(alpha >= F.alpha_min) {
-                continue;
-            }
-            let next_t = t * (1.0 - alpha);
-            if next_t < F.t_min {
-                done = true;
-                atomicAdd(&done_count, 1u);
-                break;
-            }
-            let w = alpha * t;
+            let bx = sh_box[k];
             let g = sh_index[k];
-            for (var c = 0u; c < C; c++) {
-                acc[c] += features[g * C + c] * w;
+            for (var c = 0u; c < C; c++) { // unroll: channels
+                f[c] = features[g * C + c];
             }
-            depth += pos.w * w;
-            t = next_t;
-            last = batch - start + k + 1u;
-            blended += 1u;
+            let rank = batch - start + k + 1u;
+            // Per pixel: skip it when done or outside the splat's support box (neighbouring
+            // pixels mostly agree, so SIMD lanes skip together); the rest is branch-free.
+            for (var j = 0u; j < P; j++) { // unroll: pixels
+                if done[j] || !in_box(bx, fx[j], fy[j]) {
+                    continue;
+                }
+                let dx = fx[j] - pos.x;
+                let dy = fy[j] - pos.y;
+                let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
+                let alpha = min(pos.z * fast_exp(-sigma), F.alpha_max);
+                let ok = sigma >= 0.0 && alpha >= F.alpha_min;
+                let next_t = t[j] * (1.0 - alpha);
+                let stop = ok && next_t < F.t_min;
+                let take = ok && !stop;
+                let w = select(0.0, alpha * t[j], take);
+                for (var c = 0u; c < C; c++) { // unroll: channels
+                    acc[j * C + c] += f[c] * w;
+                }
+                depth[j] += pos.w * w;
+                t[j] = select(t[j], next_t, take);
+                last[j] = select(last[j], rank, take);
+                done[j] = stop;
+                evaluated += 1u;
+                blended += select(0u, 1u, take);
+                live -= select(0u, 1u, stop);
+            }
+            if live == 0u {
+                atomicAdd(&done_count, 1u);
+            }
         }
     }
     atomicAdd(&wg_evaluated, evaluated);
     atomicAdd(&wg_blended, blended);
-    if inside {
-        let pix = py * F.width + px;
-        let npix = F.width * F.height;
-        for (var c = 0u; c < C; c++) {
-            image[pix * C + c] = acc[c] + t * features[F.n * C + c];
+    let npix = F.width * F.height;
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+        if q.x < F.width && q.y < F.height {
+            let pix = q.y * F.width + q.x;
+            for (var c = 0u; c < C; c++) { // unroll: channels
+                image[pix * C + c] = acc[j * C + c] + t[j] * features[F.n * C + c];
+            }
+            image[npix * C + pix] = 1.0 - t[j];
+            image[npix * (C + 1u) + pix] = depth[j];
+            pixel_state[2u * pix] = last[j];
+            pixel_state[2u * pix + 1u] = bitcast<u32>(t[j]);
         }
-        image[npix * C + pix] = 1.0 - t;
-        image[npix * (C + 1u) + pix] = depth;
-        pixel_state[2u * pix] = last;
-        pixel_state[2u * pix + 1u] = bitcast<u32>(t);
     }
     workgroupBarrier();
     if lid == 0u {
@@ -185,9 +250,16 @@ const BATCH: u32 = {{BATCH}}u;
 // Per splat STRIDE gradient sums (f32 bits, added by compare-and-swap).
 @group(0) @binding(10) var<storage, read_write> grads: array<atomic<u32>>;
 
+// Backward reduction: per-invocation partial sums in workgroup memory, summed in a fixed order
+// (CPU adapters: few invocations, many pixels each), or compare-and-swap float adds into
+// per-splat accumulators (GPUs: one pixel per invocation).
+const PARTIALS: bool = {{PARTIALS}};
 var<workgroup> acc_grad: array<atomic<u32>, {{ACC}}>;
+var<workgroup> partial: array<f32, {{PARTIAL_LEN}}>;
+var<workgroup> q_last: array<u32, WG>;
 var<workgroup> sh_b_pos: array<vec4<f32>, BATCH>;   // mean x, mean y, opacity, depth
 var<workgroup> sh_b_conic: array<vec4<f32>, BATCH>; // a, b, c, -
+var<workgroup> sh_b_box: array<vec4<f32>, BATCH>;   // support_box
 var<workgroup> sh_b_index: array<u32, BATCH>;
 var<workgroup> max_last: atomic<u32>;
 var<workgroup> max_last_u: u32;
@@ -214,16 +286,11 @@ fn global_add(i: u32, v: f32) {
     }
 }
 
-@compute @workgroup_size(16, 16)
-fn blend_backward(@builtin(local_invocation_id) lid3: vec3<u32>,
-                  @builtin(local_invocation_index) lid: u32,
+@compute @workgroup_size(WG)
+fn blend_backward(@builtin(local_invocation_index) lid: u32,
                   @builtin(workgroup_id) wid: vec3<u32>) {
     let tile = wid.y * F.tiles_x + wid.x;
-    let px = wid.x * 16u + lid3.x;
-    let py = wid.y * 16u + lid3.y;
-    let inside = px < F.width && py < F.height;
     let npix = F.width * F.height;
-    let pix = py * F.width + px;
     if lid == 0u {
         atomicStore(&max_last, 0u);
         range_start = tile_offsets[tile];
@@ -232,96 +299,140 @@ fn blend_backward(@builtin(local_invocation_id) lid3: vec3<u32>,
         atomicStore(&acc_grad[i], 0u);
     }
     workgroupBarrier();
-    var t = 1.0;
-    var last = 0u;
-    var vc: array<f32, C>;
-    var v_depth = 0.0;
-    var tail = 0.0;
-    var vr = 0.0;
-    if inside {
-        last = pixel_state[2u * pix];
-        t = bitcast<f32>(pixel_state[2u * pix + 1u]);
-        var vbg = 0.0;
-        for (var c = 0u; c < C; c++) {
-            vc[c] = v_image[pix * C + c];
-            vbg += vc[c] * features[F.n * C + c];
+    var t: array<f32, P>;
+    var last: array<u32, P>;
+    var vc: array<f32, P * C>;
+    var v_depth: array<f32, P>;
+    var tail: array<f32, P>;
+    var vr: array<f32, P>;
+    var fx: array<f32, P>;
+    var fy: array<f32, P>;
+    var my_last = 0u;
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+        fx[j] = f32(q.x) + 0.5;
+        fy[j] = f32(q.y) + 0.5;
+        t[j] = 1.0;
+        if q.x < F.width && q.y < F.height {
+            let pix = q.y * F.width + q.x;
+            last[j] = pixel_state[2u * pix];
+            t[j] = bitcast<f32>(pixel_state[2u * pix + 1u]);
+            var vbg = 0.0;
+            for (var c = 0u; c < C; c++) { // unroll: channels
+                vc[j * C + c] = v_image[pix * C + c];
+                vbg += vc[j * C + c] * features[F.n * C + c];
+            }
+            v_depth[j] = v_image[npix * (C + 1u) + pix];
+            tail[j] = t[j] * (vbg - v_image[npix * C + pix]);
+            my_last = max(my_last, last[j]);
         }
-        v_depth = v_image[npix * (C + 1u) + pix];
-        tail = t * (vbg - v_image[npix * C + pix]);
-        atomicMax(&max_last, last);
     }
+    atomicMax(&max_last, my_last);
+    q_last[lid] = my_last;
     workgroupBarrier();
     if lid == 0u {
         max_last_u = atomicLoad(&max_last);
     }
     let start_list = workgroupUniformLoad(&range_start);
     var end = workgroupUniformLoad(&max_last_u);
-    let fx = f32(px) + 0.5;
-    let fy = f32(py) + 0.5;
+    var f: array<f32, C>;
+    // Per-splat gradient sums over this invocation's pixels: mean x, mean y, conic a, b, c,
+    // opacity, C features, depth (the STRIDE layout).
+    var gs: array<f32, STRIDE>;
     while end > 0u {
         let start = select(end - BATCH, 0u, end < BATCH);
         let count = end - start;
-        if lid < count {
-            let g = keys[ids[start_list + start + lid]].y;
-            sh_b_pos[lid] = vec4<f32>(splats[8u * g], splats[8u * g + 1u], splats[8u * g + 5u],
-                                      splats[8u * g + 6u]);
-            sh_b_conic[lid] = vec4<f32>(splats[8u * g + 2u], splats[8u * g + 3u],
-                                        splats[8u * g + 4u], 0.0);
-            sh_b_index[lid] = g;
+        for (var i = lid; i < count; i += WG) {
+            let g = keys[ids[start_list + start + i]].y;
+            sh_b_pos[i] = splat_pos(g);
+            sh_b_conic[i] = splat_conic(g);
+            sh_b_index[i] = g;
+            sh_b_box[i] = support_box(sh_b_pos[i], sh_b_conic[i]);
         }
         workgroupBarrier();
-        if inside {
-            for (var j = i32(count) - 1; j >= 0; j--) {
-                let k = start + u32(j);
-                if k >= last {
+        for (var jj = i32(count) - 1; jj >= 0; jj--) {
+            let k = start + u32(jj);
+            if k >= my_last {
+                continue;
+            }
+            let pos = sh_b_pos[jj];
+            let con = sh_b_conic[jj];
+            let bx = sh_b_box[jj];
+            let g = sh_b_index[jj];
+            for (var c = 0u; c < C; c++) { // unroll: channels
+                f[c] = features[g * C + c];
+            }
+            for (var s = 0u; s < STRIDE; s++) { // unroll: stride
+                gs[s] = 0.0;
+            }
+            var touched = false;
+            for (var j = 0u; j < P; j++) { // unroll: pixels
+                if k >= last[j] || !in_box(bx, fx[j], fy[j]) {
                     continue;
                 }
-                let pos = sh_b_pos[j];
-                let con = sh_b_conic[j];
-                let g = sh_b_index[j];
-                var vf = v_depth * pos.w;
-                for (var c = 0u; c < C; c++) {
-                    vf += vc[c] * features[g * C + c];
+                var vf = v_depth[j] * pos.w;
+                for (var c = 0u; c < C; c++) { // unroll: channels
+                    vf += vc[j * C + c] * f[c];
                 }
-                let dx = fx - pos.x;
-                let dy = fy - pos.y;
+                let dx = fx[j] - pos.x;
+                let dy = fy[j] - pos.y;
                 let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
                 let vis = fast_exp(-sigma);
                 let raw = pos.z * vis;
                 let alpha = min(raw, F.alpha_max);
-                if !(sigma >= 0.0) || !(alpha >= F.alpha_min) {
-                    continue;
-                }
+                let ok = sigma >= 0.0 && alpha >= F.alpha_min;
                 let one_m = 1.0 - alpha;
-                let ti = t / one_m;
+                let ti = t[j] / one_m;
                 let w = alpha * ti;
-                let v_alpha = ti * vf - (vr + tail) / one_m;
-                vr += w * vf;
-                t = ti;
-                let base = u32(j) * STRIDE;
-                for (var c = 0u; c < C; c++) {
-                    shared_add(base + 6u + c, w * vc[c]);
+                let v_alpha = ti * vf - (vr[j] + tail[j]) / one_m;
+                vr[j] = select(vr[j], vr[j] + w * vf, ok);
+                t[j] = select(t[j], ti, ok);
+                touched = touched || ok;
+                for (var c = 0u; c < C; c++) { // unroll: channels
+                    gs[6u + c] += select(0.0, w * vc[j * C + c], ok);
                 }
-                shared_add(base + 6u + C, w * v_depth);
-                if raw > F.alpha_max {
-                    continue;
-                }
+                gs[6u + C] += select(0.0, w * v_depth[j], ok);
+                // Clamped alphas pass no gradient to the opacity or the conic.
+                let live_grad = ok && raw <= F.alpha_max;
                 let v_sigma = -v_alpha * alpha;
-                shared_add(base + 5u, v_alpha * vis);
-                shared_add(base + 2u, 0.5 * v_sigma * dx * dx);
-                shared_add(base + 3u, v_sigma * dx * dy);
-                shared_add(base + 4u, 0.5 * v_sigma * dy * dy);
-                shared_add(base, -v_sigma * (con.x * dx + con.y * dy));
-                shared_add(base + 1u, -v_sigma * (con.z * dy + con.y * dx));
+                gs[5] += select(0.0, v_alpha * vis, live_grad);
+                gs[2] += select(0.0, 0.5 * v_sigma * dx * dx, live_grad);
+                gs[3] += select(0.0, v_sigma * dx * dy, live_grad);
+                gs[4] += select(0.0, 0.5 * v_sigma * dy * dy, live_grad);
+                gs[0] += select(0.0, -v_sigma * (con.x * dx + con.y * dy), live_grad);
+                gs[1] += select(0.0, -v_sigma * (con.z * dy + con.y * dx), live_grad);
+            }
+            if PARTIALS {
+                let base = (u32(jj) * WG + lid) * STRIDE;
+                for (var s = 0u; s < STRIDE; s++) { // unroll: stride
+                    partial[base + s] = gs[s];
+                }
+            } else if touched {
+                let base = u32(jj) * STRIDE;
+                for (var s = 0u; s < STRIDE; s++) { // unroll: stride
+                    if gs[s] != 0.0 {
+                        shared_add(base + s, gs[s]);
+                    }
+                }
             }
         }
         workgroupBarrier();
         for (var i = lid; i < count * STRIDE; i += WG) {
-            let v = bitcast<f32>(atomicLoad(&acc_grad[i]));
+            var v = 0.0;
+            if PARTIALS {
+                let jj = i / STRIDE;
+                let s = i % STRIDE;
+                // Skipped splats (beyond an invocation's last contributor) left no partials.
+                for (var q = 0u; q < WG; q++) {
+                    v += select(0.0, partial[(jj * WG + q) * STRIDE + s], start + jj < q_last[q]);
+                }
+            } else {
+                v = bitcast<f32>(atomicLoad(&acc_grad[i]));
+                atomicStore(&acc_grad[i], 0u);
+            }
             if v != 0.0 {
                 global_add(sh_b_index[i / STRIDE] * STRIDE + i % STRIDE, v);
             }
-            atomicStore(&acc_grad[i], 0u);
         }
         workgroupBarrier();
         end = start;
