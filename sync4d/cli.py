@@ -55,12 +55,20 @@ def _resolution(text: str) -> tuple[int, int]:
 
 
 def _add_threads(p: argparse.ArgumentParser) -> None:
+    """--threads and --backend: every command that renders or trains."""
     p.add_argument(
         "--threads",
         type=_positive_int,
         default=None,
         metavar="T",
         help="CPU threads for torch and the rasterizer (default: all cores)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=("cpu", "wgpu", "auto"),
+        default="cpu",
+        help="compositing backend: the Rust CPU path (default), wgpu (a GPU, else a CPU "
+        "Vulkan driver such as lavapipe) or auto (wgpu on a GPU, else cpu)",
     )
 
 
@@ -256,8 +264,29 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             return 2
         raise
-    result = module.main(args)
+    from sync4d import raster
+
+    backend = getattr(args, "backend", None)
+    previous = raster.resolve_backend()
+    if backend not in (None, "cpu"):
+        try:
+            args.backend = raster.set_default_backend(backend)
+        except RuntimeError as e:
+            print(f"python -m sync4d {args.command}: {e}", file=sys.stderr)
+            return 2
+        if backend == "wgpu":
+            print(f"sync4d: backend wgpu on {_core_adapter()}", file=sys.stderr)
+    try:
+        result = module.main(args)
+    finally:
+        raster.set_default_backend(previous)  # main() may be called again in-process
     return int(result or 0)
+
+
+def _core_adapter() -> str:
+    from sync4d import _core
+
+    return _core.wgpu_adapter()
 
 
 if __name__ == "__main__":

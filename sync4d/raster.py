@@ -26,11 +26,19 @@ optional ``antialiased`` opacity compensation, 16x16 tiles, front-to-back compos
 The two stages are also exposed separately (:func:`project_gaussians`,
 :func:`rasterize_to_pixels`), as is :func:`spherical_harmonics`. Wrong shapes, dtypes, devices,
 non-finite values or a degenerate camera raise ``ValueError`` naming the argument.
+
+Backends (``backend=`` on :func:`rasterize` / :func:`rasterize_to_pixels`, default
+:func:`set_default_backend`'s, initially ``"cpu"``): ``"cpu"`` composites with the
+multithreaded Rust path; ``"wgpu"`` with the WGSL kernels on the adapter wgpu opens (a GPU, else
+a CPU driver such as lavapipe; float32 only); ``"auto"`` takes wgpu when a discrete or
+integrated GPU is present and the CPU path otherwise, and says once which it picked. The
+projection and spherical harmonics run on the CPU path in every case.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,14 +48,61 @@ from torch import Tensor
 from sync4d import _core
 
 __all__ = [
+    "BACKENDS",
     "Projection",
     "RasterOutput",
     "project_gaussians",
     "rasterize",
     "rasterize_to_pixels",
+    "resolve_backend",
+    "set_default_backend",
     "spherical_harmonics",
     "sh_features",
 ]
+
+#: Backend names accepted by ``backend=`` and ``--backend``.
+BACKENDS = ("cpu", "wgpu", "auto")
+_default_backend = "cpu"
+_auto_choice: str | None = None
+
+
+def resolve_backend(backend: str | None = None) -> str:
+    """The concrete backend (``"cpu"`` or ``"wgpu"``) for `backend` (None: the default).
+    ``"wgpu"`` opens the adapter now, so a missing driver is a ``RuntimeError`` here that
+    says what to install; ``"auto"`` picks wgpu only for a discrete or integrated GPU and
+    reports its choice on stderr once."""
+    global _auto_choice
+    b = _default_backend if backend is None else backend
+    if b not in BACKENDS:
+        raise ValueError(f"backend: expected one of {', '.join(BACKENDS)}, got {b!r}")
+    if b == "wgpu":
+        _core.wgpu_adapter()
+        return "wgpu"
+    if b == "auto":
+        if _auto_choice is None:
+            gpus = [n for n, kind in _core.wgpu_adapters() if kind in ("discrete", "integrated")]
+            if gpus:
+                try:
+                    msg = f"wgpu on {_core.wgpu_adapter()}"
+                    _auto_choice = "wgpu"
+                except RuntimeError as e:
+                    msg = f"cpu ({gpus[0]} did not open: {e})"
+                    _auto_choice = "cpu"
+            else:
+                msg = "cpu (no discrete or integrated GPU adapter)"
+                _auto_choice = "cpu"
+            print(f"sync4d: backend auto -> {msg}", file=sys.stderr)
+        return _auto_choice
+    return "cpu"
+
+
+def set_default_backend(backend: str) -> str:
+    """Make `backend` the default of every later render (the ``--backend`` flag of the
+    commands); returns the concrete backend it resolves to."""
+    global _default_backend
+    concrete = resolve_backend(backend)
+    _default_backend = concrete
+    return concrete
 
 _FLOATS = (torch.float32, torch.float64)
 
@@ -233,34 +288,37 @@ def project_gaussians(
 
 
 class _ContextPool:
-    """Reusable Rust raster contexts (their buffers stay warm across iterations)."""
+    """Reusable Rust raster contexts of one backend (their buffers stay warm across
+    iterations)."""
 
-    def __init__(self) -> None:
-        self._free: list[_core.RasterContext] = []
+    def __init__(self, make) -> None:
+        self._make = make
+        self._free: list = []
 
-    def get(self) -> _core.RasterContext:
-        return self._free.pop() if self._free else _core.RasterContext()
+    def get(self):
+        return self._free.pop() if self._free else self._make()
 
-    def put(self, c: _core.RasterContext) -> None:
+    def put(self, c) -> None:
         if len(self._free) < 8:
             self._free.append(c)
 
 
-_POOL = _ContextPool()
+_POOLS = {"cpu": _ContextPool(_core.RasterContext), "wgpu": _ContextPool(_core.WgpuContext)}
 
 
 class _Lease:
     """Owns one context for the lifetime of an autograd node and returns it to the pool when
     the node is freed, so a retained graph can run its backward again safely."""
 
-    __slots__ = ("context",)
+    __slots__ = ("backend", "context")
 
-    def __init__(self, context: _core.RasterContext) -> None:
-        self.context = context
+    def __init__(self, backend: str) -> None:
+        self.backend = backend
+        self.context = _POOLS[backend].get()
 
     def __del__(self) -> None:
         try:
-            _POOL.put(self.context)
+            _POOLS[self.backend].put(self.context)
         except Exception:  # interpreter shutdown: nothing to return to
             pass
 
@@ -270,10 +328,10 @@ class _RasterizeFn(torch.autograd.Function):
     def forward(  # type: ignore[override]
         ctx, means2d, conics, depths, opacities, features, radii, background, opts, info
     ):
-        width, height, alpha_max, threads = opts
+        width, height, alpha_max, threads, backend = opts
         n, ch = features.shape
         splats = (_np(means2d), _np(conics), _np(depths), _np(opacities), _np(radii), _np(features))
-        lease = _Lease(_POOL.get())
+        lease = _Lease(backend)
         f, a, d, counters = lease.context.forward(
             splats, ch, _np(background), width, height, alpha_max, threads
         )
@@ -291,7 +349,7 @@ class _RasterizeFn(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_f, v_a, v_d):  # type: ignore[override]
         means2d, conics, depths, opacities, features, radii, background = ctx.saved_tensors
-        width, height, alpha_max, threads = ctx.opts
+        width, height, alpha_max, threads, _backend = ctx.opts
         n, ch = features.shape
         splats = (_np(means2d), _np(conics), _np(depths), _np(opacities), _np(radii), _np(features))
         like_f = features.new_empty(height, width, ch)
@@ -331,11 +389,13 @@ def rasterize_to_pixels(
     alpha_max: float = 0.99,
     threads: int | None = None,
     counters: dict | None = None,
+    backend: str | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Composite screen-space splats front to back. Returns ``(features [H, W, C],
     alpha [H, W, 1], depth_accum [H, W, 1])`` where ``depth_accum = sum_i z_i alpha_i T_i``.
     Differentiable w.r.t. means2d, conics, depths, opacities and features. Work counters
-    (visible, intersections, evaluated, blended) are written into ``counters`` if given."""
+    (visible, intersections, evaluated, blended) are written into ``counters`` if given.
+    `backend`: ``"cpu"``, ``"wgpu"`` or ``"auto"`` (see the module notes)."""
     _check_tensor("features", features, (-1, -1))
     dtype = features.dtype
     n, ch = features.shape
@@ -356,7 +416,13 @@ def rasterize_to_pixels(
     if not (1.0 / 255.0 <= am < 1.0):
         raise ValueError(f"alpha_max: must lie in [1/255, 1), got {alpha_max}")
     info: dict = {} if counters is None else counters
-    opts = (w, h, am, _threads(threads))
+    be = resolve_backend(backend)
+    if be == "wgpu" and dtype != torch.float32:
+        raise ValueError(
+            "backend 'wgpu' composites float32 only; use backend='cpu' for float64 "
+            "(gradient checks)"
+        )
+    opts = (w, h, am, _threads(threads), be)
     return _RasterizeFn.apply(
         means2d, conics, depths, opacities, features, radii, background, opts, info
     )
@@ -399,6 +465,7 @@ def rasterize(
     antialiased: bool = False,
     alpha_max: float = 0.99,
     threads: int | None = None,
+    backend: str | None = None,
 ) -> RasterOutput:
     """Render Gaussians to a ``height`` x ``width`` image (see the module docstring)."""
     dtype = _check_gaussians(means, quats, scales, opacities)
@@ -411,7 +478,7 @@ def rasterize(
     img, alpha, depth_accum = rasterize_to_pixels(
         proj.means2d, proj.conics, proj.depths, proj.opacities, proj.radii, features,
         width, height, background=background, alpha_max=alpha_max, threads=threads,
-        counters=counters,
+        counters=counters, backend=backend,
     )  # fmt: skip
     depth = torch.where(alpha > 0, depth_accum / alpha.clamp_min(1e-10), torch.zeros_like(alpha))
     return RasterOutput(img, alpha, depth, proj.means2d, proj.radii, counters)

@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from PIL import Image
 from test_data_blender import _write_scene
@@ -64,6 +65,36 @@ def test_fit_eval_render(data: Path, tmp_path: Path, capsys) -> None:
         "r_001_t0.000.png", "r_001_t0.500.png", "r_001_t1.000.png",
     ]  # fmt: skip
     assert (run / "renders" / "r_001_sweep.gif").stat().st_size > 0
+
+    # --backend auto always works (wgpu on a GPU, else cpu) and says what it picked.
+    capsys.readouterr()
+    out_auto = tmp_path / "auto"
+    assert main(["render", str(run), "--times", "0.5", "--camera", "train:1", "--no-gif",
+                 "--backend", "auto", "--out", str(out_auto)]) == 0  # fmt: skip
+    assert "backend auto ->" in capsys.readouterr().err
+    _render_matches_cpu_on_wgpu(run, tmp_path)
+
+
+def _render_matches_cpu_on_wgpu(run: Path, tmp_path: Path) -> None:
+    """`render --backend wgpu` gives the CPU render (8-bit) when an adapter exists; in CI
+    (SYNC4D_REQUIRE_GPU=1, lavapipe) a missing adapter fails."""
+    from sync4d import _core
+
+    try:
+        _core.wgpu_adapter()
+    except RuntimeError:
+        if os.environ.get("SYNC4D_REQUIRE_GPU") == "1":
+            raise
+        return
+    outs = {}
+    for backend in ("cpu", "wgpu"):
+        out = tmp_path / backend
+        args = ["render", str(run), "--times", "0.5", "--camera", "train:1", "--no-gif",
+                "--backend", backend, "--out", str(out)]  # fmt: skip
+        assert main(args) == 0
+        with Image.open(out / "r_001_t0.500.png") as im:
+            outs[backend] = np.asarray(im, dtype=np.float64)
+    assert np.abs(outs["cpu"] - outs["wgpu"]).mean() < 0.5  # of 255
 
 
 def test_existing_run_needs_resume_and_resume_continues(data: Path, tmp_path: Path) -> None:

@@ -283,3 +283,50 @@ def test_retained_graph_backward_twice_with_renders_in_between() -> None:
     (g2,) = torch.autograd.grad(loss, a["means"])
     assert torch.equal(g1, g2)
     assert kept[0].features.shape == (40, 48, 3)
+
+
+def _wgpu_or_skip() -> None:
+    """Skip without a wgpu adapter, unless SYNC4D_REQUIRE_GPU=1 (CI, lavapipe) makes it a
+    failure."""
+    import os
+
+    from sync4d import _core
+
+    try:
+        _core.wgpu_adapter()
+    except RuntimeError as e:
+        if os.environ.get("SYNC4D_REQUIRE_GPU") == "1":
+            raise
+        pytest.skip(f"no wgpu adapter: {e}")
+
+
+def test_wgpu_backend_matches_cpu_forward_and_gradients() -> None:
+    _wgpu_or_skip()
+    scene = make_scene(300, 48, 40, channels=3, seed=11)
+    outs, grads = {}, {}
+    for backend in ("cpu", "wgpu"):
+        s = {k: (v.clone().requires_grad_(True) if k in GAUSSIAN_ARGS else v)
+             for k, v in scene.items()}  # fmt: skip
+        out = render(s, backend=backend, background=torch.tensor([0.1, 0.2, 0.3]))
+        w = torch.linspace(0.5, 1.5, out.features.numel()).reshape(out.features.shape)
+        ((out.features * w).sum() + out.alpha.sum() + 0.1 * out.depth.sum()).backward()
+        outs[backend] = (out.features.detach(), out.alpha.detach(), out.counters)
+        grads[backend] = {k: s[k].grad for k in GAUSSIAN_ARGS}
+    for a, b in zip(outs["cpu"][:2], outs["wgpu"][:2], strict=True):
+        assert (a - b).abs().max() <= 1e-4
+    assert outs["cpu"][2]["blended"] == outs["wgpu"][2]["blended"] > 0
+    for k in GAUSSIAN_ARGS:
+        a, b = grads["cpu"][k], grads["wgpu"][k]
+        rel = (a - b).abs().max() / a.abs().max().clamp_min(1e-12)
+        assert rel <= 1e-3, f"{k}: relative error {rel}"
+
+
+def test_backend_arguments() -> None:
+    scene = make_scene(20, 16, 16, seed=2, dtype=torch.float64)
+    with pytest.raises(ValueError, match="backend: expected one of cpu, wgpu, auto"):
+        render(scene, backend="cuda")
+    assert raster.resolve_backend("cpu") == "cpu"
+    assert raster.resolve_backend("auto") in ("cpu", "wgpu")
+    _wgpu_or_skip()
+    with pytest.raises(ValueError, match="float32 only"):
+        render(scene, backend="wgpu")

@@ -20,6 +20,7 @@ from itertools import product
 from pathlib import Path
 from typing import Any
 
+from sync4d import raster
 from sync4d.config import ConfigError, RunConfig, load_config, with_budget
 from sync4d.data import DatasetError, load_scene
 from sync4d.report import align_table
@@ -76,7 +77,7 @@ def run_grid(
                 "iterations": iters,
                 "resolution_scale": scale,
                 "max_gaussians": cap,
-                "backend": "cpu",
+                "backend": raster.resolve_backend(),
                 "width": scene.train[0].camera.width,
                 "height": scene.train[0].camera.height,
                 "train_seconds": summary["train_seconds"],

@@ -464,6 +464,166 @@ impl RasterContext {
     }
 }
 
+/// The process-wide wgpu rasterizer (kernels compiled once), opened on first use on the adapter
+/// `AdapterChoice::Auto` picks (a discrete, then integrated GPU, then a CPU driver such as
+/// lavapipe); the error text when none opens.
+fn wgpu_rasterizer() -> PyResult<&'static Mutex<sync4d_gpu::GpuRasterizer>> {
+    static GPU: OnceLock<Result<Mutex<sync4d_gpu::GpuRasterizer>, String>> = OnceLock::new();
+    GPU.get_or_init(|| {
+        sync4d_gpu::GpuDevice::new(sync4d_gpu::AdapterChoice::Auto)
+            .map(|d| Mutex::new(sync4d_gpu::GpuRasterizer::new(d)))
+            .map_err(|e| e.to_string())
+    })
+    .as_ref()
+    .map_err(|e| PyRuntimeError::new_err(format!("backend 'wgpu': {e}")))
+}
+
+/// Run `f` on the shared wgpu rasterizer without the GIL, mapping errors and panics.
+fn run_wgpu<T: Send>(
+    py: Python<'_>,
+    f: impl FnOnce(&mut sync4d_gpu::GpuRasterizer) -> sync4d_gpu::Result<T> + Send,
+) -> PyResult<T> {
+    let gpu = wgpu_rasterizer()?;
+    let out = py.allow_threads(move || {
+        catch_unwind(AssertUnwindSafe(move || {
+            let mut r = gpu.lock().unwrap_or_else(|p| p.into_inner());
+            f(&mut r)
+        }))
+    });
+    match out {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(sync4d_gpu::GpuError::Raster(e))) => Err(to_py(e)),
+        Ok(Err(e)) => Err(PyRuntimeError::new_err(format!("backend 'wgpu': {e}"))),
+        Err(_) => Err(PyRuntimeError::new_err(
+            "sync4d wgpu rasterizer internal error (please report with the inputs that caused it)",
+        )),
+    }
+}
+
+/// The adapter the wgpu backend runs on, opening it if needed ("name (kind, API, driver)");
+/// RuntimeError naming what was found and what to install when none opens.
+#[pyfunction]
+fn wgpu_adapter() -> PyResult<String> {
+    let gpu = wgpu_rasterizer()?;
+    let r = gpu.lock().unwrap_or_else(|p| p.into_inner());
+    Ok(r.device().adapter.to_string())
+}
+
+/// Adapters wgpu can see, best first, as (name, kind) with kind one of "discrete",
+/// "integrated", "virtual", "cpu", "other". Opens no device.
+#[pyfunction]
+fn wgpu_adapters(py: Python<'_>) -> Vec<(String, &'static str)> {
+    py.allow_threads(|| {
+        sync4d_gpu::list_adapters()
+            .into_iter()
+            .map(|a| (a.name, a.kind))
+            .collect()
+    })
+}
+
+/// The float32 compositor on the wgpu backend, with the device buffers its backward needs:
+/// one per in-flight render, like `RasterContext` (same method signatures; `threads` unused).
+#[pyclass(module = "sync4d._core")]
+struct WgpuContext {
+    state: Mutex<sync4d_gpu::GpuRasterState>,
+}
+
+#[pymethods]
+impl WgpuContext {
+    #[new]
+    fn new() -> Self {
+        WgpuContext {
+            state: Mutex::new(sync4d_gpu::GpuRasterState::new()),
+        }
+    }
+
+    /// Composite float32 splats (see `RasterContext.forward`).
+    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (splats, channels, background, width, height, alpha_max, threads))]
+    fn forward<'py>(
+        &self,
+        py: Python<'py>,
+        splats: SplatAny<'py>,
+        channels: usize,
+        background: AnyArr<'py>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        threads: usize,
+    ) -> PyResult<PyObject> {
+        let _ = threads;
+        let arrs = extract_splats::<f32>(&splats).map_err(|_| float32_only())?;
+        let sp = splats_of(&arrs, channels)?;
+        let bg: Arr<'py, f32> = background.extract().map_err(|_| float32_only())?;
+        let bg = flat(&bg, "background")?;
+        let npix = width as usize * height as usize;
+        let (f, a, d) = (
+            zeros::<f32>(py, npix * channels),
+            zeros::<f32>(py, npix),
+            zeros::<f32>(py, npix),
+        );
+        let out = core::ImageMut {
+            features: slice_mut(&f),
+            alpha: slice_mut(&a),
+            depth: slice_mut(&d),
+        };
+        let bs = core::BlendSettings { alpha_max };
+        let state = &self.state;
+        let counters = run_wgpu(py, |r| {
+            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            r.rasterize_forward(&sp, width, height, bg, &bs, &mut st, out)
+        })?;
+        to_object(py, (f, a, d, counters_dict(py, counters)?))
+    }
+
+    /// Backward of `forward` (see `RasterContext.backward`).
+    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (splats, channels, background, width, height, alpha_max, grads, threads))]
+    fn backward<'py>(
+        &self,
+        py: Python<'py>,
+        splats: SplatAny<'py>,
+        channels: usize,
+        background: AnyArr<'py>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        grads: (AnyArr<'py>, AnyArr<'py>, AnyArr<'py>),
+        threads: usize,
+    ) -> PyResult<PyObject> {
+        let _ = threads;
+        let arrs = extract_splats::<f32>(&splats).map_err(|_| float32_only())?;
+        let sp = splats_of(&arrs, channels)?;
+        let bg: Arr<'py, f32> = background.extract().map_err(|_| float32_only())?;
+        let bg = flat(&bg, "background")?;
+        let g: (Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>) = (
+            grads.0.extract().map_err(|_| float32_only())?,
+            grads.1.extract().map_err(|_| float32_only())?,
+            grads.2.extract().map_err(|_| float32_only())?,
+        );
+        let v = core::ImageGrads {
+            features: flat(&g.0, "grad_features")?,
+            alpha: flat(&g.1, "grad_alpha")?,
+            depth: flat(&g.2, "grad_depth")?,
+        };
+        let out = alloc_splat_grads::<f32>(py, sp.len(), channels);
+        let gm = splat_grads_mut(&out);
+        let bs = core::BlendSettings { alpha_max };
+        let state = &self.state;
+        run_wgpu(py, |r| {
+            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            r.rasterize_backward(&sp, width, height, bg, &bs, &mut st, &v, gm)
+        })?;
+        to_object(py, out)
+    }
+}
+
+fn float32_only() -> PyErr {
+    PyValueError::new_err(
+        "backend 'wgpu' composites float32 only; use backend='cpu' for float64 (gradient checks)",
+    )
+}
+
 /// Splat arrays of unknown dtype: (means2d, conics, depths, opacities, radii, features).
 type SplatAny<'py> = (
     AnyArr<'py>,
@@ -667,6 +827,9 @@ fn default_threads() -> usize {
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RasterContext>()?;
+    m.add_class::<WgpuContext>()?;
+    m.add_function(wrap_pyfunction!(wgpu_adapter, m)?)?;
+    m.add_function(wrap_pyfunction!(wgpu_adapters, m)?)?;
     m.add_function(wrap_pyfunction!(project_forward, m)?)?;
     m.add_function(wrap_pyfunction!(project_backward, m)?)?;
     m.add_function(wrap_pyfunction!(sh_forward, m)?)?;
