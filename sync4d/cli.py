@@ -220,6 +220,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="skip the gsplat torch reference timings",
     )
     raster.add_argument(
+        "--no-wgpu",
+        action="store_true",
+        help="skip the wgpu backend timings (default: timed when a wgpu adapter opens, "
+        "e.g. lavapipe)",
+    )
+    raster.add_argument(
         "--quick",
         action="store_true",
         help="N=10000 at 256x256 only, fewer repeats (smoke run); --sizes/--resolutions win",

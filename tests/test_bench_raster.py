@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -54,6 +55,15 @@ def test_cli_quick_run_writes_json(tmp_path: Path, capsys: pytest.CaptureFixture
     assert set(counters) >= {"visible", "intersections", "evaluated", "blended"}
     assert counters["visible"] > 0 and counters["blended"] > 0
     assert doc["total_seconds"] > 0 and doc["thread_scaling"] == []
+    # wgpu columns: timed when an adapter opens (lavapipe in CI), else a stated skip.
+    assert "wgpu f+b ms" in printed
+    wg = row["wgpu"]
+    if settings["wgpu_adapter"]:
+        assert wg["status"] == "ok" and wg["forward_backward"]["median_ms"] > 0
+        assert wg["counters"]["blended"] == counters["blended"]
+    else:
+        assert wg["status"].startswith("skipped") and settings["wgpu_note"]
+        assert os.environ.get("SYNC4D_REQUIRE_GPU") != "1"
 
 
 def test_bench_scene_matches_the_spec() -> None:

@@ -66,6 +66,7 @@ import torch
 from torch import Tensor
 
 import sync4d
+from sync4d import _core
 from sync4d.report import align_table
 
 __all__ = [
@@ -358,9 +359,10 @@ def _leaves(scene: BenchScene) -> list[Tensor]:
 
 
 def _sync4d_calls(
-    scene: BenchScene, threads: int, counters: dict[str, int]
+    scene: BenchScene, threads: int, counters: dict[str, int], backend: str = "cpu"
 ) -> dict[str, Callable[[], None]]:
-    """sync4d forward / forward+backward closures; the forward stores the work counters."""
+    """sync4d forward / forward+backward closures on `backend`; the forward stores the work
+    counters."""
     from sync4d.raster import rasterize
 
     cam = (scene.viewmat, scene.K, scene.width, scene.height)
@@ -368,12 +370,12 @@ def _sync4d_calls(
 
     def forward() -> None:
         with torch.no_grad():
-            out = rasterize(*scene.gaussians(), *cam, threads=threads)
+            out = rasterize(*scene.gaussians(), *cam, threads=threads, backend=backend)
         counters.clear()
         counters.update({k: int(v) for k, v in out.counters.items()})
 
     def forward_backward() -> None:
-        out = rasterize(*leaves, *cam, threads=threads)
+        out = rasterize(*leaves, *cam, threads=threads, backend=backend)
         loss = out.features.sum() + out.alpha.sum()
         torch.autograd.grad(loss, leaves)
 
@@ -411,7 +413,8 @@ def run_job(
     repeats: int,
     memory_method: str,
 ) -> dict[str, Any]:
-    """Build the scene and measure ``modes`` of ``impl`` ("sync4d" or "reference").
+    """Build the scene and measure ``modes`` of ``impl`` ("sync4d", "wgpu": sync4d on the wgpu
+    backend, or "reference").
 
     Returns ``{"modes": {mode: Timing as dict}, "counters": {...}}`` (counters: sync4d only).
     Sets ``torch.set_num_threads(threads)`` (and restores it).
@@ -421,8 +424,8 @@ def run_job(
     try:
         scene = bench_scene(n, width, height, seed)
         counters: dict[str, int] = {}
-        if impl == "sync4d":
-            calls = _sync4d_calls(scene, threads, counters)
+        if impl in ("sync4d", "wgpu"):
+            calls = _sync4d_calls(scene, threads, counters, "cpu" if impl == "sync4d" else "wgpu")
         elif impl == "reference":
             calls = _reference_calls(scene)
         else:
@@ -604,7 +607,7 @@ class _Progress:
     of 12 for the reference); seconds per unit are learnt per kind as steps finish.
     """
 
-    PRIOR = {"sync4d": 1.0, "reference": 12.0}
+    PRIOR = {"sync4d": 1.0, "wgpu": 8.0, "reference": 12.0}
 
     def __init__(self, steps: list[tuple[str, float]], stream: Any = sys.stdout) -> None:
         self.units = [units * self.PRIOR[kind] for kind, units in steps]
@@ -723,6 +726,9 @@ def format_table(rows: list[dict[str, Any]]) -> str:
         "s4d fwd ms",
         "s4d f+b ms",
         "s4d peak MB",
+        "wgpu fwd ms",
+        "wgpu f+b ms",
+        "wgpu/s4d f+b",
         "ref fwd ms",
         "ref f+b ms",
         "ref peak MB",
@@ -737,6 +743,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     lines = [header]
     for r in rows:
         s4d, ref = r["sync4d"], r["reference"]
+        wg = r.get("wgpu", {})
         counters = s4d.get("counters", {})
         if ref["status"] == "ok":
             ref_cells = [
@@ -754,6 +761,14 @@ def format_table(rows: list[dict[str, Any]]) -> str:
                 _fmt_ms(_get(s4d, "forward", "median_ms")),
                 _fmt_ms(_get(s4d, "forward_backward", "median_ms")),
                 _fmt_mb(s4d.get("forward_backward")),
+                _fmt_ms(_get(wg, "forward", "median_ms")),
+                _fmt_ms(_get(wg, "forward_backward", "median_ms")),
+                _fmt_ratio(
+                    _ratio(
+                        _get(wg, "forward_backward", "median_ms"),
+                        _get(s4d, "forward_backward", "median_ms"),
+                    )
+                ),
                 *ref_cells,
                 _fmt_ratio(r.get("speedup_forward_backward")),
                 _fmt_ratio(r.get("memory_delta_ratio")),
@@ -821,6 +836,9 @@ class _Plan:
     reference_max_gb: float
     memory_method: str
     out: Path
+    #: The wgpu adapter timed beside the CPU path ("" when skipped).
+    wgpu_adapter: str = ""
+    wgpu_note: str = ""
 
     def sync4d_repeats(self, n: int) -> tuple[int, int]:
         """(warm-up, timed) calls per sync4d measurement."""
@@ -867,6 +885,14 @@ def _plan(args: argparse.Namespace) -> _Plan:
         raise SystemExit("--memory-method clear_refs: /proc/self/clear_refs is not writable here")
 
     out = Path(getattr(args, "out", None) or DEFAULT_OUT)
+    adapter, wgpu_note = "", ""
+    if getattr(args, "no_wgpu", False):
+        wgpu_note = "skipped (--no-wgpu)"
+    else:
+        try:
+            adapter = _core.wgpu_adapter()
+        except RuntimeError as e:
+            wgpu_note = f"skipped ({e})"
     return _Plan(
         sizes=tuple(int(n) for n in sizes),
         resolutions=tuple((int(w), int(h)) for w, h in resolutions),
@@ -879,6 +905,8 @@ def _plan(args: argparse.Namespace) -> _Plan:
         reference_max_gb=float(getattr(args, "reference_max_gb", None) or REFERENCE_MAX_GB),
         memory_method=method,
         out=out,
+        wgpu_adapter=adapter,
+        wgpu_note=wgpu_note,
     )
 
 
@@ -920,6 +948,18 @@ def _run_sync4d(plan: _Plan, n: int, width: int, height: int, threads: int) -> d
         out[mode] = child.result["modes"][mode]
         out["counters"] = child.result["counters"]
     return out
+
+
+def _run_wgpu(plan: _Plan, n: int, width: int, height: int, threads: int) -> dict[str, Any]:
+    """The sync4d op on the wgpu backend, in this process (times only; the adapter's memory
+    is not the process's)."""
+    warmup, repeats = plan.sync4d_repeats(n)
+    res = run_job(
+        impl="wgpu", n=n, width=width, height=height, seed=plan.seed, threads=threads,
+        modes=MODES, warmup=warmup, repeats=repeats, memory_method=plan.memory_method,
+    )  # fmt: skip
+    return {"status": "ok", "adapter": plan.wgpu_adapter, **res["modes"],
+            "counters": res["counters"]}  # fmt: skip
 
 
 def _run_reference(plan: _Plan, n: int, width: int, height: int, threads: int) -> dict[str, Any]:
@@ -981,6 +1021,8 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     for n, w, h, t in configs:
         wu, rep = plan.sync4d_repeats(n)
         steps.append(("sync4d", _step_units(n, w, h, t, (wu + rep) * 1.45)))
+        if plan.wgpu_adapter:
+            steps.append(("wgpu", _step_units(n, w, h, t, (wu + rep) * 1.45)))
         if _reference_skip(plan, n, w, h, t, []) is None:
             wu, rep = plan.reference_repeats(n)
             steps.append(("reference", _step_units(n, w, h, t, (wu + rep) * 1.45)))
@@ -1015,6 +1057,8 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
                 "reference": {str(n): list(plan.reference_repeats(n)) for n in plan.sizes},
                 "format": "[warm-up calls, timed calls]; median of the timed calls",
             },
+            "wgpu_adapter": plan.wgpu_adapter or None,
+            "wgpu_note": plan.wgpu_note or None,
             "reference_enabled": plan.reference,
             "reference_note": plan.reference_note or None,
             "reference_max_n": REFERENCE_MAX_N,
@@ -1028,7 +1072,8 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     print(
         f"sync4d {sync4d.__version__} bench raster: {len(configs)} configs "
         f"(N {list(plan.sizes)}, {[f'{w}x{h}' for w, h in plan.resolutions]}, "
-        f"threads {list(plan.threads)}); reference: "
+        f"threads {list(plan.threads)}); wgpu: {plan.wgpu_adapter or plan.wgpu_note}; "
+        f"reference: "
         f"{'N <= 100k' if plan.reference else plan.reference_note}; "
         f"memory: {plan.memory_method}; json: {plan.out}",
         flush=True,
@@ -1055,6 +1100,19 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
                 f"peak {_fmt_mb(s4d['forward_backward'])} MB{_fmt_load(s4d)}",
                 s4d["seconds"],
             )
+            if plan.wgpu_adapter:
+                progress.say(f"wgpu       {label} ...")
+                t0, load = time.monotonic(), _OtherLoad()
+                wg = row["wgpu"] = _run_wgpu(plan, n, w, h, t)
+                wg["seconds"] = round(time.monotonic() - t0, 3)
+                wg["other_load_cores"] = load.cores()
+                progress.finish(
+                    f"wgpu       {label}: fwd {_fmt_ms(wg['forward']['median_ms'])} ms, "
+                    f"fwd+bwd {_fmt_ms(wg['forward_backward']['median_ms'])} ms{_fmt_load(wg)}",
+                    wg["seconds"],
+                )
+            else:
+                row["wgpu"] = {"status": plan.wgpu_note}
             skip = _reference_skip(plan, n, w, h, t, aborted)
             if skip is None:
                 progress.say(f"reference  {label} ...")
@@ -1093,7 +1151,8 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     print()
     print(format_table(rows))
     print(
-        "\nms: median wall time; peak MB: peak RSS of the process during fwd+bwd (+ growth "
+        "\nms: median wall time; wgpu: the same op with backend='wgpu' (wgpu/s4d: its fwd+bwd "
+        "time over the CPU path's);\npeak MB: peak RSS of the process during fwd+bwd (+ growth "
         "over the RSS before it);\nspeed-up: reference fwd+bwd / sync4d fwd+bwd; op mem ratio: "
         "reference growth / sync4d growth\n(the memory each op adds on top of the Python + torch "
         "process); RSS ratio: reference peak RSS / sync4d peak RSS;\ncounters: sync4d forward "
