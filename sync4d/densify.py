@@ -36,9 +36,11 @@ class DensifyConfig:
     split_count: int = 2
     max_gaussians: int = 1_000_000
     #: After the first opacity reset, also prune Gaussians whose largest world-space scale
-    #: exceeds this fraction of the scene extent (3DGS / gsplat: 0.1; 0 disables). Without
-    #: it, metre-sized blobs fill empty space as fog in wide captures and cover novel views.
-    prune_world_scale: float = 0.1
+    #: exceeds this fraction of the scene extent (3DGS / gsplat use 0.1; 0 disables, the
+    #: default here: on the embedded scene and bouncingballs it cost 0.6-1 dB in our short
+    #: CPU schedules). Wide captures need it: metre-sized blobs otherwise fill empty space as
+    #: fog and cover novel views (configs/panoptic.toml sets 0.1).
+    prune_world_scale: float = 0.0
     #: ...and, when > 0, those whose projected radius exceeded this fraction of the image's
     #: larger side in some view since the last densification (gsplat's optional 0.15; off by
     #: default as in gsplat and, effectively, 3DGS).
