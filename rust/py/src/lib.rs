@@ -311,6 +311,32 @@ fn splat_grads_mut<'a, T: Element>(o: &'a SplatGradOut<'_, T>) -> core::SplatGra
     }
 }
 
+/// Output images of one forward: features [H*W*C], alpha [H*W], depth [H*W], zeroed.
+type ImageOut<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>);
+
+fn alloc_image<'py, T: Element>(py: Python<'py>, npix: usize, ch: usize) -> ImageOut<'py, T> {
+    (zeros(py, npix * ch), zeros(py, npix), zeros(py, npix))
+}
+
+fn image_mut<'a, T: Element>(o: &'a ImageOut<'_, T>) -> core::ImageMut<'a, T> {
+    core::ImageMut {
+        features: slice_mut(&o.0),
+        alpha: slice_mut(&o.1),
+        depth: slice_mut(&o.2),
+    }
+}
+
+/// Borrow the backward's incoming image gradients (features, alpha, depth).
+fn image_grads<'a, T: Element>(
+    g: &'a (Arr<'_, T>, Arr<'_, T>, Arr<'_, T>),
+) -> PyResult<core::ImageGrads<'a, T>> {
+    Ok(core::ImageGrads {
+        features: flat(&g.0, "grad_features")?,
+        alpha: flat(&g.1, "grad_alpha")?,
+        depth: flat(&g.2, "grad_depth")?,
+    })
+}
+
 /// The fast (float32) compositor with its reusable buffers: one per in-flight render. Keep it
 /// from forward to backward; reuse it across iterations so large buffers are touched once.
 #[pyclass(module = "sync4d._core")]
@@ -412,24 +438,15 @@ impl RasterContext {
     ) -> PyResult<ImageResult<'py, T>> {
         let sp = splats_of(splats, channels)?;
         let bg = flat(&background, "background")?;
-        let npix = width as usize * height as usize;
-        let (f, a, d) = (
-            zeros::<T>(py, npix * channels),
-            zeros::<T>(py, npix),
-            zeros::<T>(py, npix),
-        );
-        let out = core::ImageMut {
-            features: slice_mut(&f),
-            alpha: slice_mut(&a),
-            depth: slice_mut(&d),
-        };
+        let img = alloc_image::<T>(py, width as usize * height as usize, channels);
+        let out = image_mut(&img);
         let bs = core::BlendSettings { alpha_max };
         let state = &self.state;
         let counters = run(py, threads, || {
             let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
             T::composite_forward(&sp, width, height, bg, &bs, &mut st, out)
         })?;
-        Ok((f, a, d, counters_dict(py, counters)?))
+        Ok((img.0, img.1, img.2, counters_dict(py, counters)?))
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -447,11 +464,7 @@ impl RasterContext {
     ) -> PyResult<SplatGradOut<'py, T>> {
         let sp = splats_of(splats, channels)?;
         let bg = flat(&background, "background")?;
-        let v = core::ImageGrads {
-            features: flat(&grads.0, "grad_features")?,
-            alpha: flat(&grads.1, "grad_alpha")?,
-            depth: flat(&grads.2, "grad_depth")?,
-        };
+        let v = image_grads(&grads)?;
         let out = alloc_splat_grads::<T>(py, sp.len(), channels);
         let g = splat_grads_mut(&out);
         let bs = core::BlendSettings { alpha_max };
@@ -556,24 +569,15 @@ impl WgpuContext {
         let sp = splats_of(&arrs, channels)?;
         let bg: Arr<'py, f32> = background.extract().map_err(|_| float32_only())?;
         let bg = flat(&bg, "background")?;
-        let npix = width as usize * height as usize;
-        let (f, a, d) = (
-            zeros::<f32>(py, npix * channels),
-            zeros::<f32>(py, npix),
-            zeros::<f32>(py, npix),
-        );
-        let out = core::ImageMut {
-            features: slice_mut(&f),
-            alpha: slice_mut(&a),
-            depth: slice_mut(&d),
-        };
+        let img = alloc_image::<f32>(py, width as usize * height as usize, channels);
+        let out = image_mut(&img);
         let bs = core::BlendSettings { alpha_max };
         let state = &self.state;
         let counters = run_wgpu(py, |r| {
             let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
             r.rasterize_forward(&sp, width, height, bg, &bs, &mut st, out)
         })?;
-        to_object(py, (f, a, d, counters_dict(py, counters)?))
+        to_object(py, (img.0, img.1, img.2, counters_dict(py, counters)?))
     }
 
     /// Backward of `forward` (see `RasterContext.backward`).
@@ -601,11 +605,7 @@ impl WgpuContext {
             grads.1.extract().map_err(|_| float32_only())?,
             grads.2.extract().map_err(|_| float32_only())?,
         );
-        let v = core::ImageGrads {
-            features: flat(&g.0, "grad_features")?,
-            alpha: flat(&g.1, "grad_alpha")?,
-            depth: flat(&g.2, "grad_depth")?,
-        };
+        let v = image_grads(&g)?;
         let out = alloc_splat_grads::<f32>(py, sp.len(), channels);
         let gm = splat_grads_mut(&out);
         let bs = core::BlendSettings { alpha_max };
