@@ -174,7 +174,7 @@ class Phase2Trainer(Phase1Trainer):
                 "use phase2.motion.init=identity"
             )
         self.motion_optimizer = torch.optim.Adam(
-            self.motion.parameters(), lr=self.phase2.motion.lr, eps=1e-15
+            self.motion.parameters(), lr=self.phase2.motion.lr, eps=1e-15, fused=True
         )
         self._set_labels(self.assignment.labels)
         self.static = self._static_objects()

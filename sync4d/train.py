@@ -143,6 +143,7 @@ class Phase1Trainer:
             [{"params": [p], "name": n, "lr": lr} for n, p, lr in groups]
             + [{"params": list(m.deform.parameters()), "name": "deform", "lr": c.lr_deform}],
             eps=1e-15,
+            fused=True,  # one multithreaded kernel for all groups: ~4x faster than the default
         )
 
     def _image(self, index: int, frame: Frame) -> torch.Tensor:
@@ -189,7 +190,9 @@ class Phase1Trainer:
             deformed=deformed, threads=self.threads,
         )
         out.means2d.retain_grad()
-        loss = photometric_loss(out.features, target, c.lambda_l1, c.lambda_dssim)
+        loss = photometric_loss(
+            out.features, target, c.lambda_l1, c.lambda_dssim, threads=self.threads
+        )
         extra, extra_stats = self.auxiliary_loss(frame, deformed[0])
         if extra is not None:
             loss = loss + extra

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from sync4d.losses import dssim, photometric_loss, psnr, ssim
+from sync4d.losses import dssim, photometric_loss, photometric_loss_reference, psnr, ssim
 
 
 def test_ssim_identity_and_degradation() -> None:
@@ -36,3 +36,33 @@ def test_psnr_and_shape_errors() -> None:
     assert psnr(a, torch.full_like(a, 0.1)) == pytest.approx(20.0, rel=1e-5)
     with pytest.raises(ValueError, match="pred/target"):
         photometric_loss(a, torch.zeros(4, 5, 3))
+
+
+@pytest.mark.parametrize("shape", [(2, 2, 1), (7, 9, 3), (40, 33, 4)])
+def test_fused_loss_matches_the_torch_composition(shape: tuple[int, int, int]) -> None:
+    g = torch.Generator().manual_seed(1)
+    pred = torch.rand(shape, generator=g, dtype=torch.float64, requires_grad=True)
+    target = torch.rand(shape, generator=g, dtype=torch.float64)
+    fused = photometric_loss(pred, target, 0.7, 0.3, threads=2)
+    (g_fused,) = torch.autograd.grad(2.5 * fused, pred)
+    ref = photometric_loss_reference(pred, target, 0.7, 0.3)
+    (g_ref,) = torch.autograd.grad(2.5 * ref, pred)
+    assert fused.dtype == torch.float64
+    assert fused.item() == pytest.approx(ref.item(), abs=1e-12)
+    torch.testing.assert_close(g_fused, g_ref, rtol=1e-9, atol=1e-14)
+    # float32 agrees with float64 to float32 precision.
+    p32 = pred.detach().float().requires_grad_(True)
+    l32 = photometric_loss(p32, target.float(), 0.7, 0.3)
+    l32.backward()
+    assert l32.item() == pytest.approx(ref.item(), abs=1e-5)
+    assert p32.grad is not None
+    torch.testing.assert_close(
+        p32.grad.double(), g_ref / 2.5, rtol=1e-3, atol=1e-3 * g_ref.abs().max().item()
+    )
+
+
+def test_fused_loss_rejects_non_finite_renders() -> None:
+    pred = torch.rand(6, 6, 3)
+    pred[2, 3, 1] = float("nan")
+    with pytest.raises(ValueError, match="pred: non-finite"):
+        photometric_loss(pred, torch.rand(6, 6, 3))

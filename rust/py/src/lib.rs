@@ -817,6 +817,60 @@ fn sh_backward<'py>(
     })
 }
 
+fn loss_typed<'py, T: Real + Element>(
+    py: Python<'py>,
+    pred: Arr<'py, T>,
+    target: Arr<'py, T>,
+    shape: (usize, usize, usize),
+    weights: core::LossWeights,
+    want_grad: bool,
+    threads: usize,
+) -> PyResult<PyObject> {
+    let (x, y) = (flat(&pred, "pred")?, flat(&target, "target")?);
+    let grad = want_grad.then(|| zeros::<T>(py, x.len()));
+    let g = grad.as_ref().map(|a| slice_mut(a));
+    let (h, w, c) = shape;
+    let t = run(py, threads, || {
+        core::photometric_loss(x, y, h, w, c, &weights, g)
+    })?;
+    to_object(py, (t.loss, t.mean_abs, t.ssim, grad))
+}
+
+/// Training loss l1 * mean|pred - target| + dssim * (1 - SSIM) / 2 of [height, width, channels]
+/// images (flat float32 or float64 arrays of one type), SSIM over `window` x `window` reflect-
+/// padded box means. Returns (loss, mean_abs, ssim, dL/d pred or None).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn photometric_loss<'py>(
+    py: Python<'py>,
+    pred: AnyArr<'py>,
+    target: AnyArr<'py>,
+    height: usize,
+    width: usize,
+    channels: usize,
+    l1: f64,
+    dssim: f64,
+    window: usize,
+    want_grad: bool,
+    threads: usize,
+) -> PyResult<PyObject> {
+    let weights = core::LossWeights { l1, dssim, window };
+    with_float_type!(pred, "pred", |T| {
+        let target = target.extract().map_err(|_| {
+            PyValueError::new_err("target: expected an array of the same dtype as pred")
+        })?;
+        loss_typed::<T>(
+            py,
+            pred.extract()?,
+            target,
+            (height, width, channels),
+            weights,
+            want_grad,
+            threads,
+        )
+    })
+}
+
 /// Number of threads rayon's global pool uses.
 #[pyfunction]
 fn default_threads() -> usize {
@@ -834,6 +888,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(project_backward, m)?)?;
     m.add_function(wrap_pyfunction!(sh_forward, m)?)?;
     m.add_function(wrap_pyfunction!(sh_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(photometric_loss, m)?)?;
     m.add_function(wrap_pyfunction!(default_threads, m)?)?;
     m.add("TILE_SIZE", core::TILE_SIZE)?;
     Ok(())

@@ -7,7 +7,8 @@
 //! 3. [`blend::rasterize_forward`]: front-to-back compositing of any number of feature channels,
 //!    accumulated alpha and depth. Parallel per tile.
 //!
-//! [`sh`] evaluates view-dependent colour from spherical harmonics. [`reference`] is the plain
+//! [`sh`] evaluates view-dependent colour from spherical harmonics; [`loss`] is the training
+//! loss (L1 + DSSIM) on the rendered image with its gradient. [`reference`] is the plain
 //! f64 per-pixel compositor the fast path is tested against. The crate knows nothing of Python;
 //! all inputs are flat row-major slices and every bad input is a [`RasterError`] naming the
 //! argument.
@@ -21,6 +22,7 @@ pub mod camera;
 pub mod error;
 mod lanes;
 pub mod linalg;
+pub mod loss;
 pub mod project;
 pub mod real;
 pub mod reference;
@@ -33,6 +35,7 @@ pub use blend::{
 pub use camera::Camera;
 pub use error::{RasterError, Result};
 pub use lanes::fast_exp;
+pub use loss::{photometric_loss, LossTerms, LossWeights};
 pub use project::{
     project_backward, project_forward, GaussianGradsMut, Gaussians, ProjectSettings, Projection,
     ProjectionGrads, ProjectionMut,
