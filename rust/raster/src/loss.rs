@@ -169,6 +169,22 @@ fn ssim_terms<F: Real>(sx: F, sy: F, sxx: F, syy: F, sxy: F, norm: F) -> (F, F, 
     (s, da, -s / d2, two * n1 * inv_d)
 }
 
+/// Row `r` (`row` values) of a row-major image.
+#[inline]
+fn image_row<F>(img: &[F], r: usize, row: usize) -> &[F] {
+    &img[r * row..(r + 1) * row]
+}
+
+/// The five consecutive `row`-long maps of a per-row scratch buffer.
+#[inline]
+fn five_maps<F>(buf: &mut [F], row: usize) -> [&mut [F]; 5] {
+    let (a, rest) = buf.split_at_mut(row);
+    let (b, rest) = rest.split_at_mut(row);
+    let (c, rest) = rest.split_at_mut(row);
+    let (d, e) = rest.split_at_mut(row);
+    [a, b, c, d, &mut e[..row]]
+}
+
 fn check_image<F: Real>(arg: &'static str, v: &[F], len: usize) -> Result<()> {
     crate::error::check_len(arg, v, len)?;
     crate::error::check_finite(arg, v)
@@ -227,14 +243,8 @@ pub fn photometric_loss<F: Real>(
     hsum.par_chunks_mut(5 * row).enumerate().for_each_init(
         || vec![F::zero(); 5 * row],
         |prod, (r, out)| {
-            let (x, y) = (
-                &pred[r * row..(r + 1) * row],
-                &target[r * row..(r + 1) * row],
-            );
-            let (px, rest) = prod.split_at_mut(row);
-            let (py, rest) = rest.split_at_mut(row);
-            let (pxx, rest) = rest.split_at_mut(row);
-            let (pyy, pxy) = rest.split_at_mut(row);
+            let (x, y) = (image_row(pred, r, row), image_row(target, r, row));
+            let [px, py, pxx, pyy, pxy] = five_maps(prod, row);
             for k in 0..row {
                 let (a, b) = (x[k], y[k]);
                 px[k] = a;
@@ -269,15 +279,9 @@ pub fn photometric_loss<F: Real>(
                 for (m, rows) in hmaps.iter().enumerate() {
                     taps_v.gather_rows(r, rows, &mut stats[m * row..(m + 1) * row]);
                 }
-                let (x, y) = (
-                    &pred[r * row..(r + 1) * row],
-                    &target[r * row..(r + 1) * row],
-                );
+                let (x, y) = (image_row(pred, r, row), image_row(target, r, row));
                 // The SSIM map overwrites the row's mean-x slot (read before written per k).
-                let (mx, rest) = stats.split_at_mut(row);
-                let (my, rest) = rest.split_at_mut(row);
-                let (exx, rest) = rest.split_at_mut(row);
-                let (eyy, exy) = rest.split_at_mut(row);
+                let [mx, my, exx, eyy, exy] = five_maps(stats, row);
                 if want_grad {
                     let (pa, rest) = part.split_at_mut(row);
                     let (pb, pc) = rest.split_at_mut(row);
@@ -334,10 +338,7 @@ pub fn photometric_loss<F: Real>(
                         channels,
                     );
                 }
-                let (x, y) = (
-                    &pred[r * row..(r + 1) * row],
-                    &target[r * row..(r + 1) * row],
-                );
+                let (x, y) = (image_row(pred, r, row), image_row(target, r, row));
                 let two = F::from_f64(2.0);
                 for k in 0..row {
                     let diff = x[k] - y[k];
