@@ -131,24 +131,19 @@ def main_loss(ref: Reference, image: torch.Tensor, alpha: torch.Tensor) -> torch
     return (ref.w_img.to(dt) * image).sum() + (ref.w_alpha.to(dt) * alpha).sum()
 
 
+def render_gsplat(s, case):
+    """gsplat's full render (image, alpha, depth) of scene `s` with `case`'s settings."""
+    return gr.gsplat_render_full(
+        s.means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height,
+        background=s.background, render_depth=True, **render_kwargs(case),
+    )  # fmt: skip
+
+
 def make_reference(name: str) -> Reference:
     case = CASES[name]
     scene = gr.make_random_scene(case.seed, **SCENE_SIZE, **case.scene)
     s = scene.to(torch.float64, requires_grad=True)
-    r = gr.gsplat_render_full(
-        s.means,
-        s.quats,
-        s.scales,
-        s.opacities,
-        s.colors,
-        s.viewmat,
-        s.K,
-        s.width,
-        s.height,
-        background=s.background,
-        render_depth=True,
-        **render_kwargs(case),
-    )
+    r = render_gsplat(s, case)
     mask, stats = gr.ambiguous_pixels(r, alpha_max=ALPHA_MAX)
     gen = torch.Generator().manual_seed(case.seed + 1)
     keep = (~mask)[..., None].double()
@@ -242,20 +237,7 @@ def run_sync4d(raster, ref: Reference, dtype: torch.dtype) -> Run:
 
 def run_gsplat_float32(ref: Reference) -> Run:
     s = ref.scene.to(torch.float32, requires_grad=True)
-    r = gr.gsplat_render_full(
-        s.means,
-        s.quats,
-        s.scales,
-        s.opacities,
-        s.colors,
-        s.viewmat,
-        s.K,
-        s.width,
-        s.height,
-        background=s.background,
-        render_depth=True,
-        **render_kwargs(ref.case),
-    )
+    r = render_gsplat(s, ref.case)
     main_loss(ref, r.image, r.alpha).backward()
     grads = {
         "means": s.means.grad,
