@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from sync4d import _core
+from sync4d.raster import _threads
 
 __all__ = ["ssim", "dssim", "photometric_loss", "photometric_loss_reference", "psnr"]
 
@@ -106,12 +107,11 @@ def photometric_loss(
         pred.device.type == "cpu"
         and target.device.type == "cpu"
         and pred.dtype in (torch.float32, torch.float64)
-        and min(pred.shape[0], pred.shape[1]) >= 2
         and not target.requires_grad
     )
     if not fused:
         return photometric_loss_reference(pred, target, lambda_l1, lambda_dssim)
-    return _FusedLoss.apply(pred, target, lambda_l1, lambda_dssim, threads or 0)
+    return _FusedLoss.apply(pred, target, lambda_l1, lambda_dssim, _threads(threads))
 
 
 def psnr(pred: Tensor, target: Tensor) -> float:

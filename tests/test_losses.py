@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from sync4d import _core
 from sync4d.losses import dssim, photometric_loss, photometric_loss_reference, psnr, ssim
 
 
@@ -66,3 +67,15 @@ def test_fused_loss_rejects_non_finite_renders() -> None:
     pred[2, 3, 1] = float("nan")
     with pytest.raises(ValueError, match="pred: non-finite"):
         photometric_loss(pred, torch.rand(6, 6, 3))
+
+
+def test_fused_loss_bad_inputs_are_named() -> None:
+    img = torch.rand(6, 6, 3)
+    with pytest.raises(ValueError, match="threads"):
+        photometric_loss(img, img, threads=0)
+    with pytest.raises(ValueError, match="too small for a 3x3 SSIM window"):
+        photometric_loss(torch.rand(1, 6, 3), torch.rand(1, 6, 3))
+    with pytest.raises(ValueError, match="target: expected an array of the same dtype"):
+        _core.photometric_loss(
+            img.numpy().ravel(), img.double().numpy().ravel(), 6, 6, 3, 0.8, 0.2, 3, True, 1
+        )
