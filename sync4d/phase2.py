@@ -35,8 +35,19 @@ from sync4d.assign import (
     cluster_trajectories,
 )
 from sync4d.data.scene import Frame, Scene
+from sync4d.deform import axis_angle_to_quat, quat_multiply
 from sync4d.gaussians import DeformableGaussians
-from sync4d.motion import MotionConfig, ObjectMotion, cosine_lr, make_motion
+from sync4d.losses import photometric_loss
+from sync4d.motion import (
+    MotionConfig,
+    ObjectMotion,
+    SE3Table,
+    cosine_lr,
+    make_motion,
+    matrix_to_rotvec,
+    rotvec_to_matrix,
+)
+from sync4d.progress import Progress
 from sync4d.train import Phase1Config, Phase1Trainer
 
 __all__ = [
@@ -178,8 +189,17 @@ class Phase2Trainer(Phase1Trainer):
         )
         self._set_labels(self.assignment.labels)
         self.static = self._static_objects()
+        if mc.refine_steps < 0:
+            raise ValueError(f"phase2.motion.refine_steps: expected >= 0, got {mc.refine_steps}")
+        if mc.refine_steps > 0 and (mc.init != "fit" or mc.kind != "se3"):
+            raise ValueError(
+                "phase2.motion.refine_steps refines the fitted SE(3) table: it needs "
+                f"phase2.motion.init=fit and kind=se3 (got init={mc.init!r}, kind={mc.kind!r})"
+            )
         if mc.init == "fit":
             self.fit_motion()
+            if mc.refine_steps > 0:
+                self.refine_motion(mc.refine_steps, mc.refine_lr)
 
     @torch.no_grad()
     def fit_motion(self) -> None:
@@ -188,6 +208,83 @@ class Phase2Trainer(Phase1Trainer):
         x0 = self.model.means.double().numpy()
         pos = [self.model.at_time(float(t))[0].double().numpy() for t in self.times]
         self.motion.fit_to(x0, pos, self.labels.numpy())
+
+    def refine_motion(self, steps: int, lr: float, progress: bool = True) -> None:
+        """Photometric refinement of the SE(3) table (MotionConfig.refine_steps): every moving
+        object's Gaussians of the first frame, moved rigidly as R_k (x - c_k) + c_k + d_k (c_k:
+        their centroid), are rendered beside D_theta's other Gaussians and compared with each
+        stored frame's training views in time order: `steps` Adam steps (learning rate `lr`)
+        per frame on every R_k and d_k, starting from the previous frame's rotation and from
+        D_theta's centroid offset. Table entries become the result composed with the first
+        frame's fitted transform; static objects, the first frame and the model are unchanged."""
+        motion = self.motion
+        if not isinstance(motion, SE3Table):
+            raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
+        moving = [k for k in range(self.assignment.num_objects) if not bool(self.static[k])]
+        times = self.times
+        if not moving or len(times) < 2 or steps <= 0:
+            return
+        views: list[list[int]] = [[] for _ in times]  # training frame indices per stored time
+        for index, f in enumerate(self.scene.train):
+            views[motion.frame_index(f.time)].append(index)
+        slot = torch.full_like(self.labels, -1)  # index into `moving`, -1 elsewhere
+        for i, k in enumerate(moving):
+            slot[self.labels == k] = i
+        sel = slot >= 0
+        owner = slot[sel]
+        count = torch.bincount(owner, minlength=len(moving)).clamp_min(1).unsqueeze(-1)
+        model = self.model
+        with torch.no_grad():
+            x_ref, q_ref, s_ref = (v[sel] for v in model.at_time(float(times[0])))
+            centre = torch.zeros(len(moving), 3).index_add_(0, owner, x_ref) / count
+            r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
+            b0 = motion.translations[moving, 0].detach().float()
+        w = torch.zeros(len(moving), 3)
+        bar = Progress(len(times) - 1, desc="refine M_phi", log_every=10) if progress else None
+        for j in range(1, len(times)):
+            t = float(times[j])
+            with torch.no_grad():
+                x_t, q_t, s_t = model.at_time(t)
+                cen_t = torch.zeros(len(moving), 3).index_add_(0, owner, x_t[sel]) / count
+            w_j = w.clone().requires_grad_(True)
+            d_j = (cen_t - centre).requires_grad_(True)
+            opt = torch.optim.Adam([w_j, d_j], lr=lr)
+            loss_value = float("nan")
+            for s in range(steps if views[j] else 0):
+                index = views[j][s % len(views[j])]
+                frame = self.scene.train[index]
+                means, quats, scales = x_t.clone(), q_t.clone(), s_t.clone()
+                rot = rotvec_to_matrix(w_j)[owner]
+                moved = (rot @ (x_ref - centre[owner]).unsqueeze(-1)).squeeze(-1)
+                means[sel] = moved + centre[owner] + d_j[owner]
+                quats[sel] = quat_multiply(axis_angle_to_quat(w_j)[owner], q_ref)
+                scales[sel] = s_ref
+                out = model.render(
+                    frame.camera, t, sh_degree=model.sh_degree, background=self._background,
+                    deformed=(means, quats, scales), threads=self.threads,
+                )  # fmt: skip
+                loss = photometric_loss(
+                    out.features, self._image(index, frame), self.config.lambda_l1,
+                    self.config.lambda_dssim, threads=self.threads,
+                )  # fmt: skip
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                loss_value = float(loss.detach())
+            with torch.no_grad():
+                w = w_j.detach().clone()
+                r = rotvec_to_matrix(w)
+                a_j = r @ r0
+                b_j = (r @ (b0 - centre).unsqueeze(-1)).squeeze(-1) + centre + d_j.detach()
+                for i, k in enumerate(moving):
+                    motion.rotvecs[k, j] = torch.as_tensor(
+                        matrix_to_rotvec(a_j[i].double().numpy()), dtype=motion.rotvecs.dtype
+                    )
+                    motion.translations[k, j] = b_j[i].to(motion.translations.dtype)
+            if bar is not None:
+                bar.update(j, {"loss": f"{loss_value:.4f}"})
+        if bar is not None:
+            bar.close()
 
     # -- assignment state ----------------------------------------------------------------
     def _set_labels(self, labels: np.ndarray) -> None:
