@@ -59,8 +59,8 @@ class MotionConfig:
     init: str = "identity"
     #: Photometric refinement of the fitted SE(3) table (init "fit" only; 0 skips it): at every
     #: stored frame, in time order and starting from the previous frame's result, this many Adam
-    #: steps on each moving object's rotation and translation, rendering the object's
-    #: Gaussians of the first frame moved rigidly against that frame's training views. The
+    #: steps (4x at the first frame) on each moving object's rotation and translation, rendering
+    #: the object's Gaussians of the first frame moved rigidly against that frame's views. The
     #: closed-form fit follows D_theta's point correspondences, and D_theta may morph a turning
     #: shape instead of rotating its Gaussians (measured on the embedded scene: 9 of the box's 45
     #: degrees); the images pin the rotation down. Not in the paper.

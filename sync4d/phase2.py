@@ -215,8 +215,11 @@ class Phase2Trainer(Phase1Trainer):
         their centroid), are rendered beside D_theta's other Gaussians and compared with each
         stored frame's training views in time order: `steps` Adam steps (learning rate `lr`)
         per frame on every R_k and d_k, starting from the previous frame's rotation and from
-        D_theta's centroid offset. Table entries become the result composed with the first
-        frame's fitted transform; static objects, the first frame and the model are unchanged."""
+        D_theta's centroid offset. The first frame is refined too (4 x `steps`, from the
+        identity): D_theta's Gaussians there may carry their texture turned away from the
+        images (a time-averaged orientation when D_theta morphs instead of rotating), and the
+        motion is relative to that frame. Table entries become the result composed with the
+        first frame's fitted transform; static objects and the model are unchanged."""
         motion = self.motion
         if not isinstance(motion, SE3Table):
             raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
@@ -240,8 +243,8 @@ class Phase2Trainer(Phase1Trainer):
             r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
             b0 = motion.translations[moving, 0].detach().float()
         w = torch.zeros(len(moving), 3)
-        bar = Progress(len(times) - 1, desc="refine M_phi", log_every=10) if progress else None
-        for j in range(1, len(times)):
+        bar = Progress(len(times), desc="refine M_phi", log_every=10) if progress else None
+        for j in range(len(times)):
             t = float(times[j])
             with torch.no_grad():
                 x_t, q_t, s_t = model.at_time(t)
@@ -250,7 +253,9 @@ class Phase2Trainer(Phase1Trainer):
             d_j = (cen_t - centre).requires_grad_(True)
             opt = torch.optim.Adam([w_j, d_j], lr=lr)
             loss_value = float("nan")
-            for s in range(steps if views[j] else 0):
+            # The first frame starts from the fitted pose, which holds whatever orientation
+            # D_theta's texture has there: it gets more steps than the warm-started rest.
+            for s in range((steps if j else 4 * steps) if views[j] else 0):
                 index = views[j][s % len(views[j])]
                 frame = self.scene.train[index]
                 means, quats, scales = x_t.clone(), q_t.clone(), s_t.clone()
@@ -282,7 +287,7 @@ class Phase2Trainer(Phase1Trainer):
                     )
                     motion.translations[k, j] = b_j[i].to(motion.translations.dtype)
             if bar is not None:
-                bar.update(j, {"loss": f"{loss_value:.4f}"})
+                bar.update(j + 1, {"loss": f"{loss_value:.4f}"})
         if bar is not None:
             bar.close()
 
