@@ -191,6 +191,8 @@ class Phase2Trainer(Phase1Trainer):
         self.static = self._static_objects()
         if mc.refine_steps < 0:
             raise ValueError(f"phase2.motion.refine_steps: expected >= 0, got {mc.refine_steps}")
+        if mc.refine_lr <= 0:
+            raise ValueError(f"phase2.motion.refine_lr: expected > 0, got {mc.refine_lr}")
         if mc.refine_steps > 0 and (mc.init != "fit" or mc.kind != "se3"):
             raise ValueError(
                 "phase2.motion.refine_steps refines the fitted SE(3) table: it needs "
@@ -236,10 +238,15 @@ class Phase2Trainer(Phase1Trainer):
         sel = slot >= 0
         owner = slot[sel]
         count = torch.bincount(owner, minlength=len(moving)).clamp_min(1).unsqueeze(-1)
+
+        def centroids(x: Tensor) -> Tensor:  # [len(moving), 3] of the objects' points x [M, 3]
+            return torch.zeros(len(moving), 3).index_add_(0, owner, x) / count
+
         model = self.model
         with torch.no_grad():
             x_ref, q_ref, s_ref = (v[sel] for v in model.at_time(float(times[0])))
-            centre = torch.zeros(len(moving), 3).index_add_(0, owner, x_ref) / count
+            centre = centroids(x_ref)
+            offsets = (x_ref - centre[owner]).unsqueeze(-1)  # about each object's centroid
             r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
             b0 = motion.translations[moving, 0].detach().float()
         w = torch.zeros(len(moving), 3)
@@ -247,10 +254,10 @@ class Phase2Trainer(Phase1Trainer):
         for j in range(len(times)):
             t = float(times[j])
             with torch.no_grad():
-                x_t, q_t, s_t = model.at_time(t)
-                cen_t = torch.zeros(len(moving), 3).index_add_(0, owner, x_t[sel]) / count
+                x_t, q_t, scales = model.at_time(t)
+                scales[sel] = s_ref  # fixed through the frame's steps
             w_j = w.clone().requires_grad_(True)
-            d_j = (cen_t - centre).requires_grad_(True)
+            d_j = (centroids(x_t[sel]) - centre).requires_grad_(True)
             opt = torch.optim.Adam([w_j, d_j], lr=lr)
             loss_value = float("nan")
             # The first frame starts from the fitted pose, which holds whatever orientation
@@ -258,12 +265,10 @@ class Phase2Trainer(Phase1Trainer):
             for s in range((steps if j else 4 * steps) if views[j] else 0):
                 index = views[j][s % len(views[j])]
                 frame = self.scene.train[index]
-                means, quats, scales = x_t.clone(), q_t.clone(), s_t.clone()
-                rot = rotvec_to_matrix(w_j)[owner]
-                moved = (rot @ (x_ref - centre[owner]).unsqueeze(-1)).squeeze(-1)
+                means, quats = x_t.clone(), q_t.clone()
+                moved = (rotvec_to_matrix(w_j)[owner] @ offsets).squeeze(-1)
                 means[sel] = moved + centre[owner] + d_j[owner]
                 quats[sel] = quat_multiply(axis_angle_to_quat(w_j)[owner], q_ref)
-                scales[sel] = s_ref
                 out = model.render(
                     frame.camera, t, sh_degree=model.sh_degree, background=self._background,
                     deformed=(means, quats, scales), threads=self.threads,
