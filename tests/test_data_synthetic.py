@@ -100,6 +100,30 @@ def test_object_poses_match_ground_truth_file(small_scene):
             assert np.allclose(poses[obj][1], gt.translations[i, j])
 
 
+def test_motion_errors(small_scene):
+    gt = syn.load_ground_truth(small_scene)
+    gi = gt.ids.index(2)
+    rot, tr = gt.rotations[gi], gt.translations[gi]
+    # The truth itself, and the truth seen from another canonical frame (a fixed rigid change
+    # of coordinates that the relative motion cancels), have no error.
+    for a, b in [(rot, tr), (rot @ syn._rot_z(0.3).T, tr + rot @ np.array([0.1, 0.0, 0.0]))]:
+        e_rot, e_cen = gt.motion_errors(a, b, gt.times, 2)
+        assert e_rot.shape == e_cen.shape == (len(gt.times),)
+        assert e_rot.max() < 1e-4 and e_cen.max() < 1e-9
+    # A motion that never turns: the error is the true turn.
+    e_rot, _ = gt.motion_errors(np.repeat(rot[:1], len(gt.times), 0), tr, gt.times, 2)
+    true_turn = np.degrees(np.arccos(np.clip((np.trace(rot @ rot[0].T, axis1=1, axis2=2) - 1) / 2,
+                                             -1, 1)))  # fmt: skip
+    np.testing.assert_allclose(e_rot, true_turn, atol=1e-6)
+    assert e_rot.max() > 10.0
+    with pytest.raises(ValueError, match="no object 9"):
+        gt.motion_errors(rot, tr, gt.times, 9)
+    with pytest.raises(ValueError, match="expected rotations"):
+        gt.motion_errors(rot[:2], tr, gt.times, 2)
+    with pytest.raises(ValueError, match="frame times"):
+        gt.motion_errors(rot, tr, gt.times + 0.001, 2)
+
+
 def test_generation_is_deterministic_and_cached(small_scene, tmp_path):
     other = syn.write_synthetic_scene(tmp_path / "again", SMALL)
     name = "train/t003_c1.png"

@@ -96,20 +96,10 @@ def _relative_errors(tr: Phase2Trainer, gt, label: int) -> tuple[float, float]:
     """Mean rotation error (degrees) and mean object-centre error (metres) of M_phi's motion of
     `label` relative to the first frame, against the truth."""
     ex = tr.motion_export()
-    a, b = ex["rotations"][label], ex["translations"][label]
-    gi = gt.ids.index(label)
-    rg, tg = gt.rotations[gi], gt.translations[gi]
-    times = list(np.round(gt.times, 9))
-    rot, cen = [], []
-    for j, t in enumerate(ex["times"]):
-        jg = times.index(round(float(t), 9))
-        r_rel = a[j] @ np.linalg.inv(a[0])
-        b_rel = b[j] - r_rel @ b[0]
-        rg_rel = rg[jg] @ rg[0].T
-        cos = (np.trace(r_rel @ rg_rel.T) - 1.0) / 2.0
-        rot.append(math.degrees(math.acos(min(1.0, max(-1.0, cos)))))
-        cen.append(np.linalg.norm(r_rel @ tg[0] + b_rel - tg[jg]))
-    return float(np.mean(rot)), float(np.mean(cen))
+    rot, cen = gt.motion_errors(
+        ex["rotations"][label], ex["translations"][label], ex["times"], label
+    )
+    return float(rot.mean()), float(cen.mean())
 
 
 @pytest.mark.parametrize("kind", ["se3", "affine"])

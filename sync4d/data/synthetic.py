@@ -365,6 +365,35 @@ class SyntheticGroundTruth:
         """Diagonal length of the scene's bounding box (metres)."""
         return float(np.linalg.norm(self.bounds[1] - self.bounds[0]))
 
+    def motion_errors(
+        self, rotations: np.ndarray, translations: np.ndarray, times: np.ndarray, label: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per-frame error of a recovered motion of object `label` relative to its first frame:
+        rotation error (degrees) [T] and object-centre error (metres) [T]. `rotations` [T, 3, 3]
+        and `translations` [T, 3] map canonical to world at `times` [T] (e.g. one object's rows
+        of Phase 2's motion export); each time must be one of the ground truth's frame times."""
+        if label not in self.ids:
+            raise ValueError(f"motion_errors: no object {label} (ids {self.ids})")
+        a, b = np.asarray(rotations, np.float64), np.asarray(translations, np.float64)
+        if a.shape != (len(times), 3, 3) or b.shape != (len(times), 3):
+            raise ValueError(
+                f"motion_errors: expected rotations [{len(times)}, 3, 3] and translations "
+                f"[{len(times)}, 3], got {list(a.shape)} and {list(b.shape)}"
+            )
+        gi = self.ids.index(label)
+        rg, tg = self.rotations[gi], self.translations[gi]
+        rows = [int(np.argmin(np.abs(self.times - t))) for t in np.asarray(times, np.float64)]
+        if not np.allclose(self.times[rows], times, atol=1e-6):
+            raise ValueError("motion_errors: times must be frame times of the ground truth")
+        # Motion relative to the first frame: recovered a_t a_0^-1 and b_t - (a_t a_0^-1) b_0.
+        a_rel = a @ np.linalg.inv(a[0])
+        b_rel = b - a_rel @ b[0]
+        rg_rel = rg[rows] @ rg[rows[0]].T
+        cos = (np.trace(a_rel @ rg_rel.transpose(0, 2, 1), axis1=1, axis2=2) - 1.0) / 2.0
+        rot = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        centre = np.linalg.norm(a_rel @ tg[rows[0]] + b_rel - tg[rows], axis=1)
+        return rot, centre
+
 
 def load_ground_truth(root: str | Path) -> SyntheticGroundTruth:
     """Read `root/ground_truth.json`; `DatasetError` naming the file when it is malformed."""
