@@ -31,20 +31,33 @@ fn gpu() -> Option<&'static Mutex<GpuRasterizer>> {
 }
 
 /// Compositing layouts every adapter must run identically: the GPU one (one pixel per
-/// invocation, atomic gradient sums), the CPU-adapter one (many pixels, partial sums) and a
-/// mixed one.
-const LAYOUTS: [BlendLayout; 3] = [
+/// invocation, atomic gradient sums), the CPU-adapter one (many pixels, row blocks, partial
+/// sums) and mixed ones.
+const LAYOUTS: [BlendLayout; 5] = [
     BlendLayout {
         pixels_per_invocation: 1,
         partials: false,
+        block_rows: 0,
+    },
+    BlendLayout {
+        pixels_per_invocation: 32,
+        partials: true,
+        block_rows: 16,
     },
     BlendLayout {
         pixels_per_invocation: 16,
         partials: true,
+        block_rows: 0,
+    },
+    BlendLayout {
+        pixels_per_invocation: 8,
+        partials: true,
+        block_rows: 4,
     },
     BlendLayout {
         pixels_per_invocation: 4,
         partials: false,
+        block_rows: 8,
     },
 ];
 

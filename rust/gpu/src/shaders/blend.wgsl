@@ -97,6 +97,16 @@ fn support_box(pos: vec4<f32>, con: vec4<f32>) -> vec4<f32> {
     return vec4<f32>(pos.x - ex, pos.x + ex, pos.y - ey, pos.y + ey);
 }
 
+// Splat (pos, conic)'s alpha at pixel centre (x, y): min(opacity exp(-sigma), alpha_max), or 0
+// where it is not composited (sigma < 0 or alpha < alpha_min).
+fn splat_alpha(pos: vec4<f32>, con: vec4<f32>, x: f32, y: f32) -> f32 {
+    let dx = x - pos.x;
+    let dy = y - pos.y;
+    let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
+    let alpha = min(pos.z * fast_exp(-sigma), F.alpha_max);
+    return select(0.0, alpha, sigma >= 0.0 && alpha >= F.alpha_min);
+}
+
 fn in_box(b: vec4<f32>, x: f32, y: f32) -> bool {
     return x >= b.x && x <= b.y && y >= b.z && y <= b.w;
 }
@@ -115,6 +125,23 @@ fn add_wide(lo: u32, v: u32) {
 fn tile_pixel(lid: u32, j: u32) -> vec2<u32> {
     let i = lid + j * WG;
     return vec2<u32>(i % 16u, i / 16u);
+}
+
+// Write pixel q's composited features (accumulated `a` plus the background through the final
+// transmittance `t`), alpha, depth and its backward state (last contributor, t).
+fn store_pixel(q: vec2<u32>, a: array<f32, C>, t: f32, depth: f32, last: u32) {
+    if q.x >= F.width || q.y >= F.height {
+        return;
+    }
+    let npix = F.width * F.height;
+    let pix = q.y * F.width + q.x;
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        image[pix * C + c] = a[c] + t * features[F.n * C + c];
+    }
+    image[npix * C + pix] = 1.0 - t;
+    image[npix * (C + 1u) + pix] = depth;
+    pixel_state[2u * pix] = last;
+    pixel_state[2u * pix + 1u] = bitcast<u32>(t);
 }
 
 @compute @workgroup_size(WG)
@@ -184,11 +211,8 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
                 if done[j] || !in_box(bx, fx[j], fy[j]) {
                     continue;
                 }
-                let dx = fx[j] - pos.x;
-                let dy = fy[j] - pos.y;
-                let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
-                let alpha = min(pos.z * fast_exp(-sigma), F.alpha_max);
-                let ok = sigma >= 0.0 && alpha >= F.alpha_min;
+                let alpha = splat_alpha(pos, con, fx[j], fy[j]);
+                let ok = alpha > 0.0;
                 let next_t = t[j] * (1.0 - alpha);
                 let stop = ok && next_t < F.t_min;
                 let take = ok && !stop;
@@ -211,19 +235,13 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
     }
     atomicAdd(&wg_evaluated, evaluated);
     atomicAdd(&wg_blended, blended);
-    let npix = F.width * F.height;
     for (var j = 0u; j < P; j++) { // unroll: pixels
-        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
-        if q.x < F.width && q.y < F.height {
-            let pix = q.y * F.width + q.x;
-            for (var c = 0u; c < C; c++) { // unroll: channels
-                image[pix * C + c] = acc[j * C + c] + t[j] * features[F.n * C + c];
-            }
-            image[npix * C + pix] = 1.0 - t[j];
-            image[npix * (C + 1u) + pix] = depth[j];
-            pixel_state[2u * pix] = last[j];
-            pixel_state[2u * pix + 1u] = bitcast<u32>(t[j]);
+        var a: array<f32, C>;
+        for (var c = 0u; c < C; c++) { // unroll: channels
+            a[c] = acc[j * C + c];
         }
+        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+        store_pixel(q, a, t[j], depth[j], last[j]);
     }
     workgroupBarrier();
     if lid == 0u {
@@ -231,6 +249,179 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
         add_wide(2u, atomicLoad(&wg_blended));
     }
 }
+
+// <rows>
+// Forward for CPU adapters (llvmpipe runs every branch of a divergent `if` under a lane mask, so
+// skipping a pixel outside a splat's box saves nothing there; only loop trip counts skip work).
+// The invocation's P pixels form NB blocks of RB tile rows; each batch of 32 splats is staged
+// with one bit per (block, splat) set where the splat's box reaches the block's rows, and each
+// block walks only its set bits, in order, each lane until all of its pixels there are done.
+// lavapipe's default is one block (RB = 16): many of a tile's list entries (binned by their
+// 3-sigma extent) have an alpha box that misses the tile's pixel centres altogether.
+const RB: u32 = {{ROWS}}u;
+const NB: u32 = 16u / RB;
+const JB: u32 = P / NB;
+var<workgroup> hit: array<array<atomic<u32>, NB>, 2>;
+
+// 1 << bit in each block whose rows the support box `bx` may reach (one row of slack each side)
+// in the tile whose top-left pixel corner is (x0, y0); 0 elsewhere.
+fn block_bits(bx: vec4<f32>, x0: f32, y0: f32, bit: u32) -> array<u32, NB> {
+    var m: array<u32, NB>;
+    let r_lo = max(floor(bx.z - y0 - 0.5) - 1.0, 0.0);
+    let r_hi = min(ceil(bx.w - y0 - 0.5) + 1.0, 15.0);
+    let x_in = bx.y >= x0 - 1.0 && bx.x <= x0 + 17.0;
+    for (var b = 0u; b < NB; b++) { // unroll: blocks
+        if x_in && r_lo <= f32(b * RB + RB - 1u) && r_hi >= f32(b * RB) {
+            m[b] = 1u << bit;
+        }
+    }
+    return m;
+}
+
+@compute @workgroup_size(WG)
+fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
+                      @builtin(workgroup_id) wid: vec3<u32>) {
+    let tile = wid.y * F.tiles_x + wid.x;
+    if lid == 0u {
+        atomicStore(&done_count, 0u);
+        atomicStore(&wg_evaluated, 0u);
+        atomicStore(&wg_blended, 0u);
+        range_start = tile_offsets[tile];
+        range_end = tile_offsets[tile + 1u];
+        for (var b = 0u; b < NB; b++) {
+            atomicStore(&hit[0][b], 0u);
+            atomicStore(&hit[1][b], 0u);
+        }
+    }
+    let start = workgroupUniformLoad(&range_start);
+    let end = workgroupUniformLoad(&range_end);
+    let x0 = f32(wid.x * 16u);
+    let y0 = f32(wid.y * 16u);
+    var t: array<f32, P>;
+    var acc: array<f32, P * C>;
+    var depth: array<f32, P>;
+    var last: array<u32, P>;
+    var done: array<bool, P>;
+    var fx: array<f32, P>;
+    var fy: array<f32, P>;
+    var live = 0u;
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+        t[j] = 1.0;
+        done[j] = q.x >= F.width || q.y >= F.height;
+        live += select(1u, 0u, done[j]);
+        fx[j] = f32(q.x) + 0.5;
+        fy[j] = f32(q.y) + 0.5;
+    }
+    var evaluated = 0u;
+    var blended = 0u;
+    var counted = live == 0u;
+    if counted {
+        atomicAdd(&done_count, 1u);
+    }
+    var f: array<f32, C>;
+    var parity = 0u;
+    for (var batch = start; batch < end; batch += 32u) {
+        workgroupBarrier();
+        if lid == 0u {
+            stop_flag = atomicLoad(&done_count);
+        }
+        if workgroupUniformLoad(&stop_flag) == WG {
+            break;
+        }
+        var mine: array<u32, NB>;
+        for (var i = lid; i < 32u && batch + i < end; i += WG) {
+            let g = keys[ids[batch + i]].y;
+            sh_pos[i] = splat_pos(g);
+            sh_conic[i] = splat_conic(g);
+            sh_index[i] = g;
+            sh_box[i] = support_box(sh_pos[i], sh_conic[i]);
+            let m = block_bits(sh_box[i], x0, y0, i);
+            for (var b = 0u; b < NB; b++) { // unroll: blocks
+                mine[b] |= m[b];
+            }
+        }
+        for (var b = 0u; b < NB; b++) { // unroll: blocks
+            if mine[b] != 0u {
+                atomicOr(&hit[parity][b], mine[b]);
+            }
+        }
+        workgroupBarrier();
+        for (var b = 0u; b < NB; b++) { // unroll: blocks
+            var bits = atomicLoad(&hit[parity][b]);
+            // Reset the other parity's masks for the next batch (read before this batch's barrier).
+            atomicStore(&hit[1u - parity][b], 0u);
+            var bdone = true;
+            for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
+                bdone = bdone && done[b * JB + jj];
+            }
+            if bdone {
+                bits = 0u;
+            }
+            loop {
+                if bits == 0u {
+                    break;
+                }
+                let k = firstTrailingBit(bits);
+                bits &= bits - 1u;
+                let pos = sh_pos[k];
+                let con = sh_conic[k];
+                let bx = sh_box[k];
+                let g = sh_index[k];
+                for (var c = 0u; c < C; c++) { // unroll: channels
+                    f[c] = features[g * C + c];
+                }
+                let rank = batch - start + k + 1u;
+                var all_done = true;
+                for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
+                    let j = b * JB + jj;
+                    let inside = !done[j] && in_box(bx, fx[j], fy[j]);
+                    let alpha = splat_alpha(pos, con, fx[j], fy[j]);
+                    let ok = inside && alpha > 0.0;
+                    let next_t = t[j] * (1.0 - alpha);
+                    let stop = ok && next_t < F.t_min;
+                    let take = ok && !stop;
+                    let w = select(0.0, alpha * t[j], take);
+                    for (var c = 0u; c < C; c++) { // unroll: channels
+                        acc[j * C + c] += f[c] * w;
+                    }
+                    depth[j] += pos.w * w;
+                    t[j] = select(t[j], next_t, take);
+                    last[j] = select(last[j], rank, take);
+                    done[j] = done[j] || stop;
+                    evaluated += select(0u, 1u, inside);
+                    blended += select(0u, 1u, take);
+                    live -= select(0u, 1u, stop);
+                    all_done = all_done && done[j];
+                }
+                if all_done {
+                    bits = 0u;
+                }
+            }
+        }
+        if live == 0u && !counted {
+            atomicAdd(&done_count, 1u);
+            counted = true;
+        }
+        parity = 1u - parity;
+    }
+    atomicAdd(&wg_evaluated, evaluated);
+    atomicAdd(&wg_blended, blended);
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        var a: array<f32, C>;
+        for (var c = 0u; c < C; c++) { // unroll: channels
+            a[c] = acc[j * C + c];
+        }
+        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+        store_pixel(q, a, t[j], depth[j], last[j]);
+    }
+    workgroupBarrier();
+    if lid == 0u {
+        add_wide(0u, atomicLoad(&wg_evaluated));
+        add_wide(2u, atomicLoad(&wg_blended));
+    }
+}
+// </rows>
 
 // ---------------------------------------------------------------------------------------------
 // Backward: each tile walks its list back to front from the furthest last contributor; every
@@ -286,11 +477,89 @@ fn global_add(i: u32, v: f32) {
     }
 }
 
+// What the backward needs of pixel q: its last contributor and final transmittance from the
+// forward, dL/d features (`vc`) and dL/d depth, and `tail` = T_final (dL/dfeatures . background -
+// dL/dalpha), the gradient of what lies behind every splat. Outside the image: t = 1, rest 0.
+struct PixelGrad {
+    last: u32,
+    t: f32,
+    v_depth: f32,
+    tail: f32,
+    vc: array<f32, C>,
+}
+
+fn load_pixel_grad(q: vec2<u32>) -> PixelGrad {
+    var r: PixelGrad;
+    r.t = 1.0;
+    if q.x >= F.width || q.y >= F.height {
+        return r;
+    }
+    let npix = F.width * F.height;
+    let pix = q.y * F.width + q.x;
+    r.last = pixel_state[2u * pix];
+    r.t = bitcast<f32>(pixel_state[2u * pix + 1u]);
+    var vbg = 0.0;
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        r.vc[c] = v_image[pix * C + c];
+        vbg += r.vc[c] * features[F.n * C + c];
+    }
+    r.v_depth = v_image[npix * (C + 1u) + pix];
+    r.tail = r.t * (vbg - v_image[npix * C + pix]);
+    return r;
+}
+
+// One pixel's step of the backward walk for splat (pos, conic, features f): given the
+// transmittance t in front of the splat's successor, the running sum vr of what lies behind,
+// `tail`, dL/d features v and dL/d depth, the transmittance in front of this splat, the new
+// running sum and whether it was composited (and `visible`); adds the pixel's share of the
+// splat's STRIDE gradients to `gs`. Clamped alphas pass no gradient to the opacity or conic.
+struct PixelBackward {
+    t: f32,
+    vr: f32,
+    ok: bool,
+}
+
+fn pixel_backward(pos: vec4<f32>, con: vec4<f32>, f: array<f32, C>, x: f32, y: f32, t: f32,
+                  vr: f32, tail: f32, v: array<f32, C>, v_depth: f32, visible: bool,
+                  gs: ptr<function, array<f32, STRIDE>>) -> PixelBackward {
+    var r: PixelBackward;
+    var vf = v_depth * pos.w;
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        vf += v[c] * f[c];
+    }
+    let dx = x - pos.x;
+    let dy = y - pos.y;
+    let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
+    let vis = fast_exp(-sigma);
+    let raw = pos.z * vis;
+    let alpha = min(raw, F.alpha_max);
+    let ok = visible && sigma >= 0.0 && alpha >= F.alpha_min;
+    let one_m = 1.0 - alpha;
+    let ti = t / one_m;
+    let w = alpha * ti;
+    let v_alpha = ti * vf - (vr + tail) / one_m;
+    r.ok = ok;
+    r.vr = select(vr, vr + w * vf, ok);
+    r.t = select(t, ti, ok);
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        (*gs)[6u + c] += select(0.0, w * v[c], ok);
+    }
+    (*gs)[6u + C] += select(0.0, w * v_depth, ok);
+    let live_grad = ok && raw <= F.alpha_max;
+    let v_sigma = -v_alpha * alpha;
+    (*gs)[5] += select(0.0, v_alpha * vis, live_grad);
+    (*gs)[2] += select(0.0, 0.5 * v_sigma * dx * dx, live_grad);
+    (*gs)[3] += select(0.0, v_sigma * dx * dy, live_grad);
+    (*gs)[4] += select(0.0, 0.5 * v_sigma * dy * dy, live_grad);
+    (*gs)[0] += select(0.0, -v_sigma * (con.x * dx + con.y * dy), live_grad);
+    (*gs)[1] += select(0.0, -v_sigma * (con.z * dy + con.y * dx), live_grad);
+    return r;
+}
+
 @compute @workgroup_size(WG)
 fn blend_backward(@builtin(local_invocation_index) lid: u32,
                   @builtin(workgroup_id) wid: vec3<u32>) {
     let tile = wid.y * F.tiles_x + wid.x;
-    let npix = F.width * F.height;
     if lid == 0u {
         atomicStore(&max_last, 0u);
         range_start = tile_offsets[tile];
@@ -312,20 +581,15 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
         let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
         fx[j] = f32(q.x) + 0.5;
         fy[j] = f32(q.y) + 0.5;
-        t[j] = 1.0;
-        if q.x < F.width && q.y < F.height {
-            let pix = q.y * F.width + q.x;
-            last[j] = pixel_state[2u * pix];
-            t[j] = bitcast<f32>(pixel_state[2u * pix + 1u]);
-            var vbg = 0.0;
-            for (var c = 0u; c < C; c++) { // unroll: channels
-                vc[j * C + c] = v_image[pix * C + c];
-                vbg += vc[j * C + c] * features[F.n * C + c];
-            }
-            v_depth[j] = v_image[npix * (C + 1u) + pix];
-            tail[j] = t[j] * (vbg - v_image[npix * C + pix]);
-            my_last = max(my_last, last[j]);
+        let r = load_pixel_grad(q);
+        last[j] = r.last;
+        t[j] = r.t;
+        v_depth[j] = r.v_depth;
+        tail[j] = r.tail;
+        for (var c = 0u; c < C; c++) { // unroll: channels
+            vc[j * C + c] = r.vc[c];
         }
+        my_last = max(my_last, r.last);
     }
     atomicMax(&max_last, my_last);
     q_last[lid] = my_last;
@@ -370,37 +634,15 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
                 if k >= last[j] || !in_box(bx, fx[j], fy[j]) {
                     continue;
                 }
-                var vf = v_depth[j] * pos.w;
+                var v: array<f32, C>;
                 for (var c = 0u; c < C; c++) { // unroll: channels
-                    vf += vc[j * C + c] * f[c];
+                    v[c] = vc[j * C + c];
                 }
-                let dx = fx[j] - pos.x;
-                let dy = fy[j] - pos.y;
-                let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
-                let vis = fast_exp(-sigma);
-                let raw = pos.z * vis;
-                let alpha = min(raw, F.alpha_max);
-                let ok = sigma >= 0.0 && alpha >= F.alpha_min;
-                let one_m = 1.0 - alpha;
-                let ti = t[j] / one_m;
-                let w = alpha * ti;
-                let v_alpha = ti * vf - (vr[j] + tail[j]) / one_m;
-                vr[j] = select(vr[j], vr[j] + w * vf, ok);
-                t[j] = select(t[j], ti, ok);
-                touched = touched || ok;
-                for (var c = 0u; c < C; c++) { // unroll: channels
-                    gs[6u + c] += select(0.0, w * vc[j * C + c], ok);
-                }
-                gs[6u + C] += select(0.0, w * v_depth[j], ok);
-                // Clamped alphas pass no gradient to the opacity or the conic.
-                let live_grad = ok && raw <= F.alpha_max;
-                let v_sigma = -v_alpha * alpha;
-                gs[5] += select(0.0, v_alpha * vis, live_grad);
-                gs[2] += select(0.0, 0.5 * v_sigma * dx * dx, live_grad);
-                gs[3] += select(0.0, v_sigma * dx * dy, live_grad);
-                gs[4] += select(0.0, 0.5 * v_sigma * dy * dy, live_grad);
-                gs[0] += select(0.0, -v_sigma * (con.x * dx + con.y * dy), live_grad);
-                gs[1] += select(0.0, -v_sigma * (con.z * dy + con.y * dx), live_grad);
+                let r = pixel_backward(pos, con, f, fx[j], fy[j], t[j], vr[j], tail[j], v,
+                                       v_depth[j], true, &gs);
+                t[j] = r.t;
+                vr[j] = r.vr;
+                touched = touched || r.ok;
             }
             if PARTIALS {
                 let base = (u32(jj) * WG + lid) * STRIDE;
@@ -438,3 +680,159 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
         end = start;
     }
 }
+
+// <rows>
+// Backward for CPU adapters with row blocks (partial sums only): each batch of BATCH splats
+// (at most 32) is staged with the same per-block hit bits as the forward; each block walks its
+// set bits back to front, skipping splats at or behind the last contributor of all of the
+// invocation's pixels in the block, and sums each visited splat's gradients over the blocks in
+// the invocation's partial slot. The sums over invocations run in a fixed order over exactly
+// the visited slots.
+var<workgroup> b_hit: array<array<atomic<u32>, NB>, 2>;
+// Per invocation: bit i set when it visited splat i of the batch in any block.
+var<workgroup> q_visited: array<u32, WG>;
+
+@compute @workgroup_size(WG)
+fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
+                       @builtin(workgroup_id) wid: vec3<u32>) {
+    let tile = wid.y * F.tiles_x + wid.x;
+    if lid == 0u {
+        atomicStore(&max_last, 0u);
+        range_start = tile_offsets[tile];
+        for (var b = 0u; b < NB; b++) {
+            atomicStore(&b_hit[0][b], 0u);
+            atomicStore(&b_hit[1][b], 0u);
+        }
+    }
+    workgroupBarrier();
+    let x0 = f32(wid.x * 16u);
+    let y0 = f32(wid.y * 16u);
+    var t: array<f32, P>;
+    var last: array<u32, P>;
+    var vc: array<f32, P * C>;
+    var v_depth: array<f32, P>;
+    var tail: array<f32, P>;
+    var vr: array<f32, P>;
+    var fx: array<f32, P>;
+    var fy: array<f32, P>;
+    var my_last = 0u;
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+        fx[j] = f32(q.x) + 0.5;
+        fy[j] = f32(q.y) + 0.5;
+        let r = load_pixel_grad(q);
+        last[j] = r.last;
+        t[j] = r.t;
+        v_depth[j] = r.v_depth;
+        tail[j] = r.tail;
+        for (var c = 0u; c < C; c++) { // unroll: channels
+            vc[j * C + c] = r.vc[c];
+        }
+        my_last = max(my_last, r.last);
+    }
+    // The last contributor over this invocation's pixels of each block.
+    var block_last: array<u32, NB>;
+    for (var b = 0u; b < NB; b++) { // unroll: blocks
+        for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
+            block_last[b] = max(block_last[b], last[b * JB + jj]);
+        }
+    }
+    atomicMax(&max_last, my_last);
+    workgroupBarrier();
+    if lid == 0u {
+        max_last_u = atomicLoad(&max_last);
+    }
+    let start_list = workgroupUniformLoad(&range_start);
+    var end = workgroupUniformLoad(&max_last_u);
+    var f: array<f32, C>;
+    var gs: array<f32, STRIDE>;
+    var parity = 0u;
+    while end > 0u {
+        let start = select(end - BATCH, 0u, end < BATCH);
+        let count = end - start;
+        var mine: array<u32, NB>;
+        var visited = 0u;
+        for (var i = lid; i < count; i += WG) {
+            let g = keys[ids[start_list + start + i]].y;
+            sh_b_pos[i] = splat_pos(g);
+            sh_b_conic[i] = splat_conic(g);
+            sh_b_index[i] = g;
+            sh_b_box[i] = support_box(sh_b_pos[i], sh_b_conic[i]);
+            let m = block_bits(sh_b_box[i], x0, y0, i);
+            for (var b = 0u; b < NB; b++) { // unroll: blocks
+                mine[b] |= m[b];
+            }
+        }
+        for (var b = 0u; b < NB; b++) { // unroll: blocks
+            if mine[b] != 0u {
+                atomicOr(&b_hit[parity][b], mine[b]);
+            }
+        }
+        workgroupBarrier();
+        for (var b = 0u; b < NB; b++) { // unroll: blocks
+            var bits = atomicLoad(&b_hit[parity][b]);
+            // Only splats before this block's last contributor (list index < block_last).
+            let keep = select(0u, block_last[b] - start, block_last[b] > start);
+            bits &= select(0xffffffffu, (1u << keep) - 1u, keep < 32u);
+            loop {
+                if bits == 0u {
+                    break;
+                }
+                let jj = firstLeadingBit(bits);
+                bits &= ~(1u << jj);
+                let k = start + jj;
+                let pos = sh_b_pos[jj];
+                let con = sh_b_conic[jj];
+                let bx = sh_b_box[jj];
+                let g = sh_b_index[jj];
+                for (var c = 0u; c < C; c++) { // unroll: channels
+                    f[c] = features[g * C + c];
+                }
+                for (var s = 0u; s < STRIDE; s++) { // unroll: stride
+                    gs[s] = 0.0;
+                }
+                for (var jp = 0u; jp < JB; jp++) { // unroll: block pixels
+                    let j = b * JB + jp;
+                    var v: array<f32, C>;
+                    for (var c = 0u; c < C; c++) { // unroll: channels
+                        v[c] = vc[j * C + c];
+                    }
+                    let visible = k < last[j] && in_box(bx, fx[j], fy[j]);
+                    let r = pixel_backward(pos, con, f, fx[j], fy[j], t[j], vr[j], tail[j], v,
+                                           v_depth[j], visible, &gs);
+                    t[j] = r.t;
+                    vr[j] = r.vr;
+                }
+                // Sum over this invocation's blocks in its partial slot: stored on the first
+                // visit of the splat, added on later ones.
+                let base = (jj * WG + lid) * STRIDE;
+                let again = (visited & (1u << jj)) != 0u;
+                visited |= 1u << jj;
+                for (var s = 0u; s < STRIDE; s++) { // unroll: stride
+                    partial[base + s] = gs[s] + select(0.0, partial[base + s], again);
+                }
+            }
+        }
+        q_visited[lid] = visited;
+        workgroupBarrier();
+        for (var i = lid; i < count * STRIDE; i += WG) {
+            let jj = i / STRIDE;
+            let s = i % STRIDE;
+            var v = 0.0;
+            for (var q = 0u; q < WG; q++) {
+                let seen = (q_visited[q] & (1u << jj)) != 0u;
+                v += select(0.0, partial[(jj * WG + q) * STRIDE + s], seen);
+            }
+            if v != 0.0 {
+                global_add(sh_b_index[jj] * STRIDE + s, v);
+            }
+        }
+        for (var b = 0u; b < NB; b++) { // unroll: blocks
+            atomicStore(&b_hit[1u - parity][b], 0u);
+        }
+        workgroupBarrier();
+        parity = 1u - parity;
+        end = start;
+    }
+}
+// </rows>
