@@ -288,6 +288,25 @@ fn bad_input_is_an_error_not_a_panic() {
         )
         .unwrap_err();
     assert!(err.to_string().contains("opacities"), "{err}");
+    // Layouts the kernels cannot be built for are errors naming the field; the layout in use
+    // stays as it was.
+    let before = r.blend_layout();
+    for (pixels, rows, field) in [
+        (3, 0, "pixels_per_invocation"),
+        (512, 0, "pixels_per_invocation"),
+        (32, 3, "block_rows"),
+        (32, 32, "block_rows"),
+        (1, 4, "block_rows"),
+    ] {
+        let bad = BlendLayout {
+            pixels_per_invocation: pixels,
+            partials: true,
+            block_rows: rows,
+        };
+        let err = r.set_blend_layout(bad).unwrap_err();
+        assert!(err.to_string().contains(field), "{bad:?}: {err}");
+        assert_eq!(r.blend_layout(), before);
+    }
 }
 
 /// Largest |a - b| relative to the largest |a| of the array (gradients of different splats
