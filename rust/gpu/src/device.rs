@@ -110,6 +110,9 @@ pub struct GpuDevice {
     pub adapter: AdapterSummary,
     /// Limits granted to the device.
     pub limits: wgpu::Limits,
+    /// The smallest subgroup the adapter may run (8 on 256-bit lavapipe), when the device was
+    /// opened with subgroup operations (wgpu's `SUBGROUP` feature); `None` without them.
+    pub subgroup_min_size: Option<u32>,
 }
 
 impl GpuDevice {
@@ -148,9 +151,11 @@ impl GpuDevice {
             )));
         };
         let limits = adapter.limits();
+        let info = adapter.get_info();
+        let subgroups = adapter.features() & wgpu::Features::SUBGROUP;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("sync4d"),
-            required_features: wgpu::Features::empty(),
+            required_features: subgroups,
             required_limits: limits.clone(),
             ..Default::default()
         }))
@@ -158,8 +163,9 @@ impl GpuDevice {
         Ok(GpuDevice {
             device,
             queue,
-            adapter: summary(&adapter.get_info()),
+            adapter: summary(&info),
             limits,
+            subgroup_min_size: (!subgroups.is_empty()).then_some(info.subgroup_min_size),
         })
     }
 }

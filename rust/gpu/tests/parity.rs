@@ -32,34 +32,55 @@ fn gpu() -> Option<&'static Mutex<GpuRasterizer>> {
 
 /// Compositing layouts every adapter must run identically: the GPU one (one pixel per
 /// invocation, atomic gradient sums), the CPU-adapter one (many pixels, row blocks, partial
-/// sums) and mixed ones.
+/// sums) and mixed ones; see [`layouts`] for the subgroup one.
 const LAYOUTS: [BlendLayout; 5] = [
     BlendLayout {
         pixels_per_invocation: 1,
         partials: false,
         block_rows: 0,
+        subgroup_sums: false,
     },
     BlendLayout {
         pixels_per_invocation: 32,
         partials: true,
         block_rows: 16,
+        subgroup_sums: false,
     },
     BlendLayout {
         pixels_per_invocation: 16,
         partials: true,
         block_rows: 0,
+        subgroup_sums: false,
     },
     BlendLayout {
         pixels_per_invocation: 8,
         partials: true,
         block_rows: 4,
+        subgroup_sums: false,
     },
     BlendLayout {
         pixels_per_invocation: 4,
         partials: false,
         block_rows: 8,
+        subgroup_sums: false,
     },
 ];
+
+/// [`LAYOUTS`], plus the CPU-adapter layout with subgroup gradient sums where the device has
+/// subgroups that hold its workgroup (lavapipe: its default).
+fn layouts(r: &GpuRasterizer) -> Vec<BlendLayout> {
+    let mut all = LAYOUTS.to_vec();
+    let sub = BlendLayout {
+        subgroup_sums: true,
+        ..LAYOUTS[1]
+    };
+    if r.device().subgroup_min_size.is_some_and(|m| m >= 8) {
+        all.push(sub);
+    } else {
+        eprintln!("no subgroups of 8 or more on this device: skipping {sub:?}");
+    }
+    all
+}
 
 fn max_abs(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
@@ -185,13 +206,13 @@ fn compositing_matches_the_cpu_path_exactly_in_decisions() {
     let Some(gpu) = gpu() else { return };
     let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
     let default = r.blend_layout();
-    for (layout, (seed, n, w, h, ch)) in LAYOUTS.iter().flat_map(|l| {
+    for (layout, (seed, n, w, h, ch)) in layouts(&r).into_iter().flat_map(|l| {
         [
             (4u64, 300, 64, 64, 3),
             (5, 900, 130, 75, 1),
             (6, 200, 33, 47, 5),
         ]
-        .map(|c| (*l, c))
+        .map(|c| (l, c))
     }) {
         r.set_blend_layout(layout).unwrap();
         let s = random_scene(n, w, h, ch, seed);
@@ -297,11 +318,14 @@ fn bad_input_is_an_error_not_a_panic() {
         (32, 3, "block_rows"),
         (32, 32, "block_rows"),
         (1, 4, "block_rows"),
+        (32, 0, "subgroup_sums"),
+        (1, 16, "subgroup_sums"),
     ] {
         let bad = BlendLayout {
             pixels_per_invocation: pixels,
             partials: true,
             block_rows: rows,
+            subgroup_sums: field == "subgroup_sums",
         };
         let err = r.set_blend_layout(bad).unwrap_err();
         assert!(err.to_string().contains(field), "{bad:?}: {err}");
@@ -331,13 +355,13 @@ fn compositing_gradients_match_the_cpu_path() {
     let Some(gpu) = gpu() else { return };
     let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
     let default = r.blend_layout();
-    for (layout, (seed, n, w, h, ch)) in LAYOUTS.iter().flat_map(|l| {
+    for (layout, (seed, n, w, h, ch)) in layouts(&r).into_iter().flat_map(|l| {
         [
             (11u64, 300, 64, 48, 3),
             (12, 150, 40, 40, 1),
             (13, 200, 37, 29, 6),
         ]
-        .map(|c| (*l, c))
+        .map(|c| (l, c))
     }) {
         r.set_blend_layout(layout).unwrap();
         let s = random_scene(n, w, h, ch, seed);

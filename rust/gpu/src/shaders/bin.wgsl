@@ -1,6 +1,6 @@
 // Tile binning: which splats touch which 16x16 tile, front to back within a tile. The depth
-// ordered list (ranks) is cut into chunks; `count_chunks` counts each chunk's splats per tile
-// (tile-major counts), an exclusive scan turns the counts into write cursors, and `scatter`
+// ordered list (ranks) is cut into chunks; `count_corners` and `sum_lines` count
+// each chunk's splats per tile (tile-major counts), an exclusive scan turns the counts into write cursors, and `scatter`
 // walks each chunk in order and writes ranks: a stable counting sort by tile of the depth
 // order, as sync4d-raster's TileBins builds it, deterministic on any hardware.
 
@@ -11,8 +11,9 @@ struct BinParams {
     tiles_x: u32,
     tiles_y: u32,
     num_tiles: u32,
+    // sum_lines: 0 along x, 1 along y.
+    axis: u32,
     pad0: u32,
-    pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> B: BinParams;
@@ -51,19 +52,53 @@ fn tile_rect(g: u32) -> vec4<u32> {
     );
 }
 
+// Per-chunk tile counts as 2D difference tables: each splat adds +1 at its tile rectangle's
+// top-left corner and -1 / -1 / +1 at the corners past its right, bottom and bottom-right
+// edges (those inside the grid; u32 arithmetic wraps, the sums are exact). `sum_lines` along x,
+// then along y, turns the table into counts: 4 atomics per splat instead of one per tile.
+fn add_corner(x: u32, y: u32, chunk: u32, v: u32) {
+    if x < B.tiles_x && y < B.tiles_y {
+        atomicAdd(&counts[(y * B.tiles_x + x) * B.chunks + chunk], v);
+    }
+}
+
 @compute @workgroup_size(256)
-fn count_chunks(@builtin(global_invocation_id) gid: vec3<u32>,
-                @builtin(num_workgroups) nwg: vec3<u32>) {
+fn count_corners(@builtin(global_invocation_id) gid: vec3<u32>,
+                 @builtin(num_workgroups) nwg: vec3<u32>) {
     let r = flat_id(gid, nwg);
     if r >= B.visible {
         return;
     }
     let rect = tile_rect(keys[r].y);
+    if rect.x >= rect.z || rect.y >= rect.w {
+        return;
+    }
     let chunk = r / B.chunk_size;
-    for (var y = rect.y; y < rect.w; y++) {
-        for (var x = rect.x; x < rect.z; x++) {
-            atomicAdd(&counts[(y * B.tiles_x + x) * B.chunks + chunk], 1u);
-        }
+    add_corner(rect.x, rect.y, chunk, 1u);
+    add_corner(rect.z, rect.y, chunk, 0xffffffffu);
+    add_corner(rect.x, rect.w, chunk, 0xffffffffu);
+    add_corner(rect.z, rect.w, chunk, 1u);
+}
+
+// Running sums of the difference table along x (`B.axis` 0: every (chunk, tile row)), then
+// along y (1: every (chunk, tile column)); after both, the per-(tile, chunk) counts.
+@compute @workgroup_size(256)
+fn sum_lines(@builtin(global_invocation_id) gid: vec3<u32>,
+             @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = flat_id(gid, nwg);
+    let rows = B.axis == 0u;
+    let lines = select(B.tiles_x, B.tiles_y, rows);
+    if i >= B.chunks * lines {
+        return;
+    }
+    let line = i / B.chunks;
+    let first = select(line, line * B.tiles_x, rows) * B.chunks + i % B.chunks;
+    let step = select(B.tiles_x * B.chunks, B.chunks, rows);
+    var run = 0u;
+    for (var k = 0u; k < select(B.tiles_y, B.tiles_x, rows); k++) {
+        let at = first + k * step;
+        run += atomicLoad(&counts[at]);
+        atomicStore(&counts[at], run);
     }
 }
 
@@ -77,7 +112,7 @@ fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>,
     tile_offsets[t] = cursors[t * B.chunks];
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(16)
 fn scatter(@builtin(global_invocation_id) gid: vec3<u32>) {
     let chunk = gid.x;
     if chunk >= B.chunks {

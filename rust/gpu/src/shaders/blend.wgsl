@@ -691,6 +691,27 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
 var<workgroup> b_hit: array<array<atomic<u32>, NB>, 2>;
 // Per invocation: bit i set when it visited splat i of the batch in any block.
 var<workgroup> q_visited: array<u32, WG>;
+// Sum each visited splat's gradients over the workgroup with subgroup additions (the
+// workgroup is one subgroup) instead of partials in workgroup memory.
+const SUBGROUP_SUMS: bool = {{SUBGROUP_SUMS}};
+// <subgroups>
+// Sum and maximum over the workgroup's invocations (one subgroup).
+fn lanes_sum(v: f32) -> f32 {
+    return subgroupAdd(v);
+}
+fn lanes_max(v: u32) -> u32 {
+    return subgroupMax(v);
+}
+// </subgroups>
+// <no-subgroups>
+// Without subgroup sums (never called then): the invocation's own value.
+fn lanes_sum(v: f32) -> f32 {
+    return v;
+}
+fn lanes_max(v: u32) -> u32 {
+    return v;
+}
+// </no-subgroups>
 
 @compute @workgroup_size(WG)
 fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
@@ -771,8 +792,10 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         workgroupBarrier();
         for (var b = 0u; b < NB; b++) { // unroll: blocks
             var bits = atomicLoad(&b_hit[parity][b]);
-            // Only splats before this block's last contributor (list index < block_last).
-            let keep = select(0u, block_last[b] - start, block_last[b] > start);
+            // Only splats before this block's last contributor (list index < block_last); with
+            // subgroup sums, every invocation walks the same splats (the workgroup's furthest).
+            let bl = lanes_max(block_last[b]);
+            let keep = select(0u, bl - start, bl > start);
             bits &= select(0xffffffffu, (1u << keep) - 1u, keep < 32u);
             loop {
                 if bits == 0u {
@@ -803,6 +826,23 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                     t[j] = r.t;
                     vr[j] = r.vr;
                 }
+                if SUBGROUP_SUMS {
+                    // The workgroup's sums; invocation i adds gradients i, i + WG, ...
+                    var sums: array<f32, STRIDE>;
+                    for (var s = 0u; s < STRIDE; s++) { // unroll: stride
+                        sums[s] = lanes_sum(gs[s]);
+                    }
+                    for (var s0 = 0u; s0 < STRIDE; s0 += WG) {
+                        var v = 0.0;
+                        for (var s = 0u; s < STRIDE; s++) { // unroll: stride
+                            v = select(v, sums[s], s == s0 + lid);
+                        }
+                        if v != 0.0 {
+                            global_add(g * STRIDE + s0 + lid, v);
+                        }
+                    }
+                    continue;
+                }
                 // Sum over this invocation's blocks in its partial slot: stored on the first
                 // visit of the splat, added on later ones.
                 let base = (jj * WG + lid) * STRIDE;
@@ -815,7 +855,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         }
         q_visited[lid] = visited;
         workgroupBarrier();
-        for (var i = lid; i < count * STRIDE; i += WG) {
+        for (var i = lid; i < count * STRIDE && !SUBGROUP_SUMS; i += WG) {
             let jj = i / STRIDE;
             let s = i % STRIDE;
             var v = 0.0;
