@@ -59,6 +59,8 @@ fn main() {
     let mut stages: Vec<(&'static str, Vec<f64>)> = Vec::new();
 
     let mut results = Vec::new();
+    // The first call's image and counters of each backend, compared before any timing is shown.
+    let mut first: Vec<(Vec<f32>, Counters)> = Vec::new();
     for backend in ["cpu", "wgpu"] {
         let (mut fwd, mut full) = (Vec::new(), Vec::new());
         let mut cstate = RasterState::new();
@@ -98,19 +100,24 @@ fn main() {
                         "work: {} visible, {} tile intersections, {} splat-pixel evaluations",
                         c.visible, c.intersections, c.evaluated
                     );
+                    first.push((img.features.clone(), c));
                 }
             } else {
                 gpu.project_forward(&g, &s.camera, &ps, out).unwrap();
-                gpu.rasterize_forward(
-                    &splats(&p, &sp_feats, 3),
-                    w,
-                    h,
-                    &bg,
-                    &bs,
-                    &mut gstate,
-                    img.as_mut(),
-                )
-                .unwrap();
+                let c = gpu
+                    .rasterize_forward(
+                        &splats(&p, &sp_feats, 3),
+                        w,
+                        h,
+                        &bg,
+                        &bs,
+                        &mut gstate,
+                        img.as_mut(),
+                    )
+                    .unwrap();
+                if rep == 0 {
+                    first.push((img.features.clone(), c));
+                }
             }
             let t_fwd = t0.elapsed().as_secs_f64();
             let mut sg = splat_grad_bufs::<f32>(n, 3);
@@ -181,6 +188,22 @@ fn main() {
         }
         results.push((backend, median(fwd), median(full)));
     }
+    // Timings of a wrong image mean nothing: the two backends must agree (each projects on
+    // its own, so allow f32 rounding).
+    let ((cpu_img, cpu_c), (gpu_img, gpu_c)) = (&first[0], &first[1]);
+    let diff = cpu_img
+        .iter()
+        .zip(gpu_img)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    println!(
+        "agreement: max abs image difference {diff:.2e}, blended pairs {} (CPU) vs {} (wgpu)",
+        cpu_c.blended, gpu_c.blended
+    );
+    assert!(
+        diff <= 1e-3 && cpu_c.intersections == gpu_c.intersections,
+        "the wgpu image differs from the CPU path's"
+    );
     println!("backend   forward      fwd+bwd");
     for (b, f, ff) in &results {
         println!("{b:<8} {:>8.1} ms  {:>8.1} ms", f * 1e3, ff * 1e3);

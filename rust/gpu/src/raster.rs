@@ -341,10 +341,18 @@ fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> 
         }
         let end = end.expect("blend.wgsl: unbalanced braces in an unrolled loop");
         let body = &rest[body_start..end];
+        // A body that jumps (`continue`) stays a loop of one trip; any other is a plain block,
+        // which matters on llvmpipe: it caps every shader at 65,535 loop iterations in all
+        // (loops end early beyond), and values written in a block need no loop masks.
+        let jumps = body.contains("continue") || body.contains("break");
         for k in 0..count {
-            out.push_str(&format!(
-                "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ let {var} = {k}u;{body}}}\n"
-            ));
+            if jumps {
+                out.push_str(&format!(
+                    "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ let {var} = {k}u;{body}}}\n"
+                ));
+            } else {
+                out.push_str(&format!("{{ let {var} = {k}u;{body}}}\n"));
+            }
         }
         rest = &rest[end + 1..];
     }
@@ -1056,7 +1064,7 @@ impl GpuRasterizer {
             &mut enc,
             &self.kernels.scatter,
             &g,
-            (chunks.div_ceil(CHUNK_WG), 1),
+            grid((chunks * tiles_y).div_ceil(CHUNK_WG)),
         );
         self.mark(&mut enc, "scatter");
         let image_len = npix * (ch + 2);

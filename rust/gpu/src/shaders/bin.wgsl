@@ -112,22 +112,29 @@ fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>,
     tile_offsets[t] = cursors[t * B.chunks];
 }
 
+// One invocation per (chunk, tile row) walks the chunk in order and writes the ranks of the
+// splats that reach its row: a few hundred loop trips each (llvmpipe ends a shader's loops
+// after 65,535 trips in all, which one invocation per chunk reached on large scenes).
 @compute @workgroup_size(16)
-fn scatter(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let chunk = gid.x;
-    if chunk >= B.chunks {
+fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
+           @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = gid.x + gid.y * nwg.x * 16u;
+    if i >= B.chunks * B.tiles_y {
         return;
     }
+    let chunk = i % B.chunks;
+    let y = i / B.chunks;
     let end = min((chunk + 1u) * B.chunk_size, B.visible);
     for (var r = chunk * B.chunk_size; r < end; r++) {
         let rect = tile_rect(keys[r].y);
-        for (var y = rect.y; y < rect.w; y++) {
-            for (var x = rect.x; x < rect.z; x++) {
-                let slot = (y * B.tiles_x + x) * B.chunks + chunk;
-                let at = cursors[slot];
-                ids[at] = r;
-                cursors[slot] = at + 1u;
-            }
+        if y < rect.y || y >= rect.w {
+            continue;
+        }
+        for (var x = rect.x; x < rect.z; x++) {
+            let slot = (y * B.tiles_x + x) * B.chunks + chunk;
+            let at = cursors[slot];
+            ids[at] = r;
+            cursors[slot] = at + 1u;
         }
     }
 }
