@@ -188,8 +188,9 @@ fn main() {
         }
         results.push((backend, median(fwd), median(full)));
     }
-    // Timings of a wrong image mean nothing: the two backends must agree (each projects on
-    // its own, so allow f32 rounding).
+    // Timings of a wrong image mean nothing: the two backends must agree. Each projects on its
+    // own (f32 rounding moves a few pixels across the 1/255 alpha cut: ~1e-3 here), while
+    // dropped work shows as errors of 0.1 and more.
     let ((cpu_img, cpu_c), (gpu_img, gpu_c)) = (&first[0], &first[1]);
     let diff = cpu_img
         .iter()
@@ -201,7 +202,9 @@ fn main() {
         cpu_c.blended, gpu_c.blended
     );
     assert!(
-        diff <= 1e-3 && cpu_c.intersections == gpu_c.intersections,
+        diff <= 1e-2
+            && cpu_c.intersections == gpu_c.intersections
+            && cpu_c.blended.abs_diff(gpu_c.blended) * 10_000 <= cpu_c.blended,
         "the wgpu image differs from the CPU path's"
     );
     println!("backend   forward      fwd+bwd");
