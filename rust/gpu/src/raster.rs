@@ -33,6 +33,8 @@ const SCAN_BLOCK: u32 = 1024;
 const MAX_CHUNKS: u32 = 1024;
 /// Floats per packed splat: mean x, mean y, conic a, b, c, opacity, depth, padding.
 const SPLAT_FLOATS: usize = 8;
+/// The compositing counters buffer: evaluated lo/hi, blended lo/hi, the loop check flag, pad.
+const COUNTERS_BYTES: u64 = 32;
 /// Compositing thresholds, as in sync4d-raster.
 const ALPHA_MIN: f32 = 1.0 / 255.0;
 const T_MIN: f32 = 1e-4;
@@ -77,7 +79,8 @@ struct BinParams {
     num_tiles: u32,
     /// `sum_lines`: 0 along x, 1 along y.
     axis: u32,
-    pad: u32,
+    /// Trips of the scatter's loop check (2).
+    canary: u32,
 }
 
 #[repr(C)]
@@ -91,6 +94,8 @@ struct BlendParams {
     alpha_max: f32,
     t_min: f32,
     n: u32,
+    canary: u32,
+    pad: [u32; 3],
 }
 
 /// Compiled kernels.
@@ -453,6 +458,8 @@ impl ForwardShape {
             alpha_max: self.alpha_max,
             t_min: T_MIN,
             n: self.n as u32,
+            canary: 2,
+            pad: [0; 3],
         }
     }
 }
@@ -486,6 +493,20 @@ struct Profile {
 fn grid(groups: u32) -> (u32, u32) {
     let x = groups.clamp(1, 65_535);
     (x, groups.div_ceil(x).max(1))
+}
+
+/// An error when a kernel set the loop check flag (`counters[4]`, see blend.wgsl's
+/// `loops_completed`): the driver cut its loops short, so the results are incomplete.
+fn loops_completed(counters: &[u32], gpu: &GpuDevice) -> Result<()> {
+    if counters[4] != 0 {
+        return Err(GpuError::TooLarge(format!(
+            "the adapter ({}) cut the kernels' loops short (lavapipe ends a shader's loops after \
+             65,535 trips), so this scene's tile lists are too long for it; render fewer \
+             Gaussians or a smaller image, or use the CPU backend",
+            gpu.adapter
+        )));
+    }
+    Ok(())
 }
 
 fn check_binding(gpu: &GpuDevice, what: &str, bytes: u64) -> Result<()> {
@@ -992,7 +1013,7 @@ impl GpuRasterizer {
             tiles_y,
             num_tiles,
             axis: 0,
-            pad: 0,
+            canary: 2,
         };
         let bin_params = self.uniform(&bin);
         // Auto layouts hold only the bindings an entry point uses.
@@ -1049,6 +1070,8 @@ impl GpuRasterizer {
         // 3. Scatter ranks into tile lists, then composite.
         let ids = storage_in(&self.gpu, &mut state.pool, "ids", u64::from(total) * 4)?;
         let mut enc = dev.create_command_encoder(&Default::default());
+        let counters = self.storage("counters", COUNTERS_BYTES)?;
+        enc.clear_buffer(&counters, 0, Some(COUNTERS_BYTES));
         let g = self.bind(
             &self.kernels.scatter,
             &[
@@ -1058,6 +1081,7 @@ impl GpuRasterizer {
                 (3, &radii_buf),
                 (5, &cursors),
                 (6, &ids),
+                (8, &counters),
             ],
         );
         Self::dispatch(
@@ -1069,8 +1093,6 @@ impl GpuRasterizer {
         self.mark(&mut enc, "scatter");
         let image_len = npix * (ch + 2);
         let image = self.storage("image", image_len as u64 * 4)?;
-        let counters = self.storage("counters", 16)?;
-        enc.clear_buffer(&counters, 0, Some(16));
         let forward = Forward {
             shape: ForwardShape {
                 n,
@@ -1097,8 +1119,9 @@ impl GpuRasterizer {
         self.mark(&mut enc, "blend forward");
         self.gpu.queue.submit([enc.finish()]);
         let img = self.read_f32(&image, image_len)?;
-        let cnt: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(&counters, 16)?);
+        let cnt: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(&counters, COUNTERS_BYTES)?);
         self.mark_host("read image");
+        loops_completed(&cnt, &self.gpu)?;
         out.features.copy_from_slice(&img[..npix * ch]);
         out.alpha.copy_from_slice(&img[npix * ch..npix * (ch + 1)]);
         out.depth
@@ -1172,7 +1195,9 @@ impl GpuRasterizer {
         enc.clear_buffer(&out, 0, Some((n * stride * 4) as u64));
         let blend_params = self.uniform(&forward.shape.blend_params());
         let pipe = self.kernels.blend(&dev, self.layout, ch).1.clone();
-        let mut bindings = vec![(0, &blend_params), (9, &v_buf), (10, &out)];
+        let counters = self.storage("counters", COUNTERS_BYTES)?;
+        enc.clear_buffer(&counters, 0, Some(COUNTERS_BYTES));
+        let mut bindings = vec![(0, &blend_params), (8, &counters), (9, &v_buf), (10, &out)];
         bindings.extend(forward.inputs());
         let g = self.bind(&pipe, &bindings);
         let tiles = (forward.shape.tiles_x, forward.shape.tiles_y);
@@ -1180,7 +1205,9 @@ impl GpuRasterizer {
         self.mark(&mut enc, "blend backward");
         self.gpu.queue.submit([enc.finish()]);
         let r = self.read_f32(&out, n * stride)?;
+        let cnt: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(&counters, COUNTERS_BYTES)?);
         self.mark_host("read grads");
+        loops_completed(&cnt, &self.gpu)?;
         for i in 0..n {
             let s = &r[stride * i..stride * (i + 1)];
             grads.means2d[2 * i..2 * i + 2].copy_from_slice(&s[0..2]);

@@ -552,3 +552,46 @@ fn large_scenes_match_the_cpu_path() {
     assert!(max_abs(&ci.alpha, &gi.alpha) <= 1e-4);
     check_gradients(&mut r, 21, 20_000, 448, 448, 3);
 }
+
+/// One tile whose list holds 70,000 splats that reach it but stay below 1/255 at every pixel
+/// centre: nothing saturates, so the forward walks the whole list (about 80,000 loop trips).
+/// On lavapipe that passes its 65,535-trip cap and must be an error naming the cause, never a
+/// truncated result; other adapters composite it like the CPU path.
+#[test]
+fn loops_cut_short_by_the_driver_are_an_error() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let n = 70_000;
+    let p = Proj {
+        means2d: (0..n).flat_map(|_| [8.0f32, -2.8]).collect(),
+        conics: (0..n).flat_map(|_| [1.0f32, 0.0, 1.0]).collect(),
+        depths: (0..n).map(|i| 1.0 + i as f32).collect(),
+        opacities: vec![0.5; n],
+        radii: vec![4; 2 * n],
+    };
+    let feats = vec![0.5f32; 3 * n];
+    let bg = [0.1f32, 0.2, 0.3];
+    let sp = splats(&p, &feats, 3);
+    let bs = BlendSettings::default();
+    let mut img = Image::zeros(256, 3);
+    let got = r.rasterize_forward(
+        &sp,
+        16,
+        16,
+        &bg,
+        &bs,
+        &mut GpuRasterState::new(),
+        img.as_mut(),
+    );
+    if r.device().adapter.kind == "cpu" {
+        let err = got.unwrap_err().to_string();
+        assert!(
+            err.contains("65,535") && err.contains("CPU backend"),
+            "{err}"
+        );
+    } else {
+        let c = got.unwrap();
+        assert_eq!(c.intersections, n as u64);
+        assert!(img.features.chunks(3).all(|px| px == bg));
+    }
+}

@@ -13,7 +13,8 @@ struct BinParams {
     num_tiles: u32,
     // sum_lines: 0 along x, 1 along y.
     axis: u32,
-    pad0: u32,
+    // Trips of the loop check in `scatter` (2, see blend.wgsl's `loops_completed`).
+    canary: u32,
 }
 
 @group(0) @binding(0) var<uniform> B: BinParams;
@@ -29,6 +30,9 @@ struct BinParams {
 @group(0) @binding(6) var<storage, read_write> ids: array<u32>;
 // tile_offsets[t]..tile_offsets[t + 1] indexes `ids` for tile t.
 @group(0) @binding(7) var<storage, read_write> tile_offsets: array<u32>;
+// The compositing counters; entry 4 is set when `scatter`'s loops were cut short (llvmpipe's
+// cap on loop trips, see blend.wgsl's `loops_completed`).
+@group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>>;
 
 const TILE: f32 = 16.0;
 
@@ -136,5 +140,12 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
             ids[at] = r;
             cursors[slot] = at + 1u;
         }
+    }
+    var trips = 0u;
+    for (var z = 0u; z < B.canary; z++) {
+        trips += 1u;
+    }
+    if trips != B.canary {
+        atomicStore(&counters[4], 1u);
     }
 }

@@ -24,6 +24,11 @@ struct BlendParams {
     t_min: f32,
     // Number of splats N (features are N*C, then the C background values).
     n: u32,
+    // Trips of the `loops_completed` check (2; a uniform, so that no compiler unrolls it).
+    canary: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 @group(0) @binding(0) var<uniform> F: BlendParams;
@@ -38,8 +43,27 @@ struct BlendParams {
 @group(0) @binding(6) var<storage, read_write> image: array<f32>;
 // Per pixel: 1 + list index of the last composited splat (0 if none), final transmittance bits.
 @group(0) @binding(7) var<storage, read_write> pixel_state: array<u32>;
-// evaluated lo/hi, blended lo/hi.
+// evaluated lo/hi, blended lo/hi, then 1 when a kernel's loops were cut short (see
+// `loops_completed`).
 @group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>>;
+
+// Whether this invocation's loops ran to their ends: llvmpipe ends every loop of a shader once
+// 65,535 trips have run in all (shared by the shader's loops), and then this loop of `canary`
+// trips stops after its first. Called last; on failure the host reports an error instead of
+// returning truncated work.
+fn loops_completed() -> bool {
+    var trips = 0u;
+    for (var z = 0u; z < F.canary; z++) {
+        trips += 1u;
+    }
+    return trips == F.canary;
+}
+
+fn check_loops() {
+    if !loops_completed() {
+        atomicStore(&counters[4], 1u);
+    }
+}
 
 var<workgroup> sh_pos: array<vec4<f32>, FB>;   // mean x, mean y, opacity, depth
 var<workgroup> sh_conic: array<vec4<f32>, FB>; // a, b, c, -
@@ -243,6 +267,7 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
         let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
         store_pixel(q, a, t[j], depth[j], last[j]);
     }
+    check_loops();
     workgroupBarrier();
     if lid == 0u {
         add_wide(0u, atomicLoad(&wg_evaluated));
@@ -415,6 +440,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
         let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
         store_pixel(q, a, t[j], depth[j], last[j]);
     }
+    check_loops();
     workgroupBarrier();
     if lid == 0u {
         add_wide(0u, atomicLoad(&wg_evaluated));
@@ -679,6 +705,7 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
         workgroupBarrier();
         end = start;
     }
+    check_loops();
 }
 
 // <rows>
@@ -874,5 +901,6 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         parity = 1u - parity;
         end = start;
     }
+    check_loops();
 }
 // </rows>
