@@ -4,7 +4,8 @@
 //! cargo run --release -p sync4d-gpu --example cpu_vs_wgpu -- [N] [WIDTH] [HEIGHT] [REPEATS]
 //!
 //! With SYNC4D_GPU_PROFILE=1 the wgpu calls also report per-stage times (each stage then waits
-//! for the device, so the totals grow a little).
+//! for the device, so the totals grow a little). SYNC4D_GPU_ROWS=R and SYNC4D_GPU_PIXELS=P
+//! override the compositing layout's block rows and pixels per invocation (to compare layouts).
 
 #[path = "../../raster/tests/common/mod.rs"]
 mod common;
@@ -54,6 +55,17 @@ fn main() {
     let dev = GpuDevice::new(AdapterChoice::Auto).expect("no wgpu adapter");
     println!("adapter: {}  |  N = {n}, {w}x{h}", dev.adapter);
     let mut gpu = GpuRasterizer::new(dev);
+    let env_u32 = |name: &str| {
+        std::env::var(name)
+            .ok()
+            .map(|v| v.parse::<u32>().expect(name))
+    };
+    let mut layout = gpu.blend_layout();
+    layout.block_rows = env_u32("SYNC4D_GPU_ROWS").unwrap_or(layout.block_rows);
+    layout.pixels_per_invocation =
+        env_u32("SYNC4D_GPU_PIXELS").unwrap_or(layout.pixels_per_invocation);
+    gpu.set_blend_layout(layout).expect("compositing layout");
+    println!("layout: {layout:?}");
     let profiling = std::env::var("SYNC4D_GPU_PROFILE").is_ok_and(|v| v == "1");
     gpu.set_profiling(profiling);
     let mut stages: Vec<(&'static str, Vec<f64>)> = Vec::new();

@@ -1003,6 +1003,7 @@ impl GpuRasterizer {
             )));
         }
         let counts = self.storage("counts", table * 4)?;
+        let rects = self.storage("rects", u64::from(visible.max(1)) * 8)?;
         let cursors = self.storage("cursors", (table + 1) * 4)?;
         enc.clear_buffer(&counts, 0, Some(table * 4));
         let bin = BinParams {
@@ -1025,6 +1026,7 @@ impl GpuRasterizer {
                 (2, &splat_buf),
                 (3, &radii_buf),
                 (4, &counts),
+                (9, &rects),
             ],
         );
         Self::dispatch(
@@ -1076,12 +1078,10 @@ impl GpuRasterizer {
             &self.kernels.scatter,
             &[
                 (0, &bin_params),
-                (1, &keys),
-                (2, &splat_buf),
-                (3, &radii_buf),
                 (5, &cursors),
                 (6, &ids),
                 (8, &counters),
+                (9, &rects),
             ],
         );
         Self::dispatch(

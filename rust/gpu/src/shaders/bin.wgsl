@@ -33,6 +33,9 @@ struct BinParams {
 // The compositing counters; entry 4 is set when `scatter`'s loops were cut short (llvmpipe's
 // cap on loop trips, see blend.wgsl's `loops_completed`).
 @group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>>;
+// Per depth rank: its tile rectangle packed as (x0 | x1 << 16, y0 | y1 << 16), written by
+// `count_corners` for `scatter` (an empty rectangle where x0 == x1 or y0 == y1).
+@group(0) @binding(9) var<storage, read_write> rects: array<vec2<u32>>;
 
 const TILE: f32 = 16.0;
 
@@ -74,6 +77,7 @@ fn count_corners(@builtin(global_invocation_id) gid: vec3<u32>,
         return;
     }
     let rect = tile_rect(keys[r].y);
+    rects[r] = vec2<u32>(rect.x | (rect.z << 16u), rect.y | (rect.w << 16u));
     if rect.x >= rect.z || rect.y >= rect.w {
         return;
     }
@@ -119,6 +123,8 @@ fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>,
 // One invocation per (chunk, tile row) walks the chunk in order and writes the ranks of the
 // splats that reach its row: a few hundred loop trips each (llvmpipe ends a shader's loops
 // after 65,535 trips in all, which one invocation per chunk reached on large scenes).
+// Neighbouring invocations take neighbouring rows of one chunk, so SIMD lanes read the same
+// rectangles and mostly agree on the row loop's trip count.
 @compute @workgroup_size(16)
 fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
            @builtin(num_workgroups) nwg: vec3<u32>) {
@@ -126,15 +132,13 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
     if i >= B.chunks * B.tiles_y {
         return;
     }
-    let chunk = i % B.chunks;
-    let y = i / B.chunks;
+    let chunk = i / B.tiles_y;
+    let y = i % B.tiles_y;
     let end = min((chunk + 1u) * B.chunk_size, B.visible);
     for (var r = chunk * B.chunk_size; r < end; r++) {
-        let rect = tile_rect(keys[r].y);
-        if y < rect.y || y >= rect.w {
-            continue;
-        }
-        for (var x = rect.x; x < rect.z; x++) {
+        let rect = rects[r];
+        let x1 = select(0u, rect.x >> 16u, y >= (rect.y & 0xffffu) && y < (rect.y >> 16u));
+        for (var x = rect.x & 0xffffu; x < x1; x++) {
             let slot = (y * B.tiles_x + x) * B.chunks + chunk;
             let at = cursors[slot];
             ids[at] = r;
