@@ -10,7 +10,8 @@
 //!    hardware);
 //! 4. per-tile front-to-back compositing, one workgroup per 16x16 tile ([`BlendLayout`]: one
 //!    pixel per invocation on GPUs, many on CPU adapters, gradient sums by subgroup operations
-//!    where the device has them).
+//!    where the device has them); long tile lists over several dispatches
+//!    ([`CompositingWindow`]), as lavapipe's driver ends a shader's loops after 65,535 trips.
 //!
 //! [`GpuDevice`] picks the adapter ([`AdapterChoice`]); [`GpuRasterizer`] owns the compiled
 //! kernels and reusable buffers. Inputs are validated exactly as on the CPU path and every
@@ -23,4 +24,4 @@ pub mod raster;
 
 pub use device::{list_adapters, AdapterChoice, AdapterSummary, GpuDevice};
 pub use error::{GpuError, Result};
-pub use raster::{BlendLayout, GpuRasterState, GpuRasterizer};
+pub use raster::{BlendLayout, CompositingWindow, GpuRasterState, GpuRasterizer};

@@ -33,8 +33,12 @@ const SCAN_BLOCK: u32 = 1024;
 const MAX_CHUNKS: u32 = 1024;
 /// Floats per packed splat: mean x, mean y, conic a, b, c, opacity, depth, padding.
 const SPLAT_FLOATS: usize = 8;
-/// The compositing counters buffer: evaluated lo/hi, blended lo/hi, the loop check flag, pad.
+/// The compositing counters buffer (u32s): evaluated lo/hi, blended lo/hi, the compositing
+/// kernels' loop check flag, the deepest list position composited (the forward's largest
+/// last contributor), pad, the scatter's loop check flag.
 const COUNTERS_BYTES: u64 = 32;
+/// Its first part, which compositing writes (up to the scatter's flag).
+const COMPOSITING_COUNTERS_BYTES: u64 = 28;
 /// Compositing thresholds, as in sync4d-raster.
 const ALPHA_MIN: f32 = 1.0 / 255.0;
 const T_MIN: f32 = 1e-4;
@@ -95,8 +99,19 @@ struct BlendParams {
     t_min: f32,
     n: u32,
     canary: u32,
-    pad: [u32; 3],
+    /// This dispatch's window of each tile's list: list positions [win_lo, win_hi).
+    win_lo: u32,
+    win_hi: u32,
+    /// FIRST_WINDOW | LAST_WINDOW bits (blend.wgsl).
+    window: u32,
 }
+
+/// `BlendParams::window` bits: the first window walked (fresh state) and the last (final
+/// outputs); see blend.wgsl.
+const FIRST_WINDOW: u32 = 1;
+const LAST_WINDOW: u32 = 2;
+/// The smallest compositing window the automatic choice halves down to before giving up.
+const MIN_WINDOW: u32 = 256;
 
 /// Compiled kernels.
 struct Kernels {
@@ -295,6 +310,7 @@ impl BlendLayout {
                 if self.subgroup_sums { "true" } else { "false" },
             )
             .replace("{{ROWS}}", &rows.to_string())
+            .replace("{{SPANS}}", &stride.div_ceil(invocations).to_string())
             .replace("{{CHANNELS}}", &channels.to_string())
             .replace("{{PIXELS}}", &p.to_string())
             .replace("{{PARTIALS}}", if self.partials { "true" } else { "false" })
@@ -303,6 +319,7 @@ impl BlendLayout {
             .replace("{{PARTIAL_LEN}}", &partial.to_string());
         let src = unroll_loops(&src, "c", "C", "channels", channels);
         let src = unroll_loops(&src, "s", "STRIDE", "stride", stride);
+        let src = unroll_loops(&src, "h", "SPANS", "spans", stride.div_ceil(invocations));
         let src = unroll_loops(&src, "b", "NB", "blocks", blocks);
         let src = unroll_loops(&src, "jj", "JB", "block pixels", p / blocks);
         let src = unroll_loops(&src, "jp", "JB", "block pixels", p / blocks);
@@ -419,6 +436,8 @@ struct Forward {
     tile_offsets: wgpu::Buffer,
     features: wgpu::Buffer,
     pixel_state: wgpu::Buffer,
+    /// The deepest list position any pixel composited (what the backward walks).
+    deepest: u32,
 }
 
 impl Forward {
@@ -448,7 +467,15 @@ struct ForwardShape {
 
 impl ForwardShape {
     /// The compositing kernels' parameters (blend.wgsl `BlendParams`).
-    fn blend_params(&self) -> BlendParams {
+    /// The compositing kernels' parameters for window `w` of `windows` (blend.wgsl
+    /// `BlendParams`): list positions [w * size, (w + 1) * size), the last one open-ended;
+    /// `forward` walks them in increasing order, the backward in decreasing.
+    fn blend_params(&self, w: u32, windows: u32, size: u32, forward: bool) -> BlendParams {
+        let (first, last) = if forward {
+            (w == 0, w + 1 == windows)
+        } else {
+            (w + 1 == windows, w == 0)
+        };
         BlendParams {
             width: self.width,
             height: self.height,
@@ -459,7 +486,13 @@ impl ForwardShape {
             t_min: T_MIN,
             n: self.n as u32,
             canary: 2,
-            pad: [0; 3],
+            win_lo: w * size,
+            win_hi: if w + 1 == windows {
+                u32::MAX
+            } else {
+                (w + 1) * size
+            },
+            window: (u32::from(first) * FIRST_WINDOW) | (u32::from(last) * LAST_WINDOW),
         }
     }
 }
@@ -479,6 +512,53 @@ pub struct GpuRasterizer {
     /// Per-stage wall times when profiling is on (see [`GpuRasterizer::set_profiling`]).
     profile: Option<Profile>,
     layout: BlendLayout,
+    /// Tile-list entries composited per dispatch (forward, backward); see
+    /// [`GpuRasterizer::set_compositing_window`].
+    windows: CompositingWindows,
+}
+
+/// How many tile-list entries one compositing dispatch walks: long lists are composited over
+/// several dispatches, the per-pixel state kept on the device in between.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CompositingWindow {
+    /// The default: one dispatch on GPUs; on CPU adapters (lavapipe, whose driver ends a
+    /// shader's loops after 65,535 trips) a measured size, halved whenever the kernels' loop
+    /// guard reports cut loops, until it passes or reaches 256 entries (then an error).
+    Auto,
+    /// Start at this many entries, halved like `Auto`.
+    Start(u32),
+    /// Exactly this many entries; cut loops are an error.
+    Fixed(u32),
+}
+
+/// The compositing windows in use. lavapipe ends a shader's loops
+/// after 65,535 trips in all (a guard in every kernel detects it), so long tile lists are
+/// composited over several dispatches, the per-pixel state kept on the device in between.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct CompositingWindows {
+    forward: u32,
+    backward: u32,
+    /// Halve a window and composite again when the guard reports cut loops (else an error).
+    adaptive: bool,
+}
+
+impl CompositingWindows {
+    /// The starting windows for `layout`: the row-block kernels of CPU adapters spend a few
+    /// loop trips per entry (measured on lavapipe: forward ~1.2, backward ~5), others are
+    /// walked in one dispatch; halved automatically when that proves too long. (A 70,000-entry
+    /// list of one-pixel splats on lavapipe: forward passes at 35,000, backward at 17,500.)
+    fn for_layout(layout: BlendLayout) -> Self {
+        let (forward, backward) = if layout.block_rows > 0 {
+            (32_768, 12_288)
+        } else {
+            (u32::MAX, u32::MAX)
+        };
+        CompositingWindows {
+            forward,
+            backward,
+            adaptive: true,
+        }
+    }
 }
 
 /// Stage timings of the calls made while profiling: (stage name, seconds), in call order.
@@ -495,18 +575,23 @@ fn grid(groups: u32) -> (u32, u32) {
     (x, groups.div_ceil(x).max(1))
 }
 
-/// An error when a kernel set the loop check flag (`counters[4]`, see blend.wgsl's
-/// `loops_completed`): the driver cut its loops short, so the results are incomplete.
+/// An error when a kernel set its loop check flag (`counters[4]` compositing, `counters[7]`
+/// the tile scatter; see blend.wgsl's `loops_completed`): the driver cut its loops short even
+/// with the smallest compositing window tried, so the results are incomplete.
 fn loops_completed(counters: &[u32], gpu: &GpuDevice) -> Result<()> {
-    if counters[4] != 0 {
-        return Err(GpuError::TooLarge(format!(
-            "the adapter ({}) cut the kernels' loops short (lavapipe ends a shader's loops after \
-             65,535 trips), so this scene's tile lists are too long for it; render fewer \
-             Gaussians or a smaller image, or use the CPU backend",
-            gpu.adapter
-        )));
-    }
-    Ok(())
+    let what = if counters[7] != 0 {
+        "the tile scatter's"
+    } else if counters[4] != 0 {
+        "the compositing kernels'"
+    } else {
+        return Ok(());
+    };
+    Err(GpuError::TooLarge(format!(
+        "the adapter ({}) cut {what} loops short (lavapipe ends a shader's loops after 65,535 \
+         trips), even composited in windows, so this scene is too large for it; render fewer \
+         Gaussians or a smaller image, or use the CPU backend",
+        gpu.adapter
+    )))
 }
 
 fn check_binding(gpu: &GpuDevice, what: &str, bytes: u64) -> Result<()> {
@@ -561,6 +646,104 @@ impl GpuRasterizer {
             pool: Pool::default(),
             profile: None,
             layout,
+            windows: CompositingWindows::for_layout(layout),
+        }
+    }
+
+    /// How many tile-list entries one compositing dispatch walks (see [`CompositingWindow`]);
+    /// results do not depend on it beyond float rounding.
+    pub fn set_compositing_window(&mut self, window: CompositingWindow) -> Result<()> {
+        let fixed = |entries: u32, adaptive: bool| {
+            if entries == 0 {
+                return Err(RasterError::invalid("window", "must be at least 1 entry"));
+            }
+            Ok(CompositingWindows {
+                forward: entries,
+                backward: entries,
+                adaptive,
+            })
+        };
+        self.windows = match window {
+            CompositingWindow::Auto => CompositingWindows::for_layout(self.layout),
+            CompositingWindow::Start(n) => fixed(n, true)?,
+            CompositingWindow::Fixed(n) => fixed(n, false)?,
+        };
+        Ok(())
+    }
+
+    /// After a compositing attempt with the counters `cnt`: when the kernels' loops were cut
+    /// and windows are automatic, halve the (forward or backward) window for lists of at most
+    /// `longest` entries and return true (composite again); else false.
+    fn shrink_window(&mut self, cnt: &[u32], longest: u32, forward: bool) -> bool {
+        if cnt[4] == 0 || !self.windows.adaptive {
+            return false;
+        }
+        let w = if forward {
+            &mut self.windows.forward
+        } else {
+            &mut self.windows.backward
+        };
+        let current = (*w).min(longest);
+        if current <= MIN_WINDOW {
+            return false;
+        }
+        *w = (current / 2).max(MIN_WINDOW);
+        true
+    }
+
+    /// Run the compositing kernel `pipe` (forward or backward, appended to `enc`) over every
+    /// tile, in windows of the current size over lists of at most `longest` entries (forward
+    /// in increasing list order, backward decreasing); when the kernels' loop guard reports a
+    /// cut and windows are automatic, zero the `clear` buffers (bytes) and run again with a
+    /// halved window. Returns the compositing counters.
+    #[allow(clippy::too_many_arguments)]
+    fn composite(
+        &mut self,
+        mut enc: wgpu::CommandEncoder,
+        pipe: &wgpu::ComputePipeline,
+        shape: &ForwardShape,
+        longest: u32,
+        forward: bool,
+        bindings: &[(u32, &wgpu::Buffer)],
+        clear: &[(&wgpu::Buffer, u64)],
+    ) -> Result<Vec<u32>> {
+        let counters = bindings
+            .iter()
+            .find(|(b, _)| *b == 8)
+            .map(|(_, buf)| *buf)
+            .expect("compositing binds the counters");
+        loop {
+            for (buf, bytes) in clear {
+                enc.clear_buffer(buf, 0, Some(*bytes));
+            }
+            let size = if forward {
+                self.windows.forward
+            } else {
+                self.windows.backward
+            };
+            let windows = longest.div_ceil(size).max(1);
+            for i in 0..windows {
+                let w = if forward { i } else { windows - 1 - i };
+                let params = self.uniform(&shape.blend_params(w, windows, size, forward));
+                let mut all = vec![(0, &params)];
+                all.extend_from_slice(bindings);
+                let g = self.bind(pipe, &all);
+                Self::dispatch(&mut enc, pipe, &g, (shape.tiles_x, shape.tiles_y));
+            }
+            self.mark(
+                &mut enc,
+                if forward {
+                    "blend forward"
+                } else {
+                    "blend backward"
+                },
+            );
+            self.gpu.queue.submit([enc.finish()]);
+            let cnt: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(counters, COUNTERS_BYTES)?);
+            if !self.shrink_window(&cnt, longest, forward) {
+                return Ok(cnt);
+            }
+            enc = self.gpu.device.create_command_encoder(&Default::default());
         }
     }
 
@@ -599,6 +782,9 @@ impl GpuRasterizer {
         if layout != self.layout {
             self.layout = layout;
             self.kernels.blend.clear();
+            if self.windows.adaptive {
+                self.windows = CompositingWindows::for_layout(layout);
+            }
         }
         Ok(())
     }
@@ -1056,16 +1242,11 @@ impl GpuRasterizer {
         );
         self.mark(&mut enc, "tile ranges");
         self.gpu.queue.submit([enc.finish()]);
-        let total = {
-            let off = u64::from(num_tiles) * 4;
-            let all = self.read(&tile_offsets, off + 4)?;
-            u32::from_le_bytes([
-                all[off as usize],
-                all[off as usize + 1],
-                all[off as usize + 2],
-                all[off as usize + 3],
-            ])
-        };
+        let offsets: Vec<u32> = bytemuck::pod_collect_to_vec(
+            &self.read(&tile_offsets, (u64::from(num_tiles) + 1) * 4)?,
+        );
+        let total = offsets[num_tiles as usize];
+        let longest = offsets.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
 
         self.mark_host("read total");
 
@@ -1093,7 +1274,7 @@ impl GpuRasterizer {
         self.mark(&mut enc, "scatter");
         let image_len = npix * (ch + 2);
         let image = self.storage("image", image_len as u64 * 4)?;
-        let forward = Forward {
+        let mut forward = Forward {
             shape: ForwardShape {
                 n,
                 channels: ch,
@@ -1109,19 +1290,17 @@ impl GpuRasterizer {
             tile_offsets,
             features: feat_buf,
             pixel_state,
+            deepest: longest,
         };
-        let blend_params = self.uniform(&forward.shape.blend_params());
         let pipe = self.kernels.blend(&dev, self.layout, ch).0.clone();
-        let mut bindings = vec![(0, &blend_params), (6, &image), (8, &counters)];
+        let mut bindings = vec![(6, &image), (8, &counters)];
         bindings.extend(forward.inputs());
-        let g = self.bind(&pipe, &bindings);
-        Self::dispatch(&mut enc, &pipe, &g, (tiles_x, tiles_y));
-        self.mark(&mut enc, "blend forward");
-        self.gpu.queue.submit([enc.finish()]);
+        let clear = [(&counters, COMPOSITING_COUNTERS_BYTES)];
+        let cnt = self.composite(enc, &pipe, &forward.shape, longest, true, &bindings, &clear)?;
         let img = self.read_f32(&image, image_len)?;
-        let cnt: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(&counters, COUNTERS_BYTES)?);
         self.mark_host("read image");
         loops_completed(&cnt, &self.gpu)?;
+        forward.deepest = cnt[5];
         out.features.copy_from_slice(&img[..npix * ch]);
         out.alpha.copy_from_slice(&img[npix * ch..npix * (ch + 1)]);
         out.depth
@@ -1192,20 +1371,23 @@ impl GpuRasterizer {
         let out = self.storage("splat_grads", (n * stride * 4) as u64)?;
         let mut enc = dev.create_command_encoder(&Default::default());
         self.mark(&mut enc, "upload v_image");
-        enc.clear_buffer(&out, 0, Some((n * stride * 4) as u64));
-        let blend_params = self.uniform(&forward.shape.blend_params());
         let pipe = self.kernels.blend(&dev, self.layout, ch).1.clone();
         let counters = self.storage("counters", COUNTERS_BYTES)?;
-        enc.clear_buffer(&counters, 0, Some(COUNTERS_BYTES));
-        let mut bindings = vec![(0, &blend_params), (8, &counters), (9, &v_buf), (10, &out)];
+        let walk_state = self.storage("walk_state", npix as u64 * 8)?;
+        let mut bindings = vec![(8, &counters), (9, &v_buf), (10, &out), (11, &walk_state)];
         bindings.extend(forward.inputs());
-        let g = self.bind(&pipe, &bindings);
-        let tiles = (forward.shape.tiles_x, forward.shape.tiles_y);
-        Self::dispatch(&mut enc, &pipe, &g, tiles);
-        self.mark(&mut enc, "blend backward");
-        self.gpu.queue.submit([enc.finish()]);
+        let grads_bytes = (n * stride * 4) as u64;
+        let clear = [(&out, grads_bytes), (&counters, COMPOSITING_COUNTERS_BYTES)];
+        let cnt = self.composite(
+            enc,
+            &pipe,
+            &forward.shape,
+            forward.deepest,
+            false,
+            &bindings,
+            &clear,
+        )?;
         let r = self.read_f32(&out, n * stride)?;
-        let cnt: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(&counters, COUNTERS_BYTES)?);
         self.mark_host("read grads");
         loops_completed(&cnt, &self.gpu)?;
         for i in 0..n {

@@ -8,7 +8,9 @@ mod common;
 
 use common::*;
 use std::sync::{Mutex, OnceLock};
-use sync4d_gpu::{AdapterChoice, BlendLayout, GpuDevice, GpuRasterState, GpuRasterizer};
+use sync4d_gpu::{
+    AdapterChoice, BlendLayout, CompositingWindow, GpuDevice, GpuRasterState, GpuRasterizer,
+};
 use sync4d_raster::*;
 
 /// One rasterizer shared by the tests (kernel compilation is the slow part on lavapipe).
@@ -331,6 +333,13 @@ fn bad_input_is_an_error_not_a_panic() {
         assert!(err.to_string().contains(field), "{bad:?}: {err}");
         assert_eq!(r.blend_layout(), before);
     }
+    for bad in [CompositingWindow::Fixed(0), CompositingWindow::Start(0)] {
+        let err = r.set_compositing_window(bad).unwrap_err().to_string();
+        assert!(
+            err.contains("window") && err.contains("at least 1"),
+            "{err}"
+        );
+    }
 }
 
 /// Largest |a - b| relative to the largest |a| of the array (gradients of different splats
@@ -353,25 +362,38 @@ fn random_image(npix: usize, ch: usize, seed: u64) -> Image<f32> {
 /// Splat gradients of the CPU path and of `r` (its current layout) on a random scene and
 /// random image gradients agree to 1e-3 relative, and none is all zero.
 fn check_gradients(r: &mut GpuRasterizer, seed: u64, n: usize, w: u32, h: u32, ch: usize) {
-    let layout = r.blend_layout();
     let s = random_scene(n, w, h, ch, seed);
-    let bs = BlendSettings::default();
     let p = cpu_project(&s, &ProjectSettings::default());
     let feats = to_f32(&s.features);
     let bg = to_f32(&s.background);
-    let sp = splats(&p, &feats, ch);
+    check_splat_gradients(r, &splats(&p, &feats, ch), w, h, &bg, seed);
+}
+
+/// The GPU path's image (<= 1e-4) and gradients (<= 1e-3 relative, not all zero) for `sp` in
+/// a `w` x `h` image against the CPU path's, under random dL/d(image) from `seed`.
+fn check_splat_gradients(
+    r: &mut GpuRasterizer,
+    sp: &Splats<'_, f32>,
+    w: u32,
+    h: u32,
+    bg: &[f32],
+    seed: u64,
+) {
+    let layout = r.blend_layout();
+    let (n, ch) = (sp.len(), sp.channels);
+    let bs = BlendSettings::default();
     let npix = (w * h) as usize;
     let v = random_image(npix, ch, seed);
     // CPU
     let mut cstate = RasterState::new();
-    let mut img = Image::zeros(npix, ch);
-    rasterize_forward(&sp, w, h, &bg, &bs, &mut cstate, img.as_mut()).unwrap();
+    let mut cimg = Image::zeros(npix, ch);
+    rasterize_forward(sp, w, h, bg, &bs, &mut cstate, cimg.as_mut()).unwrap();
     let mut cg = splat_grad_bufs::<f32>(n, ch);
     rasterize_backward(
-        &sp,
+        sp,
         w,
         h,
-        &bg,
+        bg,
         &bs,
         &mut cstate,
         &v.as_grads(),
@@ -381,14 +403,21 @@ fn check_gradients(r: &mut GpuRasterizer, seed: u64, n: usize, w: u32, h: u32, c
     // GPU
     let mut gstate = GpuRasterState::new();
     let mut img = Image::zeros(npix, ch);
-    r.rasterize_forward(&sp, w, h, &bg, &bs, &mut gstate, img.as_mut())
+    r.rasterize_forward(sp, w, h, bg, &bs, &mut gstate, img.as_mut())
         .unwrap();
+    for (name, a, b) in [
+        ("features", &cimg.features, &img.features),
+        ("alpha", &cimg.alpha, &img.alpha),
+    ] {
+        let e = max_abs(a, b);
+        assert!(e <= 1e-4, "{layout:?} seed {seed} image {name}: {e}");
+    }
     let mut gg = splat_grad_bufs::<f32>(n, ch);
     r.rasterize_backward(
-        &sp,
+        sp,
         w,
         h,
-        &bg,
+        bg,
         &bs,
         &mut gstate,
         &v.as_grads(),
@@ -553,45 +582,78 @@ fn large_scenes_match_the_cpu_path() {
     check_gradients(&mut r, 21, 20_000, 448, 448, 3);
 }
 
-/// One tile whose list holds 70,000 splats that reach it but stay below 1/255 at every pixel
-/// centre: nothing saturates, so the forward walks the whole list (about 80,000 loop trips).
-/// On lavapipe that passes its 65,535-trip cap and must be an error naming the cause, never a
-/// truncated result; other adapters composite it like the CPU path.
+/// One 16x16 tile whose list holds 70,000 one-pixel splats (alpha ~0.01 near their own pixel
+/// centre, below 1/255 at the next), ~270 a pixel: nothing saturates, so forward and backward
+/// walk the whole list, more loop trips than lavapipe runs in one shader (65,535). Composited
+/// in windows it matches the CPU path; one fixed window on lavapipe is an error naming the
+/// cause, never a truncated result.
 #[test]
-fn loops_cut_short_by_the_driver_are_an_error() {
+fn long_tile_lists_are_composited_in_windows() {
     let Some(gpu) = gpu() else { return };
     let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
     let n = 70_000;
     let p = Proj {
-        means2d: (0..n).flat_map(|_| [8.0f32, -2.8]).collect(),
-        conics: (0..n).flat_map(|_| [1.0f32, 0.0, 1.0]).collect(),
+        means2d: (0..n)
+            .flat_map(|i| [(i % 16) as f32 + 0.6, (i / 16 % 16) as f32 + 0.45])
+            .collect(),
+        conics: (0..n).flat_map(|_| [4.0f32, 0.0, 4.0]).collect(),
         depths: (0..n).map(|i| 1.0 + i as f32).collect(),
-        opacities: vec![0.5; n],
-        radii: vec![4; 2 * n],
+        opacities: vec![0.01; n],
+        radii: vec![2; 2 * n],
     };
-    let feats = vec![0.5f32; 3 * n];
+    let feats: Vec<f32> = (0..3 * n).map(|i| (i * 7 % 11) as f32 / 11.0).collect();
     let bg = [0.1f32, 0.2, 0.3];
     let sp = splats(&p, &feats, 3);
-    let bs = BlendSettings::default();
+    check_splat_gradients(&mut r, &sp, 16, 16, &bg, 31);
+    // From one dispatch for the whole list, halved on each cut (lavapipe).
+    r.set_compositing_window(CompositingWindow::Start(u32::MAX))
+        .unwrap();
+    check_splat_gradients(&mut r, &sp, 16, 16, &bg, 32);
+
+    r.set_compositing_window(CompositingWindow::Fixed(u32::MAX))
+        .unwrap();
     let mut img = Image::zeros(256, 3);
     let got = r.rasterize_forward(
         &sp,
         16,
         16,
         &bg,
-        &bs,
+        &BlendSettings::default(),
         &mut GpuRasterState::new(),
         img.as_mut(),
     );
+    r.set_compositing_window(CompositingWindow::Auto).unwrap();
     if r.device().adapter.kind == "cpu" {
         let err = got.unwrap_err().to_string();
         assert!(
-            err.contains("65,535") && err.contains("CPU backend"),
+            err.contains("65,535") && err.contains("CPU backend") && err.contains("compositing"),
             "{err}"
         );
     } else {
-        let c = got.unwrap();
-        assert_eq!(c.intersections, n as u64);
-        assert!(img.features.chunks(3).all(|px| px == bg));
+        assert_eq!(got.unwrap().intersections, n as u64);
     }
+}
+
+/// Lists composited a few entries per dispatch (windows of 7, crossing every batch boundary)
+/// give the CPU path's images, counters and gradients, in every layout.
+#[test]
+fn windowed_compositing_matches_the_cpu_path() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let default = r.blend_layout();
+    r.set_compositing_window(CompositingWindow::Fixed(7))
+        .unwrap();
+    for layout in layouts(&r) {
+        r.set_blend_layout(layout).unwrap();
+        let s = random_scene(300, 64, 48, 3, 41);
+        let bs = BlendSettings::default();
+        let p = cpu_project(&s, &ProjectSettings::default());
+        let (_, cc) = composite(None, &p, &s, &bs);
+        let (_, gc) = composite(Some(&mut r), &p, &s, &bs);
+        assert_eq!(cc.intersections, gc.intersections, "{layout:?}");
+        assert_eq!(cc.blended, gc.blended, "{layout:?}");
+        check_gradients(&mut r, 41, 300, 64, 48, 3);
+    }
+    r.set_compositing_window(CompositingWindow::Auto).unwrap();
+    r.set_blend_layout(default).unwrap();
 }

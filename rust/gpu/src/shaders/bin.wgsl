@@ -30,7 +30,7 @@ struct BinParams {
 @group(0) @binding(6) var<storage, read_write> ids: array<u32>;
 // tile_offsets[t]..tile_offsets[t + 1] indexes `ids` for tile t.
 @group(0) @binding(7) var<storage, read_write> tile_offsets: array<u32>;
-// The compositing counters; entry 4 is set when `scatter`'s loops were cut short (llvmpipe's
+// The compositing counters; entry 7 is set when `scatter`'s loops were cut short (llvmpipe's
 // cap on loop trips, see blend.wgsl's `loops_completed`).
 @group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>>;
 // Per depth rank: its tile rectangle packed as (x0 | x1 << 16, y0 | y1 << 16), written by
@@ -150,6 +150,6 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
         trips += 1u;
     }
     if trips != B.canary {
-        atomicStore(&counters[4], 1u);
+        atomicStore(&counters[7], 1u);
     }
 }

@@ -26,9 +26,14 @@ struct BlendParams {
     n: u32,
     // Trips of the `loops_completed` check (2; a uniform, so that no compiler unrolls it).
     canary: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
+    // This dispatch's window of each tile's list, in list positions [win_lo, win_hi): long
+    // lists are composited over several dispatches (llvmpipe caps a shader's loop trips), with
+    // the per-pixel running state kept in the outputs between them.
+    win_lo: u32,
+    win_hi: u32,
+    // Bit 0: the first window walked (fresh state, else resumed); bit 1: the last (final
+    // outputs, else running state for the next window).
+    window: u32,
 }
 
 @group(0) @binding(0) var<uniform> F: BlendParams;
@@ -44,7 +49,7 @@ struct BlendParams {
 // Per pixel: 1 + list index of the last composited splat (0 if none), final transmittance bits.
 @group(0) @binding(7) var<storage, read_write> pixel_state: array<u32>;
 // evaluated lo/hi, blended lo/hi, then 1 when a kernel's loops were cut short (see
-// `loops_completed`).
+// `loops_completed`), then the largest list position + 1 of a pixel's last contributor.
 @group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>>;
 
 // Whether this invocation's loops ran to their ends: llvmpipe ends every loop of a shader once
@@ -71,6 +76,7 @@ var<workgroup> sh_box: array<vec4<f32>, FB>;   // support_box
 var<workgroup> sh_index: array<u32, FB>;
 var<workgroup> done_count: atomic<u32>;
 var<workgroup> stop_flag: u32;
+var<workgroup> range_base: u32;
 var<workgroup> range_start: u32;
 var<workgroup> range_end: u32;
 var<workgroup> wg_evaluated: atomic<u32>;
@@ -151,21 +157,101 @@ fn tile_pixel(lid: u32, j: u32) -> vec2<u32> {
     return vec2<u32>(i % 16u, i / 16u);
 }
 
-// Write pixel q's composited features (accumulated `a` plus the background through the final
-// transmittance `t`), alpha, depth and its backward state (last contributor, t).
-fn store_pixel(q: vec2<u32>, a: array<f32, C>, t: f32, depth: f32, last: u32) {
+const FIRST_WINDOW: u32 = 1u;
+const LAST_WINDOW: u32 = 2u;
+
+// A pixel's forward compositing state: accumulated features and depth, transmittance, list
+// position + 1 of the last composited splat (0 if none), and whether it stopped.
+struct PixelForward {
+    acc: array<f32, C>,
+    t: f32,
+    depth: f32,
+    last: u32,
+    done: bool,
+}
+
+// Pixel q's state at the start of this window: fresh in the first (done outside the image),
+// else as the previous window stored it.
+fn load_pixel(q: vec2<u32>) -> PixelForward {
+    var r: PixelForward;
+    r.t = 1.0;
+    r.done = q.x >= F.width || q.y >= F.height;
+    if r.done || (F.window & FIRST_WINDOW) != 0u {
+        return r;
+    }
+    let npix = F.width * F.height;
+    let pix = q.y * F.width + q.x;
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        r.acc[c] = image[pix * C + c];
+    }
+    r.depth = image[npix * (C + 1u) + pix];
+    r.last = pixel_state[2u * pix];
+    let t = bitcast<f32>(pixel_state[2u * pix + 1u]);
+    r.t = abs(t);
+    r.done = t < 0.0;
+    return r;
+}
+
+// The forward state of invocation `lid`'s P pixels of tile `wid` (`PixelForward` each, as
+// arrays indexed by pixel), their centres, and how many are not done.
+struct PixelsForward {
+    t: array<f32, P>,
+    acc: array<f32, P * C>,
+    depth: array<f32, P>,
+    last: array<u32, P>,
+    done: array<bool, P>,
+    fx: array<f32, P>,
+    fy: array<f32, P>,
+    live: u32,
+}
+
+fn load_pixels(lid: u32, wid: vec3<u32>) -> PixelsForward {
+    var s: PixelsForward;
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+        let r = load_pixel(q);
+        s.t[j] = r.t;
+        for (var c = 0u; c < C; c++) { // unroll: channels
+            s.acc[j * C + c] = r.acc[c];
+        }
+        s.depth[j] = r.depth;
+        s.last[j] = r.last;
+        s.done[j] = r.done;
+        s.live += select(1u, 0u, r.done);
+        s.fx[j] = f32(q.x) + 0.5;
+        s.fy[j] = f32(q.y) + 0.5;
+    }
+    return s;
+}
+
+// Write pixel q's state: in the last window the composited features (accumulated `a` plus the
+// background through the final transmittance `t`), alpha, depth and the backward's state
+// (last contributor, t); before, the running sums and t (negated once done).
+fn store_pixel(q: vec2<u32>, a: array<f32, C>, t: f32, depth: f32, last: u32, done: bool) {
     if q.x >= F.width || q.y >= F.height {
         return;
     }
     let npix = F.width * F.height;
     let pix = q.y * F.width + q.x;
+    let final_window = (F.window & LAST_WINDOW) != 0u;
     for (var c = 0u; c < C; c++) { // unroll: channels
-        image[pix * C + c] = a[c] + t * features[F.n * C + c];
+        image[pix * C + c] = a[c] + select(0.0, t * features[F.n * C + c], final_window);
     }
-    image[npix * C + pix] = 1.0 - t;
+    if final_window {
+        image[npix * C + pix] = 1.0 - t;
+    }
     image[npix * (C + 1u) + pix] = depth;
     pixel_state[2u * pix] = last;
-    pixel_state[2u * pix + 1u] = bitcast<u32>(t);
+    pixel_state[2u * pix + 1u] = bitcast<u32>(select(t, -t, done && !final_window));
+}
+
+// This tile's list start and this window's [start, end) in `ids`, shared with the workgroup.
+fn window_range(tile: u32) {
+    let base = tile_offsets[tile];
+    let len = tile_offsets[tile + 1u] - base;
+    range_base = base;
+    range_start = base + min(F.win_lo, len);
+    range_end = base + min(F.win_hi, len);
 }
 
 @compute @workgroup_size(WG)
@@ -176,27 +262,17 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
         atomicStore(&done_count, 0u);
         atomicStore(&wg_evaluated, 0u);
         atomicStore(&wg_blended, 0u);
-        range_start = tile_offsets[tile];
-        range_end = tile_offsets[tile + 1u];
+        window_range(tile);
     }
     let start = workgroupUniformLoad(&range_start);
     let end = workgroupUniformLoad(&range_end);
-    var t: array<f32, P>;
-    var acc: array<f32, P * C>;
-    var depth: array<f32, P>;
-    var last: array<u32, P>;
-    var done: array<bool, P>;
-    var fx: array<f32, P>;
-    var fy: array<f32, P>;
-    var live = 0u;
-    for (var j = 0u; j < P; j++) { // unroll: pixels
-        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
-        t[j] = 1.0;
-        done[j] = q.x >= F.width || q.y >= F.height;
-        live += select(1u, 0u, done[j]);
-        fx[j] = f32(q.x) + 0.5;
-        fy[j] = f32(q.y) + 0.5;
+    let base = workgroupUniformLoad(&range_base);
+    // Nothing of this tile's list in a middle window: its state stays where it is.
+    if start == end && (F.window & (FIRST_WINDOW | LAST_WINDOW)) == 0u {
+        return;
     }
+    var px = load_pixels(lid, wid);
+    var live = px.live;
     var evaluated = 0u;
     var blended = 0u;
     if live == 0u {
@@ -228,26 +304,26 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
             for (var c = 0u; c < C; c++) { // unroll: channels
                 f[c] = features[g * C + c];
             }
-            let rank = batch - start + k + 1u;
+            let rank = batch - base + k + 1u;
             // Per pixel: skip it when done or outside the splat's support box (neighbouring
             // pixels mostly agree, so SIMD lanes skip together); the rest is branch-free.
             for (var j = 0u; j < P; j++) { // unroll: pixels
-                if done[j] || !in_box(bx, fx[j], fy[j]) {
+                if px.done[j] || !in_box(bx, px.fx[j], px.fy[j]) {
                     continue;
                 }
-                let alpha = splat_alpha(pos, con, fx[j], fy[j]);
+                let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j]);
                 let ok = alpha > 0.0;
-                let next_t = t[j] * (1.0 - alpha);
+                let next_t = px.t[j] * (1.0 - alpha);
                 let stop = ok && next_t < F.t_min;
                 let take = ok && !stop;
-                let w = select(0.0, alpha * t[j], take);
+                let w = select(0.0, alpha * px.t[j], take);
                 for (var c = 0u; c < C; c++) { // unroll: channels
-                    acc[j * C + c] += f[c] * w;
+                    px.acc[j * C + c] += f[c] * w;
                 }
-                depth[j] += pos.w * w;
-                t[j] = select(t[j], next_t, take);
-                last[j] = select(last[j], rank, take);
-                done[j] = stop;
+                px.depth[j] += pos.w * w;
+                px.t[j] = select(px.t[j], next_t, take);
+                px.last[j] = select(px.last[j], rank, take);
+                px.done[j] = stop;
                 evaluated += 1u;
                 blended += select(0u, 1u, take);
                 live -= select(0u, 1u, stop);
@@ -259,14 +335,17 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
     }
     atomicAdd(&wg_evaluated, evaluated);
     atomicAdd(&wg_blended, blended);
+    var deepest = 0u;
     for (var j = 0u; j < P; j++) { // unroll: pixels
         var a: array<f32, C>;
         for (var c = 0u; c < C; c++) { // unroll: channels
-            a[c] = acc[j * C + c];
+            a[c] = px.acc[j * C + c];
         }
         let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
-        store_pixel(q, a, t[j], depth[j], last[j]);
+        store_pixel(q, a, px.t[j], px.depth[j], px.last[j], px.done[j]);
+        deepest = max(deepest, px.last[j]);
     }
+    atomicMax(&counters[5], deepest);
     check_loops();
     workgroupBarrier();
     if lid == 0u {
@@ -311,8 +390,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
         atomicStore(&done_count, 0u);
         atomicStore(&wg_evaluated, 0u);
         atomicStore(&wg_blended, 0u);
-        range_start = tile_offsets[tile];
-        range_end = tile_offsets[tile + 1u];
+        window_range(tile);
         for (var b = 0u; b < NB; b++) {
             atomicStore(&hit[0][b], 0u);
             atomicStore(&hit[1][b], 0u);
@@ -320,24 +398,15 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
     }
     let start = workgroupUniformLoad(&range_start);
     let end = workgroupUniformLoad(&range_end);
+    let base = workgroupUniformLoad(&range_base);
+    // Nothing of this tile's list in a middle window: its state stays where it is.
+    if start == end && (F.window & (FIRST_WINDOW | LAST_WINDOW)) == 0u {
+        return;
+    }
     let x0 = f32(wid.x * 16u);
     let y0 = f32(wid.y * 16u);
-    var t: array<f32, P>;
-    var acc: array<f32, P * C>;
-    var depth: array<f32, P>;
-    var last: array<u32, P>;
-    var done: array<bool, P>;
-    var fx: array<f32, P>;
-    var fy: array<f32, P>;
-    var live = 0u;
-    for (var j = 0u; j < P; j++) { // unroll: pixels
-        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
-        t[j] = 1.0;
-        done[j] = q.x >= F.width || q.y >= F.height;
-        live += select(1u, 0u, done[j]);
-        fx[j] = f32(q.x) + 0.5;
-        fy[j] = f32(q.y) + 0.5;
-    }
+    var px = load_pixels(lid, wid);
+    var live = px.live;
     var evaluated = 0u;
     var blended = 0u;
     var counted = live == 0u;
@@ -378,7 +447,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
             atomicStore(&hit[1u - parity][b], 0u);
             var bdone = true;
             for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
-                bdone = bdone && done[b * JB + jj];
+                bdone = bdone && px.done[b * JB + jj];
             }
             if bdone {
                 bits = 0u;
@@ -396,28 +465,28 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
                 for (var c = 0u; c < C; c++) { // unroll: channels
                     f[c] = features[g * C + c];
                 }
-                let rank = batch - start + k + 1u;
+                let rank = batch - base + k + 1u;
                 var all_done = true;
                 for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
                     let j = b * JB + jj;
-                    let inside = !done[j] && in_box(bx, fx[j], fy[j]);
-                    let alpha = splat_alpha(pos, con, fx[j], fy[j]);
+                    let inside = !px.done[j] && in_box(bx, px.fx[j], px.fy[j]);
+                    let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j]);
                     let ok = inside && alpha > 0.0;
-                    let next_t = t[j] * (1.0 - alpha);
+                    let next_t = px.t[j] * (1.0 - alpha);
                     let stop = ok && next_t < F.t_min;
                     let take = ok && !stop;
-                    let w = select(0.0, alpha * t[j], take);
+                    let w = select(0.0, alpha * px.t[j], take);
                     for (var c = 0u; c < C; c++) { // unroll: channels
-                        acc[j * C + c] += f[c] * w;
+                        px.acc[j * C + c] += f[c] * w;
                     }
-                    depth[j] += pos.w * w;
-                    t[j] = select(t[j], next_t, take);
-                    last[j] = select(last[j], rank, take);
-                    done[j] = done[j] || stop;
+                    px.depth[j] += pos.w * w;
+                    px.t[j] = select(px.t[j], next_t, take);
+                    px.last[j] = select(px.last[j], rank, take);
+                    px.done[j] = px.done[j] || stop;
                     evaluated += select(0u, 1u, inside);
                     blended += select(0u, 1u, take);
                     live -= select(0u, 1u, stop);
-                    all_done = all_done && done[j];
+                    all_done = all_done && px.done[j];
                 }
                 if all_done {
                     bits = 0u;
@@ -432,14 +501,17 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
     }
     atomicAdd(&wg_evaluated, evaluated);
     atomicAdd(&wg_blended, blended);
+    var deepest = 0u;
     for (var j = 0u; j < P; j++) { // unroll: pixels
         var a: array<f32, C>;
         for (var c = 0u; c < C; c++) { // unroll: channels
-            a[c] = acc[j * C + c];
+            a[c] = px.acc[j * C + c];
         }
         let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
-        store_pixel(q, a, t[j], depth[j], last[j]);
+        store_pixel(q, a, px.t[j], px.depth[j], px.last[j], px.done[j]);
+        deepest = max(deepest, px.last[j]);
     }
+    atomicMax(&counters[5], deepest);
     check_loops();
     workgroupBarrier();
     if lid == 0u {
@@ -466,6 +538,8 @@ const BATCH: u32 = {{BATCH}}u;
 @group(0) @binding(9) var<storage, read> v_image: array<f32>;
 // Per splat STRIDE gradient sums (f32 bits, added by compare-and-swap).
 @group(0) @binding(10) var<storage, read_write> grads: array<atomic<u32>>;
+// Per pixel between backward windows: the transmittance and running sum (`PixelGrad` t, vr).
+@group(0) @binding(11) var<storage, read_write> walk_state: array<f32>;
 
 // Backward reduction: per-invocation partial sums in workgroup memory, summed in a fixed order
 // (CPU adapters: few invocations, many pixels each), or compare-and-swap float adds into
@@ -503,12 +577,15 @@ fn global_add(i: u32, v: f32) {
     }
 }
 
-// What the backward needs of pixel q: its last contributor and final transmittance from the
-// forward, dL/d features (`vc`) and dL/d depth, and `tail` = T_final (dL/dfeatures . background -
-// dL/dalpha), the gradient of what lies behind every splat. Outside the image: t = 1, rest 0.
+// What the backward needs of pixel q: its last contributor from the forward, dL/d features
+// (`vc`) and dL/d depth, `tail` = T_final (dL/dfeatures . background - dL/dalpha), the gradient
+// of what lies behind every splat, and the walk's state: transmittance `t` (T_final in the first
+// window) and running sum `vr` of what lies behind (0 in the first window). Outside the image:
+// t = 1, rest 0.
 struct PixelGrad {
     last: u32,
     t: f32,
+    vr: f32,
     v_depth: f32,
     tail: f32,
     vc: array<f32, C>,
@@ -531,7 +608,27 @@ fn load_pixel_grad(q: vec2<u32>) -> PixelGrad {
     }
     r.v_depth = v_image[npix * (C + 1u) + pix];
     r.tail = r.t * (vbg - v_image[npix * C + pix]);
+    if (F.window & FIRST_WINDOW) == 0u {
+        r.t = walk_state[2u * pix];
+        r.vr = walk_state[2u * pix + 1u];
+    }
     return r;
+}
+
+// Keep pixel q's walk state (transmittance, running sum) for the next window, if any.
+fn save_walk(q: vec2<u32>, t: f32, vr: f32) {
+    if q.x >= F.width || q.y >= F.height || (F.window & LAST_WINDOW) != 0u {
+        return;
+    }
+    let pix = q.y * F.width + q.x;
+    walk_state[2u * pix] = t;
+    walk_state[2u * pix + 1u] = vr;
+}
+
+// The backward walk's next batch below list position `end` (at most `batch` entries, not below
+// the window's start).
+fn batch_start(end: u32, batch: u32) -> u32 {
+    return select(end - batch, F.win_lo, end < F.win_lo + batch);
 }
 
 // One pixel's step of the backward walk for splat (pos, conic, features f): given the
@@ -612,6 +709,7 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
         t[j] = r.t;
         v_depth[j] = r.v_depth;
         tail[j] = r.tail;
+        vr[j] = r.vr;
         for (var c = 0u; c < C; c++) { // unroll: channels
             vc[j * C + c] = r.vc[c];
         }
@@ -624,13 +722,13 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
         max_last_u = atomicLoad(&max_last);
     }
     let start_list = workgroupUniformLoad(&range_start);
-    var end = workgroupUniformLoad(&max_last_u);
+    var end = min(workgroupUniformLoad(&max_last_u), F.win_hi);
     var f: array<f32, C>;
     // Per-splat gradient sums over this invocation's pixels: mean x, mean y, conic a, b, c,
     // opacity, C features, depth (the STRIDE layout).
     var gs: array<f32, STRIDE>;
-    while end > 0u {
-        let start = select(end - BATCH, 0u, end < BATCH);
+    while end > F.win_lo {
+        let start = batch_start(end, BATCH);
         let count = end - start;
         for (var i = lid; i < count; i += WG) {
             let g = keys[ids[start_list + start + i]].y;
@@ -705,6 +803,9 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
         workgroupBarrier();
         end = start;
     }
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        save_walk(vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j), t[j], vr[j]);
+    }
     check_loops();
 }
 
@@ -721,6 +822,8 @@ var<workgroup> q_visited: array<u32, WG>;
 // Sum each visited splat's gradients over the workgroup with subgroup additions (the
 // workgroup is one subgroup) instead of partials in workgroup memory.
 const SUBGROUP_SUMS: bool = {{SUBGROUP_SUMS}};
+// Spans of WG gradients in a splat's STRIDE (ceil(STRIDE / WG)).
+const SPANS: u32 = {{SPANS}}u;
 // <subgroups>
 // Sum and maximum over the workgroup's invocations (one subgroup).
 fn lanes_sum(v: f32) -> f32 {
@@ -773,6 +876,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         t[j] = r.t;
         v_depth[j] = r.v_depth;
         tail[j] = r.tail;
+        vr[j] = r.vr;
         for (var c = 0u; c < C; c++) { // unroll: channels
             vc[j * C + c] = r.vc[c];
         }
@@ -791,12 +895,12 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         max_last_u = atomicLoad(&max_last);
     }
     let start_list = workgroupUniformLoad(&range_start);
-    var end = workgroupUniformLoad(&max_last_u);
+    var end = min(workgroupUniformLoad(&max_last_u), F.win_hi);
     var f: array<f32, C>;
     var gs: array<f32, STRIDE>;
     var parity = 0u;
-    while end > 0u {
-        let start = select(end - BATCH, 0u, end < BATCH);
+    while end > F.win_lo {
+        let start = batch_start(end, BATCH);
         let count = end - start;
         var mine: array<u32, NB>;
         var visited = 0u;
@@ -859,7 +963,8 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                     for (var s = 0u; s < STRIDE; s++) { // unroll: stride
                         sums[s] = lanes_sum(gs[s]);
                     }
-                    for (var s0 = 0u; s0 < STRIDE; s0 += WG) {
+                    for (var h = 0u; h < SPANS; h++) { // unroll: spans
+                        let s0 = h * WG;
                         var v = 0.0;
                         for (var s = 0u; s < STRIDE; s++) { // unroll: stride
                             v = select(v, sums[s], s == s0 + lid);
@@ -900,6 +1005,9 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         workgroupBarrier();
         parity = 1u - parity;
         end = start;
+    }
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        save_walk(vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j), t[j], vr[j]);
     }
     check_loops();
 }
