@@ -426,11 +426,12 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
         var mine: array<u32, NB>;
         for (var i = lid; i < 32u && batch + i < end; i += WG) {
             let g = keys[ids[batch + i]].y;
-            sh_pos[i] = splat_pos(g);
-            sh_conic[i] = splat_conic(g);
-            sh_index[i] = g;
-            sh_box[i] = support_box(sh_pos[i], sh_conic[i]);
-            let m = block_bits(sh_box[i], x0, y0, i);
+            let pos = splat_pos(g);
+            let con = splat_conic(g);
+            // The splat index rides in the conic's spare lane: two workgroup reads a visit.
+            sh_pos[i] = pos;
+            sh_conic[i] = vec4<f32>(con.xyz, bitcast<f32>(g));
+            let m = block_bits(support_box(pos, con), x0, y0, i);
             for (var b = 0u; b < NB; b++) { // unroll: blocks
                 mine[b] |= m[b];
             }
@@ -460,8 +461,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
                 bits &= bits - 1u;
                 let pos = sh_pos[k];
                 let con = sh_conic[k];
-                let bx = sh_box[k];
-                let g = sh_index[k];
+                let g = bitcast<u32>(con.w);
                 for (var c = 0u; c < C; c++) { // unroll: channels
                     f[c] = features[g * C + c];
                 }
@@ -469,7 +469,8 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
                 var all_done = true;
                 for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
                     let j = b * JB + jj;
-                    let inside = !px.done[j] && in_box(bx, px.fx[j], px.fy[j]);
+                    // Outside the splat's support box alpha is below 1/255: no box test.
+                    let inside = !px.done[j];
                     let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j]);
                     let ok = inside && alpha > 0.0;
                     let next_t = px.t[j] * (1.0 - alpha);
