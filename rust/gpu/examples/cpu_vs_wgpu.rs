@@ -68,7 +68,7 @@ fn main() {
     println!("layout: {layout:?}");
     let profiling = std::env::var("SYNC4D_GPU_PROFILE").is_ok_and(|v| v == "1");
     gpu.set_profiling(profiling);
-    let mut stages: Vec<(&'static str, Vec<f64>)> = Vec::new();
+    let mut stages: Vec<(&'static str, Vec<f64>, usize)> = Vec::new();
 
     let mut results = Vec::new();
     // The first call's image and counters of each backend, compared before any timing is shown.
@@ -190,10 +190,22 @@ fn main() {
             if rep > 0 {
                 fwd.push(t_fwd);
                 full.push(t_full);
+                // A stage that runs several times a call (binning stages, compositing
+                // windows) is summed per call, with its count.
+                let mut call: Vec<(&'static str, f64, usize)> = Vec::new();
                 for (name, secs) in profile {
-                    match stages.iter_mut().find(|(s, _)| *s == name) {
-                        Some((_, v)) => v.push(secs),
-                        None => stages.push((name, vec![secs])),
+                    match call.iter_mut().find(|(s, _, _)| *s == name) {
+                        Some((_, t, k)) => {
+                            *t += secs;
+                            *k += 1;
+                        }
+                        None => call.push((name, secs, 1)),
+                    }
+                }
+                for (name, secs, k) in call {
+                    match stages.iter_mut().find(|(s, _, _)| *s == name) {
+                        Some((_, v, _)) => v.push(secs),
+                        None => stages.push((name, vec![secs], k)),
                     }
                 }
             }
@@ -224,9 +236,9 @@ fn main() {
         println!("{b:<8} {:>8.1} ms  {:>8.1} ms", f * 1e3, ff * 1e3);
     }
     if profiling {
-        println!("wgpu stage        median");
-        for (name, v) in stages {
-            println!("{name:<16} {:>8.1} ms", median(v) * 1e3);
+        println!("wgpu stage        median  (runs per call)");
+        for (name, v, k) in stages {
+            println!("{name:<16} {:>8.1} ms  ({k})", median(v) * 1e3);
         }
     }
     let (cpu, wgpu) = (&results[0], &results[1]);

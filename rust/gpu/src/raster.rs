@@ -19,6 +19,8 @@ const SORT_WGSL: &str = include_str!("shaders/sort.wgsl");
 const SCAN_WGSL: &str = include_str!("shaders/scan.wgsl");
 const BIN_WGSL: &str = include_str!("shaders/bin.wgsl");
 const BLEND_WGSL: &str = include_str!("shaders/blend.wgsl");
+/// The loop check of the kernels llvmpipe may cut short, appended to the modules that use it.
+const LOOP_CHECK_WGSL: &str = include_str!("shaders/loop_check.wgsl");
 
 /// Invocations per workgroup of the 1D kernels.
 const WG: u32 = 256;
@@ -154,7 +156,7 @@ impl Kernels {
         let project = module(dev, "project", PROJECT_WGSL);
         let sort = module(dev, "sort", SORT_WGSL);
         let scan = module(dev, "scan", SCAN_WGSL);
-        let bin = module(dev, "bin", BIN_WGSL);
+        let bin = module(dev, "bin", &format!("{BIN_WGSL}\n{LOOP_CHECK_WGSL}"));
         Kernels {
             project: pipeline(dev, &project, "project_forward"),
             project_backward: pipeline(dev, &project, "project_backward"),
@@ -290,7 +292,7 @@ impl BlendLayout {
             let batch = (2048 / stride).clamp(4, 64);
             (batch, batch * stride, 1)
         };
-        let mut src = BLEND_WGSL.to_string();
+        let mut src = format!("{BLEND_WGSL}\n{LOOP_CHECK_WGSL}");
         if self.block_rows == 0 {
             strip_sections(&mut src, "rows");
         }
@@ -576,7 +578,7 @@ fn grid(groups: u32) -> (u32, u32) {
 }
 
 /// An error when a kernel set its loop check flag (`counters[4]` compositing, `counters[7]`
-/// the tile scatter; see blend.wgsl's `loops_completed`): the driver cut its loops short even
+/// the tile scatter; see loop_check.wgsl): the driver cut its loops short even
 /// with the smallest compositing window tried, so the results are incomplete.
 fn loops_completed(counters: &[u32], gpu: &GpuDevice) -> Result<()> {
     let what = if counters[7] != 0 {

@@ -13,7 +13,7 @@ struct BinParams {
     num_tiles: u32,
     // sum_lines: 0 along x, 1 along y.
     axis: u32,
-    // Trips of the loop check in `scatter` (2, see blend.wgsl's `loops_completed`).
+    // Trips of the loop check in `scatter` (2, see loop_check.wgsl).
     canary: u32,
 }
 
@@ -31,7 +31,7 @@ struct BinParams {
 // tile_offsets[t]..tile_offsets[t + 1] indexes `ids` for tile t.
 @group(0) @binding(7) var<storage, read_write> tile_offsets: array<u32>;
 // The compositing counters; entry 7 is set when `scatter`'s loops were cut short (llvmpipe's
-// cap on loop trips, see blend.wgsl's `loops_completed`).
+// cap on loop trips, see loop_check.wgsl).
 @group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>>;
 // Per depth rank: its tile rectangle packed as (x0 | x1 << 16, y0 | y1 << 16), written by
 // `count_corners` for `scatter` (an empty rectangle where x0 == x1 or y0 == y1).
@@ -145,11 +145,7 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
             cursors[slot] = at + 1u;
         }
     }
-    var trips = 0u;
-    for (var z = 0u; z < B.canary; z++) {
-        trips += 1u;
-    }
-    if trips != B.canary {
+    if !loops_completed(B.canary) {
         atomicStore(&counters[7], 1u);
     }
 }

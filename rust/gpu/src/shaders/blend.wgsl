@@ -24,7 +24,7 @@ struct BlendParams {
     t_min: f32,
     // Number of splats N (features are N*C, then the C background values).
     n: u32,
-    // Trips of the `loops_completed` check (2; a uniform, so that no compiler unrolls it).
+    // Trips of the loop check (loop_check.wgsl) (2; a uniform, so that no compiler unrolls it).
     canary: u32,
     // This dispatch's window of each tile's list, in list positions [win_lo, win_hi): long
     // lists are composited over several dispatches (llvmpipe caps a shader's loop trips), with
@@ -49,23 +49,12 @@ struct BlendParams {
 // Per pixel: 1 + list index of the last composited splat (0 if none), final transmittance bits.
 @group(0) @binding(7) var<storage, read_write> pixel_state: array<u32>;
 // evaluated lo/hi, blended lo/hi, then 1 when a kernel's loops were cut short (see
-// `loops_completed`), then the largest list position + 1 of a pixel's last contributor.
+// loop_check.wgsl), then the largest list position + 1 of a pixel's last contributor.
 @group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>>;
 
-// Whether this invocation's loops ran to their ends: llvmpipe ends every loop of a shader once
-// 65,535 trips have run in all (shared by the shader's loops), and then this loop of `canary`
-// trips stops after its first. Called last; on failure the host reports an error instead of
-// returning truncated work.
-fn loops_completed() -> bool {
-    var trips = 0u;
-    for (var z = 0u; z < F.canary; z++) {
-        trips += 1u;
-    }
-    return trips == F.canary;
-}
-
+// Flag cut loops (loop_check.wgsl) in the counters.
 fn check_loops() {
-    if !loops_completed() {
+    if !loops_completed(F.canary) {
         atomicStore(&counters[4], 1u);
     }
 }
