@@ -396,6 +396,10 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
     let y0 = f32(wid.y * 16u);
     var px = load_pixels(lid, wid);
     var live = px.live;
+    // Done pixels carry a negative transmittance (one less array of loop-carried state).
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        px.t[j] = select(px.t[j], -px.t[j], px.done[j]);
+    }
     var evaluated = 0u;
     var blended = 0u;
     var counted = live == 0u;
@@ -437,7 +441,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
             atomicStore(&hit[1u - parity][b], 0u);
             var bdone = true;
             for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
-                bdone = bdone && px.done[b * JB + jj];
+                bdone = bdone && px.t[b * JB + jj] < 0.0;
             }
             if bdone {
                 bits = 0u;
@@ -459,7 +463,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
                 for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
                     let j = b * JB + jj;
                     // Outside the splat's support box alpha is below 1/255: no box test.
-                    let inside = !px.done[j];
+                    let inside = px.t[j] > 0.0;
                     let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j]);
                     let ok = inside && alpha > 0.0;
                     let next_t = px.t[j] * (1.0 - alpha);
@@ -470,13 +474,12 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
                         px.acc[j * C + c] += f[c] * w;
                     }
                     px.depth[j] += pos.w * w;
-                    px.t[j] = select(px.t[j], next_t, take);
+                    px.t[j] = select(select(px.t[j], next_t, take), -px.t[j], stop);
                     px.last[j] = select(px.last[j], rank, take);
-                    px.done[j] = px.done[j] || stop;
                     evaluated += select(0u, 1u, inside);
                     blended += select(0u, 1u, take);
                     live -= select(0u, 1u, stop);
-                    all_done = all_done && px.done[j];
+                    all_done = all_done && px.t[j] < 0.0;
                 }
                 if all_done {
                     bits = 0u;
@@ -498,7 +501,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
             a[c] = px.acc[j * C + c];
         }
         let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
-        store_pixel(q, a, px.t[j], px.depth[j], px.last[j], px.done[j]);
+        store_pixel(q, a, abs(px.t[j]), px.depth[j], px.last[j], px.t[j] < 0.0);
         deepest = max(deepest, px.last[j]);
     }
     atomicMax(&counters[5], deepest);
