@@ -225,6 +225,10 @@ fn main() {
         "agreement: max abs image difference {diff:.2e}, blended pairs {} (CPU) vs {} (wgpu)",
         cpu_c.blended, gpu_c.blended
     );
+    println!(
+        "evaluated: {} (CPU, inside support boxes) vs {} (wgpu, live pixels of visited splats)",
+        cpu_c.evaluated, gpu_c.evaluated
+    );
     assert!(
         diff <= 1e-2
             && cpu_c.intersections == gpu_c.intersections

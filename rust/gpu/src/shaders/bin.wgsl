@@ -102,8 +102,9 @@ fn sum_lines(@builtin(global_invocation_id) gid: vec3<u32>,
     let line = i / B.chunks;
     let first = select(line, line * B.tiles_x, rows) * B.chunks + i % B.chunks;
     let step = select(B.tiles_x * B.chunks, B.chunks, rows);
+    let length = select(B.tiles_y, B.tiles_x, rows);
     var run = 0u;
-    for (var k = 0u; k < select(B.tiles_y, B.tiles_x, rows); k++) {
+    for (var k = 0u; k < length; k++) {
         let at = first + k * step;
         run += atomicLoad(&counts[at]);
         atomicStore(&counts[at], run);
@@ -134,12 +135,15 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
     }
     let chunk = i / B.tiles_y;
     let y = i % B.tiles_y;
+    // Uniforms read once: llvmpipe turns a uniform read inside a loop into a per-lane gather.
+    let tiles_x = B.tiles_x;
+    let chunks = B.chunks;
     let end = min((chunk + 1u) * B.chunk_size, B.visible);
     for (var r = chunk * B.chunk_size; r < end; r++) {
         let rect = rects[r];
         let x1 = select(0u, rect.x >> 16u, y >= (rect.y & 0xffffu) && y < (rect.y >> 16u));
         for (var x = rect.x & 0xffffu; x < x1; x++) {
-            let slot = (y * B.tiles_x + x) * B.chunks + chunk;
+            let slot = (y * tiles_x + x) * chunks + chunk;
             let at = cursors[slot];
             ids[at] = r;
             cursors[slot] = at + 1u;

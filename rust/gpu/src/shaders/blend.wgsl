@@ -116,14 +116,26 @@ fn support_box(pos: vec4<f32>, con: vec4<f32>) -> vec4<f32> {
     return vec4<f32>(pos.x - ex, pos.x + ex, pos.y - ey, pos.y + ey);
 }
 
+// The compositing thresholds of `F`, read once per invocation and passed to the pixel bodies:
+// llvmpipe turns every uniform-buffer read inside a loop into a bounds-checked per-lane gather.
+struct Limits {
+    alpha_min: f32,
+    alpha_max: f32,
+    t_min: f32,
+}
+
+fn limits() -> Limits {
+    return Limits(F.alpha_min, F.alpha_max, F.t_min);
+}
+
 // Splat (pos, conic)'s alpha at pixel centre (x, y): min(opacity exp(-sigma), alpha_max), or 0
 // where it is not composited (sigma < 0 or alpha < alpha_min).
-fn splat_alpha(pos: vec4<f32>, con: vec4<f32>, x: f32, y: f32) -> f32 {
+fn splat_alpha(pos: vec4<f32>, con: vec4<f32>, x: f32, y: f32, lim: Limits) -> f32 {
     let dx = x - pos.x;
     let dy = y - pos.y;
     let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
-    let alpha = min(pos.z * fast_exp(-sigma), F.alpha_max);
-    return select(0.0, alpha, sigma >= 0.0 && alpha >= F.alpha_min);
+    let alpha = min(pos.z * fast_exp(-sigma), lim.alpha_max);
+    return select(0.0, alpha, sigma >= 0.0 && alpha >= lim.alpha_min);
 }
 
 fn in_box(b: vec4<f32>, x: f32, y: f32) -> bool {
@@ -246,6 +258,7 @@ fn window_range(tile: u32) {
 @compute @workgroup_size(WG)
 fn blend_forward(@builtin(local_invocation_index) lid: u32,
                  @builtin(workgroup_id) wid: vec3<u32>) {
+    let lim = limits();
     let tile = wid.y * F.tiles_x + wid.x;
     if lid == 0u {
         atomicStore(&done_count, 0u);
@@ -300,10 +313,10 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
                 if px.done[j] || !in_box(bx, px.fx[j], px.fy[j]) {
                     continue;
                 }
-                let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j]);
+                let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j], lim);
                 let ok = alpha > 0.0;
                 let next_t = px.t[j] * (1.0 - alpha);
-                let stop = ok && next_t < F.t_min;
+                let stop = ok && next_t < lim.t_min;
                 let take = ok && !stop;
                 let w = select(0.0, alpha * px.t[j], take);
                 for (var c = 0u; c < C; c++) { // unroll: channels
@@ -374,6 +387,7 @@ fn block_bits(bx: vec4<f32>, x0: f32, y0: f32, bit: u32) -> array<u32, NB> {
 @compute @workgroup_size(WG)
 fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
                       @builtin(workgroup_id) wid: vec3<u32>) {
+    let lim = limits();
     let tile = wid.y * F.tiles_x + wid.x;
     if lid == 0u {
         atomicStore(&done_count, 0u);
@@ -464,10 +478,10 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
                     let j = b * JB + jj;
                     // Outside the splat's support box alpha is below 1/255: no box test.
                     let inside = px.t[j] > 0.0;
-                    let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j]);
+                    let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j], lim);
                     let ok = inside && alpha > 0.0;
                     let next_t = px.t[j] * (1.0 - alpha);
-                    let stop = ok && next_t < F.t_min;
+                    let stop = ok && next_t < lim.t_min;
                     let take = ok && !stop;
                     let w = select(0.0, alpha * px.t[j], take);
                     for (var c = 0u; c < C; c++) { // unroll: channels
@@ -637,7 +651,7 @@ struct PixelBackward {
 
 fn pixel_backward(pos: vec4<f32>, con: vec4<f32>, f: array<f32, C>, x: f32, y: f32, t: f32,
                   vr: f32, tail: f32, v: array<f32, C>, v_depth: f32, visible: bool,
-                  gs: ptr<function, array<f32, STRIDE>>) -> PixelBackward {
+                  lim: Limits, gs: ptr<function, array<f32, STRIDE>>) -> PixelBackward {
     var r: PixelBackward;
     var vf = v_depth * pos.w;
     for (var c = 0u; c < C; c++) { // unroll: channels
@@ -648,8 +662,8 @@ fn pixel_backward(pos: vec4<f32>, con: vec4<f32>, f: array<f32, C>, x: f32, y: f
     let sigma = 0.5 * (con.x * dx * dx + con.z * dy * dy) + con.y * dx * dy;
     let vis = fast_exp(-sigma);
     let raw = pos.z * vis;
-    let alpha = min(raw, F.alpha_max);
-    let ok = visible && sigma >= 0.0 && alpha >= F.alpha_min;
+    let alpha = min(raw, lim.alpha_max);
+    let ok = visible && sigma >= 0.0 && alpha >= lim.alpha_min;
     let one_m = 1.0 - alpha;
     let ti = t / one_m;
     let w = alpha * ti;
@@ -661,7 +675,7 @@ fn pixel_backward(pos: vec4<f32>, con: vec4<f32>, f: array<f32, C>, x: f32, y: f
         (*gs)[6u + c] += select(0.0, w * v[c], ok);
     }
     (*gs)[6u + C] += select(0.0, w * v_depth, ok);
-    let live_grad = ok && raw <= F.alpha_max;
+    let live_grad = ok && raw <= lim.alpha_max;
     let v_sigma = -v_alpha * alpha;
     (*gs)[5] += select(0.0, v_alpha * vis, live_grad);
     (*gs)[2] += select(0.0, 0.5 * v_sigma * dx * dx, live_grad);
@@ -675,6 +689,7 @@ fn pixel_backward(pos: vec4<f32>, con: vec4<f32>, f: array<f32, C>, x: f32, y: f
 @compute @workgroup_size(WG)
 fn blend_backward(@builtin(local_invocation_index) lid: u32,
                   @builtin(workgroup_id) wid: vec3<u32>) {
+    let lim = limits();
     let tile = wid.y * F.tiles_x + wid.x;
     if lid == 0u {
         atomicStore(&max_last, 0u);
@@ -756,7 +771,7 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
                     v[c] = vc[j * C + c];
                 }
                 let r = pixel_backward(pos, con, f, fx[j], fy[j], t[j], vr[j], tail[j], v,
-                                       v_depth[j], true, &gs);
+                                       v_depth[j], true, lim, &gs);
                 t[j] = r.t;
                 vr[j] = r.vr;
                 touched = touched || r.ok;
@@ -839,6 +854,7 @@ fn lanes_max(v: u32) -> u32 {
 @compute @workgroup_size(WG)
 fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                        @builtin(workgroup_id) wid: vec3<u32>) {
+    let lim = limits();
     let tile = wid.y * F.tiles_x + wid.x;
     if lid == 0u {
         atomicStore(&max_last, 0u);
@@ -946,7 +962,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                     }
                     let visible = k < last[j] && in_box(bx, fx[j], fy[j]);
                     let r = pixel_backward(pos, con, f, fx[j], fy[j], t[j], vr[j], tail[j], v,
-                                           v_depth[j], visible, &gs);
+                                           v_depth[j], visible, lim, &gs);
                     t[j] = r.t;
                     vr[j] = r.vr;
                 }

@@ -54,23 +54,27 @@ fn depth_keys(@builtin(global_invocation_id) gid: vec3<u32>,
     }
 }
 
-fn digit(key: u32) -> u32 {
-    return (key >> S.shift) & (DIGITS - 1u);
+// The pass's digit of `key` (`shift` is S.shift, read once per invocation: llvmpipe turns a
+// uniform read inside a loop into a bounds-checked per-lane gather).
+fn digit(key: u32, shift: u32) -> u32 {
+    return (key >> shift) & (DIGITS - 1u);
 }
 
 // One invocation per chunk: its digit counts.
 @compute @workgroup_size(16)
 fn radix_count(@builtin(global_invocation_id) gid: vec3<u32>) {
     let chunk = gid.x;
-    if chunk >= S.chunks {
+    let chunks = S.chunks;
+    let shift = S.shift;
+    if chunk >= chunks {
         return;
     }
     for (var d = 0u; d < DIGITS; d++) {
-        counts[d * S.chunks + chunk] = 0u;
+        counts[d * chunks + chunk] = 0u;
     }
     let end = min((chunk + 1u) * S.chunk_size, S.n);
     for (var i = chunk * S.chunk_size; i < end; i++) {
-        let at = digit(keys_in[i].x) * S.chunks + chunk;
+        let at = digit(keys_in[i].x, shift) * chunks + chunk;
         counts[at] += 1u;
     }
 }
@@ -79,13 +83,15 @@ fn radix_count(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(16)
 fn radix_scatter(@builtin(global_invocation_id) gid: vec3<u32>) {
     let chunk = gid.x;
-    if chunk >= S.chunks {
+    let chunks = S.chunks;
+    let shift = S.shift;
+    if chunk >= chunks {
         return;
     }
     let end = min((chunk + 1u) * S.chunk_size, S.n);
     for (var i = chunk * S.chunk_size; i < end; i++) {
         let k = keys_in[i];
-        let at = digit(k.x) * S.chunks + chunk;
+        let at = digit(k.x, shift) * chunks + chunk;
         let to = cursors[at];
         cursors[at] = to + 1u;
         keys_out[to] = k;
