@@ -135,15 +135,16 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
     }
     let chunk = i / B.tiles_y;
     let y = i % B.tiles_y;
-    // Uniforms read once: llvmpipe turns a uniform read inside a loop into a per-lane gather.
-    let tiles_x = B.tiles_x;
+    // Uniforms read once, out of the loops: llvmpipe turns a uniform read inside a loop into a
+    // bounds-checked per-lane gather.
     let chunks = B.chunks;
+    let row_slots = y * B.tiles_x * chunks + chunk;
     let end = min((chunk + 1u) * B.chunk_size, B.visible);
     for (var r = chunk * B.chunk_size; r < end; r++) {
         let rect = rects[r];
         let x1 = select(0u, rect.x >> 16u, y >= (rect.y & 0xffffu) && y < (rect.y >> 16u));
         for (var x = rect.x & 0xffffu; x < x1; x++) {
-            let slot = (y * tiles_x + x) * chunks + chunk;
+            let slot = row_slots + x * chunks;
             let at = cursors[slot];
             ids[at] = r;
             cursors[slot] = at + 1u;
