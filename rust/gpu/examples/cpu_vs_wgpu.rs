@@ -30,12 +30,14 @@ fn main() {
     let h = args.get(2).copied().unwrap_or(800) as u32;
     let reps = args.get(3).copied().unwrap_or(5).max(1);
     let s = random_scene(n, w, h, 3, 7);
-    let (m, q, sc, o) = (
-        to_f32(&s.means),
-        to_f32(&s.quats),
-        to_f32(&s.scales),
-        to_f32(&s.opacities),
-    );
+    // SYNC4D_SCALE multiplies every Gaussian's scales (smaller splats: fewer tile
+    // intersections, fewer saturated pixels).
+    let scale_factor: f32 = std::env::var("SYNC4D_SCALE")
+        .ok()
+        .map(|v| v.parse().expect("SYNC4D_SCALE"))
+        .unwrap_or(1.0);
+    let sc: Vec<f32> = to_f32(&s.scales).iter().map(|v| v * scale_factor).collect();
+    let (m, q, o) = (to_f32(&s.means), to_f32(&s.quats), to_f32(&s.opacities));
     let feats = to_f32(&s.features);
     let bg = to_f32(&s.background);
     let g = Gaussians {

@@ -429,22 +429,27 @@ pub struct GpuRasterState {
     forward: Option<Forward>,
 }
 
-/// The last forward: its sizes and the device buffers the backward reads.
+/// The last forward: its sizes, the device buffers the backward reads and how deep it composited.
 struct Forward {
     shape: ForwardShape,
+    buffers: ForwardBuffers,
+    /// The deepest list position any pixel composited (what the backward walks).
+    deepest: u32,
+}
+
+/// The device buffers both compositing kernels read.
+struct ForwardBuffers {
     splats: wgpu::Buffer,
     keys: wgpu::Buffer,
     ids: wgpu::Buffer,
     tile_offsets: wgpu::Buffer,
     features: wgpu::Buffer,
     pixel_state: wgpu::Buffer,
-    /// The deepest list position any pixel composited (what the backward walks).
-    deepest: u32,
 }
 
-impl Forward {
-    /// Bindings both compositing kernels read (blend.wgsl 1-5 and 7).
-    fn inputs(&self) -> [(u32, &wgpu::Buffer); 6] {
+impl ForwardBuffers {
+    /// Their bindings (blend.wgsl 1-5 and 7).
+    fn bindings(&self) -> [(u32, &wgpu::Buffer); 6] {
         [
             (1, &self.splats),
             (2, &self.keys),
@@ -454,6 +459,20 @@ impl Forward {
             (7, &self.pixel_state),
         ]
     }
+}
+
+/// One compositing run: the kernel (forward or backward), the frame's shape, the longest tile
+/// list, the counters buffer (also among `bindings`), the bind group entries besides the
+/// parameters, and the buffers (with byte counts) to zero before each attempt.
+#[derive(Clone, Copy)]
+struct CompositePass<'a> {
+    pipe: &'a wgpu::ComputePipeline,
+    shape: &'a ForwardShape,
+    longest: u32,
+    forward: bool,
+    counters: &'a wgpu::Buffer,
+    bindings: &'a [(u32, &'a wgpu::Buffer)],
+    clear: &'a [(&'a wgpu::Buffer, u64)],
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -468,7 +487,6 @@ struct ForwardShape {
 }
 
 impl ForwardShape {
-    /// The compositing kernels' parameters (blend.wgsl `BlendParams`).
     /// The compositing kernels' parameters for window `w` of `windows` (blend.wgsl
     /// `BlendParams`): list positions [w * size, (w + 1) * size), the last one open-ended;
     /// `forward` walks them in increasing order, the backward in decreasing.
@@ -693,27 +711,25 @@ impl GpuRasterizer {
         true
     }
 
-    /// Run the compositing kernel `pipe` (forward or backward, appended to `enc`) over every
-    /// tile, in windows of the current size over lists of at most `longest` entries (forward
-    /// in increasing list order, backward decreasing); when the kernels' loop guard reports a
-    /// cut and windows are automatic, zero the `clear` buffers (bytes) and run again with a
-    /// halved window. Returns the compositing counters.
-    #[allow(clippy::too_many_arguments)]
+    /// Run `pass`'s compositing kernel (appended to `enc`) over every tile, in windows of the
+    /// current size over lists of at most `pass.longest` entries (forward in increasing list
+    /// order, backward decreasing); when the kernels' loop guard reports a cut and windows are
+    /// automatic, zero the `clear` buffers and run again with a halved window. Returns the
+    /// compositing counters.
     fn composite(
         &mut self,
         mut enc: wgpu::CommandEncoder,
-        pipe: &wgpu::ComputePipeline,
-        shape: &ForwardShape,
-        longest: u32,
-        forward: bool,
-        bindings: &[(u32, &wgpu::Buffer)],
-        clear: &[(&wgpu::Buffer, u64)],
+        pass: &CompositePass<'_>,
     ) -> Result<Vec<u32>> {
-        let counters = bindings
-            .iter()
-            .find(|(b, _)| *b == 8)
-            .map(|(_, buf)| *buf)
-            .expect("compositing binds the counters");
+        let CompositePass {
+            pipe,
+            shape,
+            longest,
+            forward,
+            counters,
+            bindings,
+            clear,
+        } = *pass;
         loop {
             for (buf, bytes) in clear {
                 enc.clear_buffer(buf, 0, Some(*bytes));
@@ -1276,38 +1292,49 @@ impl GpuRasterizer {
         self.mark(&mut enc, "scatter");
         let image_len = npix * (ch + 2);
         let image = self.storage("image", image_len as u64 * 4)?;
-        let mut forward = Forward {
-            shape: ForwardShape {
-                n,
-                channels: ch,
-                width,
-                height,
-                tiles_x,
-                tiles_y,
-                alpha_max: settings.alpha_max as f32,
-            },
+        let shape = ForwardShape {
+            n,
+            channels: ch,
+            width,
+            height,
+            tiles_x,
+            tiles_y,
+            alpha_max: settings.alpha_max as f32,
+        };
+        let buffers = ForwardBuffers {
             splats: splat_buf,
             keys,
             ids,
             tile_offsets,
             features: feat_buf,
             pixel_state,
-            deepest: longest,
         };
         let pipe = self.kernels.blend(&dev, self.layout, ch).0.clone();
         let mut bindings = vec![(6, &image), (8, &counters)];
-        bindings.extend(forward.inputs());
+        bindings.extend(buffers.bindings());
         let clear = [(&counters, COMPOSITING_COUNTERS_BYTES)];
-        let cnt = self.composite(enc, &pipe, &forward.shape, longest, true, &bindings, &clear)?;
+        let pass = CompositePass {
+            pipe: &pipe,
+            shape: &shape,
+            longest,
+            forward: true,
+            counters: &counters,
+            bindings: &bindings,
+            clear: &clear,
+        };
+        let cnt = self.composite(enc, &pass)?;
         let img = self.read_f32(&image, image_len)?;
         self.mark_host("read image");
         loops_completed(&cnt, &self.gpu)?;
-        forward.deepest = cnt[5];
         out.features.copy_from_slice(&img[..npix * ch]);
         out.alpha.copy_from_slice(&img[npix * ch..npix * (ch + 1)]);
         out.depth
             .copy_from_slice(&img[npix * (ch + 1)..npix * (ch + 2)]);
-        state.forward = Some(forward);
+        state.forward = Some(Forward {
+            shape,
+            buffers,
+            deepest: cnt[5],
+        });
         let wide = |lo: u32, hi: u32| u64::from(lo) | (u64::from(hi) << 32);
         Ok(Counters {
             visible: u64::from(visible),
@@ -1377,18 +1404,19 @@ impl GpuRasterizer {
         let counters = self.storage("counters", COUNTERS_BYTES)?;
         let walk_state = self.storage("walk_state", npix as u64 * 8)?;
         let mut bindings = vec![(8, &counters), (9, &v_buf), (10, &out), (11, &walk_state)];
-        bindings.extend(forward.inputs());
+        bindings.extend(forward.buffers.bindings());
         let grads_bytes = (n * stride * 4) as u64;
         let clear = [(&out, grads_bytes), (&counters, COMPOSITING_COUNTERS_BYTES)];
-        let cnt = self.composite(
-            enc,
-            &pipe,
-            &forward.shape,
-            forward.deepest,
-            false,
-            &bindings,
-            &clear,
-        )?;
+        let pass = CompositePass {
+            pipe: &pipe,
+            shape: &forward.shape,
+            longest: forward.deepest,
+            forward: false,
+            counters: &counters,
+            bindings: &bindings,
+            clear: &clear,
+        };
+        let cnt = self.composite(enc, &pass)?;
         let r = self.read_f32(&out, n * stride)?;
         self.mark_host("read grads");
         loops_completed(&cnt, &self.gpu)?;

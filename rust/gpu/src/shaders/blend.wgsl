@@ -161,23 +161,23 @@ fn tile_pixel(lid: u32, j: u32) -> vec2<u32> {
 const FIRST_WINDOW: u32 = 1u;
 const LAST_WINDOW: u32 = 2u;
 
-// A pixel's forward compositing state: accumulated features and depth, transmittance, list
-// position + 1 of the last composited splat (0 if none), and whether it stopped.
+// A pixel's forward compositing state: accumulated features and depth, transmittance (negated
+// once the pixel stopped; t > 0 while it composites), and the list position + 1 of the last
+// composited splat (0 if none).
 struct PixelForward {
     acc: array<f32, C>,
     t: f32,
     depth: f32,
     last: u32,
-    done: bool,
 }
 
-// Pixel q's state at the start of this window: fresh in the first (done outside the image),
-// else as the previous window stored it.
+// Pixel q's state at the start of this window: fresh in the first (stopped, t = -1, outside
+// the image), else as the previous window stored it.
 fn load_pixel(q: vec2<u32>) -> PixelForward {
     var r: PixelForward;
-    r.t = 1.0;
-    r.done = q.x >= F.width || q.y >= F.height;
-    if r.done || (F.window & FIRST_WINDOW) != 0u {
+    let outside = q.x >= F.width || q.y >= F.height;
+    r.t = select(1.0, -1.0, outside);
+    if outside || (F.window & FIRST_WINDOW) != 0u {
         return r;
     }
     let npix = F.width * F.height;
@@ -187,9 +187,7 @@ fn load_pixel(q: vec2<u32>) -> PixelForward {
     }
     r.depth = image[npix * (C + 1u) + pix];
     r.last = pixel_state[2u * pix];
-    let t = bitcast<f32>(pixel_state[2u * pix + 1u]);
-    r.t = abs(t);
-    r.done = t < 0.0;
+    r.t = bitcast<f32>(pixel_state[2u * pix + 1u]);
     return r;
 }
 
@@ -200,7 +198,6 @@ struct PixelsForward {
     acc: array<f32, P * C>,
     depth: array<f32, P>,
     last: array<u32, P>,
-    done: array<bool, P>,
     fx: array<f32, P>,
     fy: array<f32, P>,
     live: u32,
@@ -217,24 +214,24 @@ fn load_pixels(lid: u32, wid: vec3<u32>) -> PixelsForward {
         }
         s.depth[j] = r.depth;
         s.last[j] = r.last;
-        s.done[j] = r.done;
-        s.live += select(1u, 0u, r.done);
+        s.live += select(0u, 1u, r.t > 0.0);
         s.fx[j] = f32(q.x) + 0.5;
         s.fy[j] = f32(q.y) + 0.5;
     }
     return s;
 }
 
-// Write pixel q's state: in the last window the composited features (accumulated `a` plus the
-// background through the final transmittance `t`), alpha, depth and the backward's state
-// (last contributor, t); before, the running sums and t (negated once done).
-fn store_pixel(q: vec2<u32>, a: array<f32, C>, t: f32, depth: f32, last: u32, done: bool) {
+// Write pixel q's state (`t` signed as in `PixelForward`): in the last window the composited
+// features (accumulated `a` plus the background through the final transmittance |t|), alpha,
+// depth and the backward's state (last contributor, |t|); before, the running sums and t.
+fn store_pixel(q: vec2<u32>, a: array<f32, C>, t_signed: f32, depth: f32, last: u32) {
     if q.x >= F.width || q.y >= F.height {
         return;
     }
     let npix = F.width * F.height;
     let pix = q.y * F.width + q.x;
     let final_window = (F.window & LAST_WINDOW) != 0u;
+    let t = abs(t_signed);
     for (var c = 0u; c < C; c++) { // unroll: channels
         image[pix * C + c] = a[c] + select(0.0, t * features[F.n * C + c], final_window);
     }
@@ -243,7 +240,27 @@ fn store_pixel(q: vec2<u32>, a: array<f32, C>, t: f32, depth: f32, last: u32, do
     }
     image[npix * (C + 1u) + pix] = depth;
     pixel_state[2u * pix] = last;
-    pixel_state[2u * pix + 1u] = bitcast<u32>(select(t, -t, done && !final_window));
+    pixel_state[2u * pix + 1u] = bitcast<u32>(select(t_signed, t, final_window));
+}
+
+// Store invocation `lid`'s pixels of tile `wid` and record their deepest last contributor.
+// In a middle window, pixels that had all stopped before it are not stored again: `px.live`
+// counts the pixels that were compositing when they were loaded, and nothing changed since.
+fn store_pixels(lid: u32, wid: vec3<u32>, px: PixelsForward) {
+    let unchanged = px.live == 0u && (F.window & LAST_WINDOW) == 0u;
+    var deepest = 0u;
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        if !unchanged {
+            var a: array<f32, C>;
+            for (var c = 0u; c < C; c++) { // unroll: channels
+                a[c] = px.acc[j * C + c];
+            }
+            let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
+            store_pixel(q, a, px.t[j], px.depth[j], px.last[j]);
+        }
+        deepest = max(deepest, px.last[j]);
+    }
+    atomicMax(&counters[5], deepest);
 }
 
 // This tile's list start and this window's [start, end) in `ids`, shared with the workgroup.
@@ -310,7 +327,7 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
             // Per pixel: skip it when done or outside the splat's support box (neighbouring
             // pixels mostly agree, so SIMD lanes skip together); the rest is branch-free.
             for (var j = 0u; j < P; j++) { // unroll: pixels
-                if px.done[j] || !in_box(bx, px.fx[j], px.fy[j]) {
+                if px.t[j] < 0.0 || !in_box(bx, px.fx[j], px.fy[j]) {
                     continue;
                 }
                 let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j], lim);
@@ -323,9 +340,8 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
                     px.acc[j * C + c] += f[c] * w;
                 }
                 px.depth[j] += pos.w * w;
-                px.t[j] = select(px.t[j], next_t, take);
+                px.t[j] = select(select(px.t[j], next_t, take), -px.t[j], stop);
                 px.last[j] = select(px.last[j], rank, take);
-                px.done[j] = stop;
                 evaluated += 1u;
                 blended += select(0u, 1u, take);
                 live -= select(0u, 1u, stop);
@@ -337,17 +353,7 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
     }
     atomicAdd(&wg_evaluated, evaluated);
     atomicAdd(&wg_blended, blended);
-    var deepest = 0u;
-    for (var j = 0u; j < P; j++) { // unroll: pixels
-        var a: array<f32, C>;
-        for (var c = 0u; c < C; c++) { // unroll: channels
-            a[c] = px.acc[j * C + c];
-        }
-        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
-        store_pixel(q, a, px.t[j], px.depth[j], px.last[j], px.done[j]);
-        deepest = max(deepest, px.last[j]);
-    }
-    atomicMax(&counters[5], deepest);
+    store_pixels(lid, wid, px);
     check_loops();
     workgroupBarrier();
     if lid == 0u {
@@ -410,10 +416,6 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
     let y0 = f32(wid.y * 16u);
     var px = load_pixels(lid, wid);
     var live = px.live;
-    // Done pixels carry a negative transmittance (one less array of loop-carried state).
-    for (var j = 0u; j < P; j++) { // unroll: pixels
-        px.t[j] = select(px.t[j], -px.t[j], px.done[j]);
-    }
     var evaluated = 0u;
     var blended = 0u;
     var counted = live == 0u;
@@ -508,17 +510,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
     }
     atomicAdd(&wg_evaluated, evaluated);
     atomicAdd(&wg_blended, blended);
-    var deepest = 0u;
-    for (var j = 0u; j < P; j++) { // unroll: pixels
-        var a: array<f32, C>;
-        for (var c = 0u; c < C; c++) { // unroll: channels
-            a[c] = px.acc[j * C + c];
-        }
-        let q = vec2<u32>(wid.x * 16u, wid.y * 16u) + tile_pixel(lid, j);
-        store_pixel(q, a, abs(px.t[j]), px.depth[j], px.last[j], px.t[j] < 0.0);
-        deepest = max(deepest, px.last[j]);
-    }
-    atomicMax(&counters[5], deepest);
+    store_pixels(lid, wid, px);
     check_loops();
     workgroupBarrier();
     if lid == 0u {
