@@ -67,6 +67,7 @@ fn main() {
     };
     let mut layout = gpu.blend_layout();
     layout.block_rows = env_u32("SYNC4D_GPU_ROWS").unwrap_or(layout.block_rows);
+    layout.column_halves = env_u32("SYNC4D_GPU_HALVES").map_or(layout.column_halves, |h| h == 2);
     layout.pixels_per_invocation =
         env_u32("SYNC4D_GPU_PIXELS").unwrap_or(layout.pixels_per_invocation);
     gpu.set_blend_layout(layout).expect("compositing layout");

@@ -35,36 +35,48 @@ fn gpu() -> Option<&'static Mutex<GpuRasterizer>> {
 /// Compositing layouts every adapter must run identically: the GPU one (one pixel per
 /// invocation, atomic gradient sums), the CPU-adapter one (many pixels, row blocks, partial
 /// sums) and mixed ones; see [`layouts`] for the subgroup one.
-const LAYOUTS: [BlendLayout; 5] = [
+const LAYOUTS: [BlendLayout; 6] = [
     BlendLayout {
         pixels_per_invocation: 1,
         partials: false,
         block_rows: 0,
         subgroup_sums: false,
+        column_halves: false,
     },
     BlendLayout {
         pixels_per_invocation: 32,
         partials: true,
         block_rows: 16,
         subgroup_sums: false,
+        column_halves: false,
     },
     BlendLayout {
         pixels_per_invocation: 16,
         partials: true,
         block_rows: 0,
         subgroup_sums: false,
+        column_halves: false,
     },
     BlendLayout {
         pixels_per_invocation: 8,
         partials: true,
         block_rows: 4,
         subgroup_sums: false,
+        column_halves: false,
     },
     BlendLayout {
         pixels_per_invocation: 4,
         partials: false,
         block_rows: 8,
         subgroup_sums: false,
+        column_halves: false,
+    },
+    BlendLayout {
+        pixels_per_invocation: 32,
+        partials: true,
+        block_rows: 4,
+        subgroup_sums: false,
+        column_halves: true,
     },
 ];
 
@@ -322,12 +334,15 @@ fn bad_input_is_an_error_not_a_panic() {
         (1, 4, "block_rows"),
         (32, 0, "subgroup_sums"),
         (1, 16, "subgroup_sums"),
+        (16, 16, "column_halves"),
+        (32, 0, "column_halves"),
     ] {
         let bad = BlendLayout {
             pixels_per_invocation: pixels,
             partials: true,
             block_rows: rows,
             subgroup_sums: field == "subgroup_sums",
+            column_halves: field == "column_halves",
         };
         let err = r.set_blend_layout(bad).unwrap_err();
         assert!(err.to_string().contains(field), "{bad:?}: {err}");

@@ -364,26 +364,78 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
 
 // <rows>
 // Forward for CPU adapters (llvmpipe runs every branch of a divergent `if` under a lane mask, so
-// skipping a pixel outside a splat's box saves nothing there; only loop trip counts skip work).
-// The invocation's P pixels form NB blocks of RB tile rows; each batch of 32 splats is staged
-// with one bit per (block, splat) set where the splat's box reaches the block's rows, and each
-// block walks only its set bits, in order, each lane until all of its pixels there are done.
-// lavapipe's default is one block (RB = 16): many of a tile's list entries (binned by their
-// 3-sigma extent) have an alpha box that misses the tile's pixel centres altogether.
+// skipping a pixel outside a splat's support saves nothing there; only loop trip counts skip
+// work). The invocation's P pixels form NB blocks of RB tile rows (or of one half of them);
+// each batch of 32 splats is staged with one bit per (block, splat) set where the splat's
+// alpha-support ellipse reaches the block (support_meets), and each block walks only its set
+// bits, in order, each lane until all of its pixels there are done. lavapipe's default is one
+// block (RB = 16): many of a tile's list entries (binned by their 3-sigma extent) have an
+// alpha support that misses the tile's pixel centres altogether, and every block visit
+// reloads the splat, per lane.
 const RB: u32 = {{ROWS}}u;
-const NB: u32 = 16u / RB;
+// Column groups per block row: 1 (blocks span the tile's width) or 2 (a block is RB rows of
+// one half of the tile, the pixels of one SIMD lane group; needs P = 32).
+const HALVES: u32 = {{HALVES}}u;
+const NB: u32 = HALVES * (16u / RB);
 const JB: u32 = P / NB;
 var<workgroup> hit: array<array<atomic<u32>, NB>, 2>;
 
-// 1 << bit in each block whose rows the support box `bx` may reach (one row of slack each side)
-// in the tile whose top-left pixel corner is (x0, y0); 0 elsewhere.
-fn block_bits(bx: vec4<f32>, x0: f32, y0: f32, bit: u32) -> array<u32, NB> {
+// Pixel jj of block b, as an index into the invocation's P pixels (see tile_pixel).
+fn block_pixel(b: u32, jj: u32) -> u32 {
+    if HALVES == 1u {
+        return b * JB + jj;
+    }
+    return 2u * ((b / 2u) * RB + jj) + b % 2u;
+}
+
+// sigma of splat conic (a, b, c) at offset (dx, dy), less a bound on its f32 rounding error.
+fn sigma_low(a: f32, b: f32, c: f32, dx: f32, dy: f32) -> f32 {
+    let qa = 0.5 * a * dx * dx;
+    let qb = b * dx * dy;
+    let qc = 0.5 * c * dy * dy;
+    return qa + qb + qc - 1e-5 * (qa + abs(qb) + qc);
+}
+
+// Whether splat (pos, conic)'s alpha support, the ellipse sigma <= ln(255 opacity) outside
+// which alpha < 1/255, may reach a point of the rectangle [xl, xh] x [yl, yh]: the least
+// sigma over the rectangle (on its edges when the centre lies outside it) against the same
+// padded bound as support_box, with the rounding of sigma allowed for. False when the
+// opacity is below 1/255, true when the conic is not safely positive definite.
+fn support_meets(pos: vec4<f32>, con: vec4<f32>, xl: f32, xh: f32, yl: f32, yh: f32) -> bool {
+    let op = pos.z;
+    let a = con.x;
+    let b = con.y;
+    let c = con.z;
+    let det_lo = a * c - b * b - 4.8e-7 * (abs(a * c) + b * b);
+    let definite = a > 0.0 && c > 0.0 && det_lo > 0.0;
+    let smax = log(255.0 * op) * 1.01 + 0.02;
+    let dxl = xl - pos.x;
+    let dxh = xh - pos.x;
+    let dyl = yl - pos.y;
+    let dyh = yh - pos.y;
+    let inside = dxl <= 0.0 && dxh >= 0.0 && dyl <= 0.0 && dyh >= 0.0;
+    // On a vertical edge (dx fixed) sigma is least at dy = -b dx / c, clamped to the edge;
+    // on a horizontal edge at dx = -b dy / a.
+    let ic = 1.0 / c;
+    let ia = 1.0 / a;
+    let s1 = sigma_low(a, b, c, dxl, clamp(-b * dxl * ic, dyl, dyh));
+    let s2 = sigma_low(a, b, c, dxh, clamp(-b * dxh * ic, dyl, dyh));
+    let s3 = sigma_low(a, b, c, clamp(-b * dyl * ia, dxl, dxh), dyl);
+    let s4 = sigma_low(a, b, c, clamp(-b * dyh * ia, dxl, dxh), dyh);
+    let near = inside || min(min(s1, s2), min(s3, s4)) <= smax;
+    return op * 255.0 >= 1.0 && (!definite || near);
+}
+
+// 1 << bit in each block of the tile whose top-left pixel corner is (x0, y0) that splat
+// (pos, conic)'s alpha support may reach (support_meets on the block's pixel centres,
+// widened by 0.01 px); 0 elsewhere.
+fn block_bits(pos: vec4<f32>, con: vec4<f32>, x0: f32, y0: f32, bit: u32) -> array<u32, NB> {
     var m: array<u32, NB>;
-    let r_lo = max(floor(bx.z - y0 - 0.5) - 1.0, 0.0);
-    let r_hi = min(ceil(bx.w - y0 - 0.5) + 1.0, 15.0);
-    let x_in = bx.y >= x0 - 1.0 && bx.x <= x0 + 17.0;
     for (var b = 0u; b < NB; b++) { // unroll: blocks
-        if x_in && r_lo <= f32(b * RB + RB - 1u) && r_hi >= f32(b * RB) {
+        let width = 16.0 / f32(HALVES);
+        let xl = x0 + f32(b % HALVES) * width + 0.49;
+        let yl = y0 + f32(b / HALVES) * f32(RB) + 0.49;
+        if support_meets(pos, con, xl, xl + width - 0.98, yl, yl + f32(RB) - 0.98) {
             m[b] = 1u << bit;
         }
     }
@@ -440,7 +492,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
             // The splat index rides in the conic's spare lane: two workgroup reads a visit.
             sh_pos[i] = pos;
             sh_conic[i] = vec4<f32>(con.xyz, bitcast<f32>(g));
-            let m = block_bits(support_box(pos, con), x0, y0, i);
+            let m = block_bits(pos, con, x0, y0, i);
             for (var b = 0u; b < NB; b++) { // unroll: blocks
                 mine[b] |= m[b];
             }
@@ -457,7 +509,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
             atomicStore(&hit[1u - parity][b], 0u);
             var bdone = true;
             for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
-                bdone = bdone && px.t[b * JB + jj] < 0.0;
+                bdone = bdone && px.t[block_pixel(b, jj)] < 0.0;
             }
             if bdone {
                 bits = 0u;
@@ -477,8 +529,8 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
                 let rank = batch - base + k + 1u;
                 var all_done = true;
                 for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
-                    let j = b * JB + jj;
-                    // Outside the splat's support box alpha is below 1/255: no box test.
+                    let j = block_pixel(b, jj);
+                    // Outside the support ellipse alpha is below 1/255: no per-pixel test.
                     let inside = px.t[j] > 0.0;
                     let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j], lim);
                     let ok = inside && alpha > 0.0;
@@ -887,7 +939,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
     var block_last: array<u32, NB>;
     for (var b = 0u; b < NB; b++) { // unroll: blocks
         for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
-            block_last[b] = max(block_last[b], last[b * JB + jj]);
+            block_last[b] = max(block_last[b], last[block_pixel(b, jj)]);
         }
     }
     atomicMax(&max_last, my_last);
@@ -911,7 +963,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
             sh_b_conic[i] = splat_conic(g);
             sh_b_index[i] = g;
             sh_b_box[i] = support_box(sh_b_pos[i], sh_b_conic[i]);
-            let m = block_bits(sh_b_box[i], x0, y0, i);
+            let m = block_bits(sh_b_pos[i], sh_b_conic[i], x0, y0, i);
             for (var b = 0u; b < NB; b++) { // unroll: blocks
                 mine[b] |= m[b];
             }
@@ -947,7 +999,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                     gs[s] = 0.0;
                 }
                 for (var jp = 0u; jp < JB; jp++) { // unroll: block pixels
-                    let j = b * JB + jp;
+                    let j = block_pixel(b, jp);
                     var v: array<f32, C>;
                     for (var c = 0u; c < C; c++) { // unroll: channels
                         v[c] = vc[j * C + c];
