@@ -6,7 +6,9 @@
 //!
 //! With SYNC4D_GPU_PROFILE=1 the wgpu calls also report per-stage times (each stage then waits
 //! for the device, so the totals grow a little). SYNC4D_GPU_ROWS=R and SYNC4D_GPU_PIXELS=P
-//! override the compositing layout's block rows and pixels per invocation (to compare layouts);
+//! override the compositing layout's block rows and pixels per invocation, SYNC4D_GPU_HALVES its
+//! column halves (0 never, 2 always, t > 2 in the backward below t tile intersections per
+//! splat), to compare layouts;
 //! SYNC4D_SCALE=s multiplies the scene's Gaussian scales (0.15: small splats, few saturated
 //! pixels, like `python -m sync4d bench raster`'s scene).
 
@@ -15,7 +17,7 @@ mod common;
 
 use common::*;
 use std::time::Instant;
-use sync4d_gpu::{AdapterChoice, GpuDevice, GpuRasterState, GpuRasterizer};
+use sync4d_gpu::{AdapterChoice, ColumnHalves, GpuDevice, GpuRasterState, GpuRasterizer};
 use sync4d_raster::*;
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -67,7 +69,12 @@ fn main() {
     };
     let mut layout = gpu.blend_layout();
     layout.block_rows = env_u32("SYNC4D_GPU_ROWS").unwrap_or(layout.block_rows);
-    layout.column_halves = env_u32("SYNC4D_GPU_HALVES").map_or(layout.column_halves, |h| h == 2);
+    layout.column_halves = match env_u32("SYNC4D_GPU_HALVES") {
+        Some(0) => ColumnHalves::Never,
+        Some(2) => ColumnHalves::Always,
+        Some(t) => ColumnHalves::BackwardBelowTilesPerSplat(t),
+        None => layout.column_halves,
+    };
     layout.pixels_per_invocation =
         env_u32("SYNC4D_GPU_PIXELS").unwrap_or(layout.pixels_per_invocation);
     gpu.set_blend_layout(layout).expect("compositing layout");

@@ -24,4 +24,4 @@ pub mod raster;
 
 pub use device::{list_adapters, AdapterChoice, AdapterSummary, GpuDevice};
 pub use error::{GpuError, Result};
-pub use raster::{BlendLayout, CompositingWindow, GpuRasterState, GpuRasterizer};
+pub use raster::{BlendLayout, ColumnHalves, CompositingWindow, GpuRasterState, GpuRasterizer};

@@ -30,6 +30,13 @@ const WG: u32 = 256;
 const CHUNK_WG: u32 = 16;
 /// Values per scan block (256 invocations x 4).
 const SCAN_BLOCK: u32 = 1024;
+/// Tile intersections per visible splat below which lavapipe's backward compositing splits
+/// rows into column halves. cpu_vs_wgpu, 100k splats 800x800, medians of interleaved runs,
+/// backward compositing time over the CPU path's forward time: with halves 5.1 / 4.1 / 3.0
+/// against 6.5 / 5.0 / 2.8 at 4.0 / 4.9 / 7.8 intersections per splat (SYNC4D_SCALE 0.08 /
+/// 0.1 / 0.15); 1.67 against 1.33 at 163 (an earlier build). The forward was slower with
+/// halves at all four (2.9 / 2.5 / 2.3 against 2.5 / 2.3 / 1.8 at the small ones).
+const SMALL_SPLAT_TILES: u32 = 7;
 /// Most chunks the binning cuts the depth order into (bounds the count table to
 /// tiles x this many entries).
 const MAX_CHUNKS: u32 = 1024;
@@ -129,8 +136,8 @@ struct Kernels {
     sum_lines: wgpu::ComputePipeline,
     tile_ranges: wgpu::ComputePipeline,
     scatter: wgpu::ComputePipeline,
-    /// Forward and backward compositing, one pair per channel count.
-    blend: HashMap<usize, (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
+    /// Forward and backward compositing, one pair per (channel count, column halves).
+    blend: HashMap<(usize, bool), (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
 }
 
 fn module(dev: &wgpu::Device, label: &str, src: &str) -> wgpu::ShaderModule {
@@ -174,15 +181,17 @@ impl Kernels {
         }
     }
 
-    /// The (forward, backward) compositing pipelines for `channels` feature channels.
+    /// The (forward, backward) compositing pipelines for `channels` feature channels, the
+    /// row blocks split into column halves or not.
     fn blend(
         &mut self,
         dev: &wgpu::Device,
         layout: BlendLayout,
         channels: usize,
+        halves: bool,
     ) -> &(wgpu::ComputePipeline, wgpu::ComputePipeline) {
-        self.blend.entry(channels).or_insert_with(|| {
-            let src = layout.shader(channels);
+        self.blend.entry((channels, halves)).or_insert_with(|| {
+            let src = layout.shader(channels, halves);
             let m = module(dev, "blend", &src);
             let rows = layout.block_rows > 0;
             let forward = if rows {
@@ -225,10 +234,40 @@ pub struct BlendLayout {
     /// registers). Needs a device with subgroup operations whose subgroups hold a whole
     /// workgroup (`256 / pixels_per_invocation` invocations).
     pub subgroup_sums: bool,
-    /// Row-block kernels with 32 pixels per invocation only: split each block of rows into
-    /// the tile's left and right halves (8 pixels wide, one SIMD lane group each), so that a
-    /// splat visits only the halves its alpha support reaches.
-    pub column_halves: bool,
+    /// Row-block kernels with 32 pixels per invocation only: when to split each block of rows
+    /// into the tile's left and right halves (8 pixels wide, one SIMD lane group each).
+    pub column_halves: ColumnHalves,
+}
+
+/// When the row-block kernels split each block of rows into the tile's two halves. A batch of
+/// splats is then composited either half by half, each half visiting only the splats whose
+/// support reaches it, or by the whole tile (the kernel estimates which costs less, per batch).
+/// On llvmpipe that pays in the backward for small splats and costs with large ones, where
+/// every visit reloads the splat for little skipped work; the forward was slower with halves
+/// at every splat size measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ColumnHalves {
+    /// Blocks span the tile's width.
+    Never,
+    /// Blocks are halves, forward and backward.
+    Always,
+    /// Halves in the backward of scenes with fewer tile intersections per visible splat than
+    /// this (small splats); blocks of the tile's width elsewhere.
+    BackwardBelowTilesPerSplat(u32),
+}
+
+impl ColumnHalves {
+    /// Whether the forward (`backward` false) or the backward of a scene of `visible` splats
+    /// with `intersections` tile intersections uses halves.
+    pub fn applies(self, backward: bool, intersections: u64, visible: u64) -> bool {
+        match self {
+            ColumnHalves::Never => false,
+            ColumnHalves::Always => true,
+            ColumnHalves::BackwardBelowTilesPerSplat(t) => {
+                backward && intersections < u64::from(t) * visible
+            }
+        }
+    }
 }
 
 impl BlendLayout {
@@ -245,14 +284,15 @@ impl BlendLayout {
             // against 1.12 s): each block visit reloads the splat, per lane, on llvmpipe.
             // Testing the support ellipse against the tile instead of its bounding box cut
             // compositing by a further 17-30 % (forward 337 -> 241 ms, backward 595 -> 414 ms
-            // with small splats); splitting rows into column halves, or smaller blocks, still
-            // lost to the reloads (blocks of 8 rows x 8 columns: 285 / 498 ms).
+            // with small splats). Blocks smaller than the tile lose to the splat reloads of
+            // their visits, except in the backward of small splats with column halves and a
+            // per-batch choice between halves and the whole tile (see SMALL_SPLAT_TILES).
             BlendLayout {
                 pixels_per_invocation: 32,
                 partials: true,
                 block_rows: 16,
                 subgroup_sums: false,
-                column_halves: false,
+                column_halves: ColumnHalves::BackwardBelowTilesPerSplat(SMALL_SPLAT_TILES),
             }
         } else {
             BlendLayout {
@@ -260,7 +300,7 @@ impl BlendLayout {
                 partials: false,
                 block_rows: 0,
                 subgroup_sums: false,
-                column_halves: false,
+                column_halves: ColumnHalves::Never,
             }
         }
     }
@@ -282,12 +322,12 @@ impl BlendLayout {
     /// The compositing shader for `channels` channels: template values substituted and the
     /// per-pixel loops (marked `// unroll: pixels`) unrolled, so that every per-pixel array
     /// index is a constant and the arrays live in registers.
-    fn shader(&self, channels: usize) -> String {
+    fn shader(&self, channels: usize, halves: bool) -> String {
         let p = self.pixels_per_invocation as usize;
         let stride = channels + 7;
         let invocations = 256 / p;
         let rows = self.block_rows.max(1);
-        let halves = if self.column_halves { 2 } else { 1 };
+        let halves = if halves { 2 } else { 1 };
         let blocks = halves * 16 / rows as usize;
         // Workgroup memory: 16 KiB guaranteed; the accumulators get up to ~12 KiB.
         let (batch, acc, partial) = if self.subgroup_sums {
@@ -324,6 +364,7 @@ impl BlendLayout {
             )
             .replace("{{ROWS}}", &rows.to_string())
             .replace("{{HALVES}}", &halves.to_string())
+            .replace("{{WALKS}}", &(blocks + usize::from(blocks > 1)).to_string())
             .replace("{{SPANS}}", &stride.div_ceil(invocations).to_string())
             .replace("{{CHANNELS}}", &channels.to_string())
             .replace("{{PIXELS}}", &p.to_string())
@@ -334,6 +375,8 @@ impl BlendLayout {
         let src = unroll_loops(&src, "c", "C", "channels", channels);
         let src = unroll_loops(&src, "s", "STRIDE", "stride", stride);
         let src = unroll_loops(&src, "h", "SPANS", "spans", stride.div_ceil(invocations));
+        let src = unroll_loops(&src, "v", "CV", "feature vectors", channels.div_ceil(4));
+        let src = unroll_loops(&src, "w", "NW", "walks", blocks + usize::from(blocks > 1));
         let src = unroll_loops(&src, "b", "NB", "blocks", blocks);
         let src = unroll_loops(&src, "jj", "JB", "block pixels", p / blocks);
         let src = unroll_loops(&src, "jp", "JB", "block pixels", p / blocks);
@@ -380,7 +423,7 @@ fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> 
         // A body that jumps (`continue`) stays a loop of one trip; any other is a plain block,
         // which matters on llvmpipe: it caps every shader at 65,535 loop iterations in all
         // (loops end early beyond), and values written in a block need no loop masks.
-        let jumps = body.contains("continue") || body.contains("break");
+        let jumps = jumps_out(body);
         for k in 0..count {
             if jumps {
                 out.push_str(&format!(
@@ -394,6 +437,48 @@ fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> 
     }
     out.push_str(rest);
     out
+}
+
+/// Whether a loop body holds a `continue` or `break` of its own loop: one outside the loops
+/// nested in it (`loop`, `for`, `while` statements, skipped with their bodies).
+fn jumps_out(body: &str) -> bool {
+    let code: Vec<&str> = body
+        .lines()
+        .map(|l| l.split("//").next().unwrap_or(""))
+        .collect();
+    let code = code.join("\n");
+    let mut rest = code.as_str();
+    loop {
+        let nested = ["loop {", "for (", "while "]
+            .iter()
+            .filter_map(|k| rest.find(k))
+            .min();
+        let scan_to = nested.unwrap_or(rest.len());
+        if rest[..scan_to].contains("continue") || rest[..scan_to].contains("break") {
+            return true;
+        }
+        let Some(at) = nested else { return false };
+        // Skip the nested statement: up to its opening brace, then to the matching one.
+        let Some(open) = rest[at..].find('{') else {
+            return false;
+        };
+        let mut depth = 0usize;
+        let mut close = rest.len();
+        for (i, ch) in rest[at + open..].char_indices() {
+            match ch {
+                '{' => depth += 1,
+                '}' => {
+                    depth -= 1;
+                    if depth == 0 {
+                        close = at + open + i + 1;
+                        break;
+                    }
+                }
+                _ => {}
+            }
+        }
+        rest = &rest[close.min(rest.len())..];
+    }
 }
 
 /// Grow-only named storage buffers, reused across calls.
@@ -496,6 +581,9 @@ struct ForwardShape {
     tiles_x: u32,
     tiles_y: u32,
     alpha_max: f32,
+    /// Tile intersections and visible splats (which kernels suit the scene: [`ColumnHalves`]).
+    intersections: u64,
+    visible: u64,
 }
 
 impl ForwardShape {
@@ -801,7 +889,7 @@ impl GpuRasterizer {
             )
             .into());
         }
-        if layout.column_halves && !(r > 0 && p == 32) {
+        if layout.column_halves != ColumnHalves::Never && !(r > 0 && p == 32) {
             return Err(RasterError::invalid(
                 "column_halves",
                 "needs block_rows > 0 and 32 pixels_per_invocation",
@@ -1320,6 +1408,8 @@ impl GpuRasterizer {
             tiles_x,
             tiles_y,
             alpha_max: settings.alpha_max as f32,
+            intersections: u64::from(total),
+            visible: u64::from(visible),
         };
         let buffers = ForwardBuffers {
             splats: splat_buf,
@@ -1329,7 +1419,8 @@ impl GpuRasterizer {
             features: feat_buf,
             pixel_state,
         };
-        let pipe = self.kernels.blend(&dev, self.layout, ch).0.clone();
+        let halves = (self.layout.column_halves).applies(false, shape.intersections, shape.visible);
+        let pipe = self.kernels.blend(&dev, self.layout, ch, halves).0.clone();
         let mut bindings = vec![(6, &image), (8, &counters)];
         bindings.extend(buffers.bindings());
         let clear = [(&counters, COMPOSITING_COUNTERS_BYTES)];
@@ -1420,7 +1511,9 @@ impl GpuRasterizer {
         let out = self.storage("splat_grads", (n * stride * 4) as u64)?;
         let mut enc = dev.create_command_encoder(&Default::default());
         self.mark(&mut enc, "upload v_image");
-        let pipe = self.kernels.blend(&dev, self.layout, ch).1.clone();
+        let (isects, visible) = (forward.shape.intersections, forward.shape.visible);
+        let halves = (self.layout.column_halves).applies(true, isects, visible);
+        let pipe = self.kernels.blend(&dev, self.layout, ch, halves).1.clone();
         let counters = self.storage("counters", COUNTERS_BYTES)?;
         let walk_state = self.storage("walk_state", npix as u64 * 8)?;
         let mut bindings = vec![(8, &counters), (9, &v_buf), (10, &out), (11, &walk_state)];
@@ -1512,5 +1605,35 @@ fn project_params(cam: &Camera, s: &ProjectSettings, n: u32) -> ProjectParams {
         ],
         clip: [s.near as f32, s.far.min(f32::MAX as f64) as f32, 0.0, 0.0],
         count: [n, 0, 0, 0],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{jumps_out, ColumnHalves};
+
+    #[test]
+    fn column_halves_follow_the_splat_size() {
+        let small = ColumnHalves::BackwardBelowTilesPerSplat(7);
+        assert!(small.applies(true, 400_000, 100_000));
+        assert!(!small.applies(false, 400_000, 100_000));
+        assert!(!small.applies(true, 700_000, 100_000));
+        assert!(!small.applies(true, 0, 0));
+        assert!(ColumnHalves::Always.applies(false, 0, 0));
+        assert!(!ColumnHalves::Never.applies(true, 1, 1_000));
+    }
+
+    #[test]
+    fn jumps_out_sees_only_the_bodys_own_jumps() {
+        assert!(jumps_out("if a { continue; }"));
+        assert!(jumps_out("x = 1; break;"));
+        assert!(!jumps_out("loop { if a { break; } }"));
+        assert!(!jumps_out(
+            "for (var i = 0u; i < 3u; i++) { continue; } y = 2;"
+        ));
+        assert!(jumps_out("loop { break; } if b { continue; }"));
+        // Comments are not code.
+        assert!(!jumps_out("// break while we can\nx = 1;"));
+        assert!(jumps_out("// loop { over\nbreak;"));
     }
 }

@@ -9,7 +9,8 @@ mod common;
 use common::*;
 use std::sync::{Mutex, OnceLock};
 use sync4d_gpu::{
-    AdapterChoice, BlendLayout, CompositingWindow, GpuDevice, GpuRasterState, GpuRasterizer,
+    AdapterChoice, BlendLayout, ColumnHalves, CompositingWindow, GpuDevice, GpuRasterState,
+    GpuRasterizer,
 };
 use sync4d_raster::*;
 
@@ -41,42 +42,42 @@ const LAYOUTS: [BlendLayout; 6] = [
         partials: false,
         block_rows: 0,
         subgroup_sums: false,
-        column_halves: false,
+        column_halves: ColumnHalves::Never,
     },
     BlendLayout {
         pixels_per_invocation: 32,
         partials: true,
         block_rows: 16,
         subgroup_sums: false,
-        column_halves: false,
+        column_halves: ColumnHalves::Never,
     },
     BlendLayout {
         pixels_per_invocation: 16,
         partials: true,
         block_rows: 0,
         subgroup_sums: false,
-        column_halves: false,
+        column_halves: ColumnHalves::Never,
     },
     BlendLayout {
         pixels_per_invocation: 8,
         partials: true,
         block_rows: 4,
         subgroup_sums: false,
-        column_halves: false,
+        column_halves: ColumnHalves::Never,
     },
     BlendLayout {
         pixels_per_invocation: 4,
         partials: false,
         block_rows: 8,
         subgroup_sums: false,
-        column_halves: false,
+        column_halves: ColumnHalves::Never,
     },
     BlendLayout {
         pixels_per_invocation: 32,
         partials: true,
         block_rows: 4,
         subgroup_sums: false,
-        column_halves: true,
+        column_halves: ColumnHalves::Always,
     },
 ];
 
@@ -90,6 +91,11 @@ fn layouts(r: &GpuRasterizer) -> Vec<BlendLayout> {
     };
     if r.device().subgroup_min_size.is_some_and(|m| m >= 8) {
         all.push(sub);
+        // lavapipe's layout for small splats.
+        all.push(BlendLayout {
+            column_halves: ColumnHalves::Always,
+            ..sub
+        });
     } else {
         eprintln!("no subgroups of 8 or more on this device: skipping {sub:?}");
     }
@@ -215,6 +221,37 @@ fn projection_matches_the_cpu_path() {
     }
 }
 
+/// Composite scene `s` (projected by the CPU path) on both paths with `r`'s layout and check
+/// that every decision agrees: the same images (to f32 summation order), intersections and
+/// blended pairs, with enough blends to mean something. Returns the wgpu counters.
+fn assert_same_decisions(r: &mut GpuRasterizer, s: &Scene, seed: u64) -> Counters {
+    let layout = r.blend_layout();
+    let bs = BlendSettings::default();
+    let p = cpu_project(s, &ProjectSettings::default());
+    let (ci, cc) = composite(None, &p, s, &bs);
+    let (gi, gc) = composite(Some(r), &p, s, &bs);
+    assert!(
+        max_abs(&ci.features, &gi.features) <= 1e-5,
+        "features {layout:?} seed {seed}"
+    );
+    assert!(
+        max_abs(&ci.alpha, &gi.alpha) <= 1e-5,
+        "alpha {layout:?} seed {seed}"
+    );
+    assert!(
+        max_abs(&ci.depth, &gi.depth) <= 1e-4,
+        "depth {layout:?} seed {seed}"
+    );
+    assert_eq!(cc.visible, gc.visible);
+    assert_eq!(cc.intersections, gc.intersections, "{layout:?} seed {seed}");
+    assert_eq!(cc.blended, gc.blended, "{layout:?} seed {seed}");
+    assert!(
+        cc.blended > u64::from(s.camera.width * s.camera.height),
+        "{layout:?} seed {seed}: too few blends to compare"
+    );
+    gc
+}
+
 #[test]
 fn compositing_matches_the_cpu_path_exactly_in_decisions() {
     let Some(gpu) = gpu() else { return };
@@ -229,33 +266,36 @@ fn compositing_matches_the_cpu_path_exactly_in_decisions() {
         .map(|c| (l, c))
     }) {
         r.set_blend_layout(layout).unwrap();
-        let s = random_scene(n, w, h, ch, seed);
-        let ps = ProjectSettings::default();
-        let bs = BlendSettings::default();
-        let p = cpu_project(&s, &ps);
-        let (ci, cc) = composite(None, &p, &s, &bs);
-        let (gi, gc) = composite(Some(&mut r), &p, &s, &bs);
-        assert!(
-            max_abs(&ci.features, &gi.features) <= 1e-5,
-            "features {layout:?} seed {seed}"
-        );
-        assert!(
-            max_abs(&ci.alpha, &gi.alpha) <= 1e-5,
-            "alpha {layout:?} seed {seed}"
-        );
-        assert!(
-            max_abs(&ci.depth, &gi.depth) <= 1e-4,
-            "depth {layout:?} seed {seed}"
-        );
-        assert_eq!(cc.visible, gc.visible);
-        assert_eq!(cc.intersections, gc.intersections, "{layout:?} seed {seed}");
-        assert_eq!(cc.blended, gc.blended, "{layout:?} seed {seed}");
-        assert!(
-            cc.blended > (w * h) as u64,
-            "{layout:?} seed {seed}: too few blends to compare"
-        );
+        let gc = assert_same_decisions(&mut r, &random_scene(n, w, h, ch, seed), seed);
         // Each path culls pixels outside a splat's support its own way: only bounds.
         assert!(gc.evaluated >= gc.blended && gc.evaluated <= 256 * gc.intersections);
+    }
+    r.set_blend_layout(default).unwrap();
+}
+
+/// Needle-thin and very wide splats (axis ratios up to ~1000:1, most of them seen edge-on at an
+/// angle) stress the row-block kernels' culling, which tests each splat's support ellipse
+/// against a block: a block wrongly skipped would drop blends, so the decisions must still
+/// be the CPU path's exactly.
+#[test]
+fn needle_splats_are_composited_exactly() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let default = r.blend_layout();
+    for (layout, seed) in layouts(&r)
+        .into_iter()
+        .filter(|l| l.block_rows > 0)
+        .flat_map(|l| [(l, 7u64), (l, 8)])
+    {
+        r.set_blend_layout(layout).unwrap();
+        let mut s = random_scene(500, 120, 96, 3, seed);
+        for (i, sc) in s.scales.chunks_exact_mut(3).enumerate() {
+            let (long, thin) = [(8.0, 0.01), (3.0, 0.003), (20.0, 0.02)][i % 3];
+            sc[0] *= long;
+            sc[1] *= thin;
+            sc[2] *= if i % 2 == 0 { thin } else { 1.0 };
+        }
+        assert_same_decisions(&mut r, &s, seed);
     }
     r.set_blend_layout(default).unwrap();
 }
@@ -342,7 +382,11 @@ fn bad_input_is_an_error_not_a_panic() {
             partials: true,
             block_rows: rows,
             subgroup_sums: field == "subgroup_sums",
-            column_halves: field == "column_halves",
+            column_halves: if field == "column_halves" {
+                ColumnHalves::Always
+            } else {
+                ColumnHalves::Never
+            },
         };
         let err = r.set_blend_layout(bad).unwrap_err();
         assert!(err.to_string().contains(field), "{bad:?}: {err}");

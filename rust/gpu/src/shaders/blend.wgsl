@@ -171,6 +171,27 @@ struct PixelForward {
     last: u32,
 }
 
+// Composite splat (pos, conic, features f; list position + 1 `rank`) over pixel j of `px` where
+// `inside` (the pixel still composites there): alpha as splat_alpha, the pixel stopping (the
+// splat excluded) when its transmittance would fall below t_min. Returns (blended, stopped).
+fn blend_pixel(px: ptr<function, PixelsForward>, j: u32, pos: vec4<f32>, con: vec4<f32>,
+               f: array<f32, C>, rank: u32, lim: Limits, inside: bool) -> vec2<bool> {
+    let t = (*px).t[j];
+    let alpha = splat_alpha(pos, con, (*px).fx[j], (*px).fy[j], lim);
+    let ok = inside && alpha > 0.0;
+    let next_t = t * (1.0 - alpha);
+    let stop = ok && next_t < lim.t_min;
+    let take = ok && !stop;
+    let w = select(0.0, alpha * t, take);
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        (*px).acc[j * C + c] += f[c] * w;
+    }
+    (*px).depth[j] += pos.w * w;
+    (*px).t[j] = select(select(t, next_t, take), -t, stop);
+    (*px).last[j] = select((*px).last[j], rank, take);
+    return vec2<bool>(take, stop);
+}
+
 // Pixel q's state at the start of this window: fresh in the first (stopped, t = -1, outside
 // the image), else as the previous window stored it.
 fn load_pixel(q: vec2<u32>) -> PixelForward {
@@ -330,21 +351,10 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
                 if px.t[j] < 0.0 || !in_box(bx, px.fx[j], px.fy[j]) {
                     continue;
                 }
-                let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j], lim);
-                let ok = alpha > 0.0;
-                let next_t = px.t[j] * (1.0 - alpha);
-                let stop = ok && next_t < lim.t_min;
-                let take = ok && !stop;
-                let w = select(0.0, alpha * px.t[j], take);
-                for (var c = 0u; c < C; c++) { // unroll: channels
-                    px.acc[j * C + c] += f[c] * w;
-                }
-                px.depth[j] += pos.w * w;
-                px.t[j] = select(select(px.t[j], next_t, take), -px.t[j], stop);
-                px.last[j] = select(px.last[j], rank, take);
+                let r = blend_pixel(&px, j, pos, con, f, rank, lim, true);
                 evaluated += 1u;
-                blended += select(0u, 1u, take);
-                live -= select(0u, 1u, stop);
+                blended += select(0u, 1u, r.x);
+                live -= select(0u, 1u, r.y);
             }
             if live == 0u {
                 atomicAdd(&done_count, 1u);
@@ -379,6 +389,44 @@ const HALVES: u32 = {{HALVES}}u;
 const NB: u32 = HALVES * (16u / RB);
 const JB: u32 = P / NB;
 var<workgroup> hit: array<array<atomic<u32>, NB>, 2>;
+// A batch of 32 splats staged for the row-block kernels: mean x, mean y, opacity, depth; conic
+// a, b, c and the splat index (bits); the C features in CV vectors of 4 (read with one
+// per-lane loop each on llvmpipe, where every feature read from storage took one).
+const CV: u32 = (C + 3u) / 4u;
+var<workgroup> rows_pos: array<vec4<f32>, 32>;
+var<workgroup> rows_conic: array<vec4<f32>, 32>;
+var<workgroup> rows_features: array<vec4<f32>, 32 * CV>;
+
+// Stage splat g in slot i of the row-block batch; returns its (pos, conic) (see splat_pos,
+// splat_conic).
+fn stage_rows_splat(i: u32, g: u32) -> array<vec4<f32>, 2> {
+    let pos = splat_pos(g);
+    let con = splat_conic(g);
+    rows_pos[i] = pos;
+    rows_conic[i] = vec4<f32>(con.xyz, bitcast<f32>(g));
+    var fs: array<f32, 4 * CV>;
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        fs[c] = features[g * C + c];
+    }
+    for (var v = 0u; v < CV; v++) { // unroll: feature vectors
+        rows_features[i * CV + v] = vec4<f32>(fs[4u * v], fs[4u * v + 1u], fs[4u * v + 2u],
+                                              fs[4u * v + 3u]);
+    }
+    return array<vec4<f32>, 2>(pos, con);
+}
+
+// The features of the splat staged in slot k.
+fn staged_features(k: u32) -> array<f32, C> {
+    var fv: array<vec4<f32>, CV>;
+    for (var v = 0u; v < CV; v++) { // unroll: feature vectors
+        fv[v] = rows_features[k * CV + v];
+    }
+    var f: array<f32, C>;
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        f[c] = fv[c / 4u][c % 4u];
+    }
+    return f;
+}
 
 // Pixel jj of block b, as an index into the invocation's P pixels (see tile_pixel).
 fn block_pixel(b: u32, jj: u32) -> u32 {
@@ -386,6 +434,56 @@ fn block_pixel(b: u32, jj: u32) -> u32 {
         return b * JB + jj;
     }
     return 2u * ((b / 2u) * RB + jj) + b % 2u;
+}
+
+// The block holding pixel j of the invocation's P pixels (the inverse of block_pixel).
+fn block_of(j: u32) -> u32 {
+    if HALVES == 1u {
+        return j / JB;
+    }
+    return ((j / 2u) / RB) * 2u + j % 2u;
+}
+
+// A batch is composited by walks: with several blocks, either each block walks the splats that
+// reach it, or the whole tile walks the splats that reach any block (one pixel-body per
+// pixel group per visit either way, but each visit also reloads the splat), whichever the
+// cost estimate favours for that batch. Walk w < NB is block w's, walk NB the whole tile's.
+const NW: u32 = {{WALKS}}u;
+// A visit's cost besides its pixel bodies (staged splat reads, loop bookkeeping), in pixel
+// bodies (one pixel of every invocation: a SIMD group of pixels on llvmpipe).
+const VISIT_COST: u32 = 2u;
+
+// Whether walk w composites pixel j.
+fn walk_has(w: u32, j: u32) -> bool {
+    return w == NB || block_of(j) == w;
+}
+
+// The bits walk w visits in a batch whose per-block masks are `masks`.
+fn walk_bits(w: u32, masks: array<u32, NB>, by_blocks: bool) -> u32 {
+    if NB == 1u {
+        return masks[0];
+    }
+    if w == NB {
+        var all = 0u;
+        for (var b = 0u; b < NB; b++) { // unroll: blocks
+            all |= masks[b];
+        }
+        return select(all, 0u, by_blocks);
+    }
+    return select(0u, masks[min(w, NB - 1u)], by_blocks);
+}
+
+// Whether the blocks should walk their own splats (else the whole tile walks them all): the
+// estimated cost, each loop taking at least one trip, with JB or P pixels a visit.
+fn walk_by_blocks(masks: array<u32, NB>) -> bool {
+    var all = 0u;
+    var block_trips = 0u;
+    for (var b = 0u; b < NB; b++) { // unroll: blocks
+        all |= masks[b];
+        block_trips += max(countOneBits(masks[b]), 1u);
+    }
+    let tile_trips = max(countOneBits(all), 1u);
+    return NB > 1u && block_trips * (VISIT_COST + JB) < tile_trips * (VISIT_COST + P);
 }
 
 // sigma of splat conic (a, b, c) at offset (dx, dy), less a bound on its f32 rounding error.
@@ -474,7 +572,6 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
     if counted {
         atomicAdd(&done_count, 1u);
     }
-    var f: array<f32, C>;
     var parity = 0u;
     for (var batch = start; batch < end; batch += 32u) {
         workgroupBarrier();
@@ -486,13 +583,8 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
         }
         var mine: array<u32, NB>;
         for (var i = lid; i < 32u && batch + i < end; i += WG) {
-            let g = keys[ids[batch + i]].y;
-            let pos = splat_pos(g);
-            let con = splat_conic(g);
-            // The splat index rides in the conic's spare lane: two workgroup reads a visit.
-            sh_pos[i] = pos;
-            sh_conic[i] = vec4<f32>(con.xyz, bitcast<f32>(g));
-            let m = block_bits(pos, con, x0, y0, i);
+            let sp = stage_rows_splat(i, keys[ids[batch + i]].y);
+            let m = block_bits(sp[0], sp[1], x0, y0, i);
             for (var b = 0u; b < NB; b++) { // unroll: blocks
                 mine[b] |= m[b];
             }
@@ -503,51 +595,47 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
             }
         }
         workgroupBarrier();
+        var masks: array<u32, NB>;
         for (var b = 0u; b < NB; b++) { // unroll: blocks
-            var bits = atomicLoad(&hit[parity][b]);
+            masks[b] = atomicLoad(&hit[parity][b]);
             // Reset the other parity's masks for the next batch (read before this batch's barrier).
             atomicStore(&hit[1u - parity][b], 0u);
-            var bdone = true;
-            for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
-                bdone = bdone && px.t[block_pixel(b, jj)] < 0.0;
+        }
+        let by_blocks = walk_by_blocks(masks);
+        for (var w = 0u; w < NW; w++) { // unroll: walks
+            var bits = walk_bits(w, masks, by_blocks);
+            var wdone = true;
+            for (var j = 0u; j < P; j++) { // unroll: pixels
+                if walk_has(w, j) {
+                    wdone = wdone && px.t[j] < 0.0;
+                }
             }
-            if bdone {
+            if wdone {
                 bits = 0u;
             }
+            // llvmpipe tests a loop's exit at its end only: the last trip runs masked (an exit
+            // test at the end instead measured ~20 % slower).
             loop {
                 if bits == 0u {
                     break;
                 }
                 let k = firstTrailingBit(bits);
                 bits &= bits - 1u;
-                let pos = sh_pos[k];
-                let con = sh_conic[k];
-                let g = bitcast<u32>(con.w);
-                for (var c = 0u; c < C; c++) { // unroll: channels
-                    f[c] = features[g * C + c];
-                }
+                let pos = rows_pos[k];
+                let con = rows_conic[k];
+                let f = staged_features(k);
                 let rank = batch - base + k + 1u;
                 var all_done = true;
-                for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
-                    let j = block_pixel(b, jj);
-                    // Outside the support ellipse alpha is below 1/255: no per-pixel test.
-                    let inside = px.t[j] > 0.0;
-                    let alpha = splat_alpha(pos, con, px.fx[j], px.fy[j], lim);
-                    let ok = inside && alpha > 0.0;
-                    let next_t = px.t[j] * (1.0 - alpha);
-                    let stop = ok && next_t < lim.t_min;
-                    let take = ok && !stop;
-                    let w = select(0.0, alpha * px.t[j], take);
-                    for (var c = 0u; c < C; c++) { // unroll: channels
-                        px.acc[j * C + c] += f[c] * w;
+                for (var j = 0u; j < P; j++) { // unroll: pixels
+                    if walk_has(w, j) {
+                        // Outside the support ellipse alpha is below 1/255: no per-pixel test.
+                        let inside = px.t[j] > 0.0;
+                        let r = blend_pixel(&px, j, pos, con, f, rank, lim, inside);
+                        evaluated += select(0u, 1u, inside);
+                        blended += select(0u, 1u, r.x);
+                        live -= select(0u, 1u, r.y);
+                        all_done = all_done && px.t[j] < 0.0;
                     }
-                    px.depth[j] += pos.w * w;
-                    px.t[j] = select(select(px.t[j], next_t, take), -px.t[j], stop);
-                    px.last[j] = select(px.last[j], rank, take);
-                    evaluated += select(0u, 1u, inside);
-                    blended += select(0u, 1u, take);
-                    live -= select(0u, 1u, stop);
-                    all_done = all_done && px.t[j] < 0.0;
                 }
                 if all_done {
                     bits = 0u;
@@ -949,7 +1037,6 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
     }
     let start_list = workgroupUniformLoad(&range_start);
     var end = min(workgroupUniformLoad(&max_last_u), F.win_hi);
-    var f: array<f32, C>;
     var gs: array<f32, STRIDE>;
     var parity = 0u;
     while end > F.win_lo {
@@ -959,11 +1046,9 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         var visited = 0u;
         for (var i = lid; i < count; i += WG) {
             let g = keys[ids[start_list + start + i]].y;
-            sh_b_pos[i] = splat_pos(g);
-            sh_b_conic[i] = splat_conic(g);
+            let sp = stage_rows_splat(i, g);
             sh_b_index[i] = g;
-            sh_b_box[i] = support_box(sh_b_pos[i], sh_b_conic[i]);
-            let m = block_bits(sh_b_pos[i], sh_b_conic[i], x0, y0, i);
+            let m = block_bits(sp[0], sp[1], x0, y0, i);
             for (var b = 0u; b < NB; b++) { // unroll: blocks
                 mine[b] |= m[b];
             }
@@ -974,13 +1059,19 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
             }
         }
         workgroupBarrier();
+        var masks: array<u32, NB>;
         for (var b = 0u; b < NB; b++) { // unroll: blocks
-            var bits = atomicLoad(&b_hit[parity][b]);
             // Only splats before this block's last contributor (list index < block_last); with
             // subgroup sums, every invocation walks the same splats (the workgroup's furthest).
             let bl = lanes_max(block_last[b]);
             let keep = select(0u, bl - start, bl > start);
-            bits &= select(0xffffffffu, (1u << keep) - 1u, keep < 32u);
+            masks[b] = atomicLoad(&b_hit[parity][b]) &
+                select(0xffffffffu, (1u << keep) - 1u, keep < 32u);
+        }
+        // Walks as in blend_forward_rows: every pixel still sees the splats back to front.
+        let by_blocks = walk_by_blocks(masks);
+        for (var w = 0u; w < NW; w++) { // unroll: walks
+            var bits = walk_bits(w, masks, by_blocks);
             loop {
                 if bits == 0u {
                     break;
@@ -988,27 +1079,26 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                 let jj = firstLeadingBit(bits);
                 bits &= ~(1u << jj);
                 let k = start + jj;
-                let pos = sh_b_pos[jj];
-                let con = sh_b_conic[jj];
-                let bx = sh_b_box[jj];
-                let g = sh_b_index[jj];
-                for (var c = 0u; c < C; c++) { // unroll: channels
-                    f[c] = features[g * C + c];
-                }
+                let pos = rows_pos[jj];
+                let con = rows_conic[jj];
+                let g = bitcast<u32>(con.w);
+                let f = staged_features(jj);
                 for (var s = 0u; s < STRIDE; s++) { // unroll: stride
                     gs[s] = 0.0;
                 }
-                for (var jp = 0u; jp < JB; jp++) { // unroll: block pixels
-                    let j = block_pixel(b, jp);
-                    var v: array<f32, C>;
-                    for (var c = 0u; c < C; c++) { // unroll: channels
-                        v[c] = vc[j * C + c];
+                for (var j = 0u; j < P; j++) { // unroll: pixels
+                    if walk_has(w, j) {
+                        var v: array<f32, C>;
+                        for (var c = 0u; c < C; c++) { // unroll: channels
+                            v[c] = vc[j * C + c];
+                        }
+                        // Outside the support ellipse alpha is below 1/255: no per-pixel test.
+                        let visible = k < last[j];
+                        let r = pixel_backward(pos, con, f, fx[j], fy[j], t[j], vr[j], tail[j],
+                                               v, v_depth[j], visible, lim, &gs);
+                        t[j] = r.t;
+                        vr[j] = r.vr;
                     }
-                    let visible = k < last[j] && in_box(bx, fx[j], fy[j]);
-                    let r = pixel_backward(pos, con, f, fx[j], fy[j], t[j], vr[j], tail[j], v,
-                                           v_depth[j], visible, lim, &gs);
-                    t[j] = r.t;
-                    vr[j] = r.vr;
                 }
                 if SUBGROUP_SUMS {
                     // The workgroup's sums; invocation i adds gradients i, i + WG, ...
@@ -1026,15 +1116,15 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                             global_add(g * STRIDE + s0 + lid, v);
                         }
                     }
-                    continue;
-                }
-                // Sum over this invocation's blocks in its partial slot: stored on the first
-                // visit of the splat, added on later ones.
-                let base = (jj * WG + lid) * STRIDE;
-                let again = (visited & (1u << jj)) != 0u;
-                visited |= 1u << jj;
-                for (var s = 0u; s < STRIDE; s++) { // unroll: stride
-                    partial[base + s] = gs[s] + select(0.0, partial[base + s], again);
+                } else {
+                    // Sum over this invocation's blocks in its partial slot: stored on the
+                    // first visit of the splat, added on later ones.
+                    let base = (jj * WG + lid) * STRIDE;
+                    let again = (visited & (1u << jj)) != 0u;
+                    visited |= 1u << jj;
+                    for (var s = 0u; s < STRIDE; s++) { // unroll: stride
+                        partial[base + s] = gs[s] + select(0.0, partial[base + s], again);
+                    }
                 }
             }
         }
