@@ -377,11 +377,11 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
 // skipping a pixel outside a splat's support saves nothing there; only loop trip counts skip
 // work). The invocation's P pixels form NB blocks of RB tile rows (or of one half of them);
 // each batch of 32 splats is staged with one bit per (block, splat) set where the splat's
-// alpha-support ellipse reaches the block (support_meets), and each block walks only its set
-// bits, in order, each lane until all of its pixels there are done. lavapipe's default is one
-// block (RB = 16): many of a tile's list entries (binned by their 3-sigma extent) have an
-// alpha support that misses the tile's pixel centres altogether, and every block visit
-// reloads the splat, per lane.
+// alpha-support ellipse reaches the block (support_meets), and the batch is walked (see NW
+// below) block by block or by the whole tile, each walk visiting only its set bits, in order,
+// each lane until all of its pixels there are done. lavapipe's default is one block (RB = 16):
+// many of a tile's list entries (binned by their 3-sigma extent) have an alpha support that
+// misses the tile's pixel centres altogether, and every visit reloads the splat, per lane.
 const RB: u32 = {{ROWS}}u;
 // Column groups per block row: 1 (blocks span the tile's width) or 2 (a block is RB rows of
 // one half of the tile, the pixels of one SIMD lane group; needs P = 32).
@@ -496,8 +496,8 @@ fn sigma_low(a: f32, b: f32, c: f32, dx: f32, dy: f32) -> f32 {
 
 // Whether splat (pos, conic)'s alpha support, the ellipse sigma <= ln(255 opacity) outside
 // which alpha < 1/255, may reach a point of the rectangle [xl, xh] x [yl, yh]: the least
-// sigma over the rectangle (on its edges when the centre lies outside it) against the same
-// padded bound as support_box, with the rounding of sigma allowed for. False when the
+// sigma over the rectangle (on its edges when the centre lies outside it) against a bound
+// padded like support_box's (by 1 % and 0.02), with the rounding of sigma allowed for. False when the
 // opacity is below 1/255, true when the conic is not safely positive definite.
 fn support_meets(pos: vec4<f32>, con: vec4<f32>, xl: f32, xh: f32, yl: f32, yh: f32) -> bool {
     let op = pos.z;
