@@ -136,8 +136,9 @@ struct Kernels {
     sum_lines: wgpu::ComputePipeline,
     tile_ranges: wgpu::ComputePipeline,
     scatter: wgpu::ComputePipeline,
-    /// Forward and backward compositing, one pair per (channel count, column halves).
-    blend: HashMap<(usize, bool), (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
+    /// Compositing kernels by (channel count, column halves, forward), each built on first use
+    /// (lavapipe compiles for seconds, and a scene may use halves in one direction only).
+    blend: HashMap<(usize, bool, bool), wgpu::ComputePipeline>,
 }
 
 fn module(dev: &wgpu::Device, label: &str, src: &str) -> wgpu::ShaderModule {
@@ -181,7 +182,7 @@ impl Kernels {
         }
     }
 
-    /// The (forward, backward) compositing pipelines for `channels` feature channels, the
+    /// The forward (else backward) compositing pipeline for `channels` feature channels, the
     /// row blocks split into column halves or not.
     fn blend(
         &mut self,
@@ -189,23 +190,23 @@ impl Kernels {
         layout: BlendLayout,
         channels: usize,
         halves: bool,
-    ) -> &(wgpu::ComputePipeline, wgpu::ComputePipeline) {
-        self.blend.entry((channels, halves)).or_insert_with(|| {
-            let src = layout.shader(channels, halves);
-            let m = module(dev, "blend", &src);
-            let rows = layout.block_rows > 0;
-            let forward = if rows {
-                "blend_forward_rows"
-            } else {
-                "blend_forward"
-            };
-            let backward = if rows && layout.partials {
-                "blend_backward_rows"
-            } else {
-                "blend_backward"
-            };
-            (pipeline(dev, &m, forward), pipeline(dev, &m, backward))
-        })
+        forward: bool,
+    ) -> wgpu::ComputePipeline {
+        let key = (channels, halves, forward);
+        self.blend
+            .entry(key)
+            .or_insert_with(|| {
+                let m = module(dev, "blend", &layout.shader(channels, halves));
+                let rows = layout.block_rows > 0;
+                let entry = match (forward, rows, rows && layout.partials) {
+                    (true, true, _) => "blend_forward_rows",
+                    (true, false, _) => "blend_forward",
+                    (false, _, true) => "blend_backward_rows",
+                    (false, _, false) => "blend_backward",
+                };
+                pipeline(dev, &m, entry)
+            })
+            .clone()
     }
 }
 
@@ -378,8 +379,6 @@ impl BlendLayout {
         let src = unroll_loops(&src, "v", "CV", "feature vectors", channels.div_ceil(4));
         let src = unroll_loops(&src, "w", "NW", "walks", blocks + usize::from(blocks > 1));
         let src = unroll_loops(&src, "b", "NB", "blocks", blocks);
-        let src = unroll_loops(&src, "jj", "JB", "block pixels", p / blocks);
-        let src = unroll_loops(&src, "jp", "JB", "block pixels", p / blocks);
         unroll_loops(&src, "j", "P", "pixels", p)
     }
 }
@@ -405,20 +404,9 @@ fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> 
     while let Some(at) = rest.find(&head) {
         out.push_str(&rest[..at]);
         let body_start = at + head.len();
-        let mut depth = 1usize;
-        let mut end = None;
-        for (i, ch) in rest[body_start..].char_indices() {
-            match ch {
-                '{' => depth += 1,
-                '}' => depth -= 1,
-                _ => {}
-            }
-            if depth == 0 {
-                end = Some(body_start + i);
-                break;
-            }
-        }
-        let end = end.expect("blend.wgsl: unbalanced braces in an unrolled loop");
+        let open = at + head.rfind('{').expect("the head opens the loop body");
+        let end =
+            closing_brace(rest, open).expect("blend.wgsl: unbalanced braces in an unrolled loop");
         let body = &rest[body_start..end];
         // A body that jumps (`continue`) stays a loop of one trip; any other is a plain block,
         // which matters on llvmpipe: it caps every shader at 65,535 loop iterations in all
@@ -458,27 +446,33 @@ fn jumps_out(body: &str) -> bool {
             return true;
         }
         let Some(at) = nested else { return false };
-        // Skip the nested statement: up to its opening brace, then to the matching one.
+        // Skip the nested statement: up to its opening brace, then past the matching one.
         let Some(open) = rest[at..].find('{') else {
             return false;
         };
-        let mut depth = 0usize;
-        let mut close = rest.len();
-        for (i, ch) in rest[at + open..].char_indices() {
-            match ch {
-                '{' => depth += 1,
-                '}' => {
-                    depth -= 1;
-                    if depth == 0 {
-                        close = at + open + i + 1;
-                        break;
-                    }
-                }
-                _ => {}
-            }
-        }
-        rest = &rest[close.min(rest.len())..];
+        rest = match closing_brace(rest, at + open) {
+            Some(close) => &rest[close + 1..],
+            None => "",
+        };
     }
+}
+
+/// The byte index of the `}` that closes the `{` at byte `open` of `src` (None when unbalanced).
+fn closing_brace(src: &str, open: usize) -> Option<usize> {
+    let mut depth = 0usize;
+    for (i, ch) in src[open..].char_indices() {
+        match ch {
+            '{' => depth += 1,
+            '}' => {
+                depth -= 1;
+                if depth == 0 {
+                    return Some(open + i);
+                }
+            }
+            _ => {}
+        }
+    }
+    None
 }
 
 /// Grow-only named storage buffers, reused across calls.
@@ -1419,8 +1413,11 @@ impl GpuRasterizer {
             features: feat_buf,
             pixel_state,
         };
-        let halves = (self.layout.column_halves).applies(false, shape.intersections, shape.visible);
-        let pipe = self.kernels.blend(&dev, self.layout, ch, halves).0.clone();
+        let halves = self
+            .layout
+            .column_halves
+            .applies(false, total.into(), visible.into());
+        let pipe = self.kernels.blend(&dev, self.layout, ch, halves, true);
         let mut bindings = vec![(6, &image), (8, &counters)];
         bindings.extend(buffers.bindings());
         let clear = [(&counters, COMPOSITING_COUNTERS_BYTES)];
@@ -1512,8 +1509,8 @@ impl GpuRasterizer {
         let mut enc = dev.create_command_encoder(&Default::default());
         self.mark(&mut enc, "upload v_image");
         let (isects, visible) = (forward.shape.intersections, forward.shape.visible);
-        let halves = (self.layout.column_halves).applies(true, isects, visible);
-        let pipe = self.kernels.blend(&dev, self.layout, ch, halves).1.clone();
+        let halves = self.layout.column_halves.applies(true, isects, visible);
+        let pipe = self.kernels.blend(&dev, self.layout, ch, halves, false);
         let counters = self.storage("counters", COUNTERS_BYTES)?;
         let walk_state = self.storage("walk_state", npix as u64 * 8)?;
         let mut bindings = vec![(8, &counters), (9, &v_buf), (10, &out), (11, &walk_state)];

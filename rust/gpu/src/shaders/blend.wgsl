@@ -171,27 +171,6 @@ struct PixelForward {
     last: u32,
 }
 
-// Composite splat (pos, conic, features f; list position + 1 `rank`) over pixel j of `px` where
-// `inside` (the pixel still composites there): alpha as splat_alpha, the pixel stopping (the
-// splat excluded) when its transmittance would fall below t_min. Returns (blended, stopped).
-fn blend_pixel(px: ptr<function, PixelsForward>, j: u32, pos: vec4<f32>, con: vec4<f32>,
-               f: array<f32, C>, rank: u32, lim: Limits, inside: bool) -> vec2<bool> {
-    let t = (*px).t[j];
-    let alpha = splat_alpha(pos, con, (*px).fx[j], (*px).fy[j], lim);
-    let ok = inside && alpha > 0.0;
-    let next_t = t * (1.0 - alpha);
-    let stop = ok && next_t < lim.t_min;
-    let take = ok && !stop;
-    let w = select(0.0, alpha * t, take);
-    for (var c = 0u; c < C; c++) { // unroll: channels
-        (*px).acc[j * C + c] += f[c] * w;
-    }
-    (*px).depth[j] += pos.w * w;
-    (*px).t[j] = select(select(t, next_t, take), -t, stop);
-    (*px).last[j] = select((*px).last[j], rank, take);
-    return vec2<bool>(take, stop);
-}
-
 // Pixel q's state at the start of this window: fresh in the first (stopped, t = -1, outside
 // the image), else as the previous window stored it.
 fn load_pixel(q: vec2<u32>) -> PixelForward {
@@ -240,6 +219,27 @@ fn load_pixels(lid: u32, wid: vec3<u32>) -> PixelsForward {
         s.fy[j] = f32(q.y) + 0.5;
     }
     return s;
+}
+
+// Composite splat (pos, conic, features f; list position + 1 `rank`) over pixel j of `px` where
+// `inside` (the pixel still composites there): alpha as splat_alpha, the pixel stopping (the
+// splat excluded) when its transmittance would fall below t_min. Returns (blended, stopped).
+fn blend_pixel(px: ptr<function, PixelsForward>, j: u32, pos: vec4<f32>, con: vec4<f32>,
+               f: array<f32, C>, rank: u32, lim: Limits, inside: bool) -> vec2<bool> {
+    let t = (*px).t[j];
+    let alpha = splat_alpha(pos, con, (*px).fx[j], (*px).fy[j], lim);
+    let ok = inside && alpha > 0.0;
+    let next_t = t * (1.0 - alpha);
+    let stop = ok && next_t < lim.t_min;
+    let take = ok && !stop;
+    let w = select(0.0, alpha * t, take);
+    for (var c = 0u; c < C; c++) { // unroll: channels
+        (*px).acc[j * C + c] += f[c] * w;
+    }
+    (*px).depth[j] += pos.w * w;
+    (*px).t[j] = select(select(t, next_t, take), -t, stop);
+    (*px).last[j] = select((*px).last[j], rank, take);
+    return vec2<bool>(take, stop);
 }
 
 // Write pixel q's state (`t` signed as in `PixelForward`): in the last window the composited
@@ -428,15 +428,7 @@ fn staged_features(k: u32) -> array<f32, C> {
     return f;
 }
 
-// Pixel jj of block b, as an index into the invocation's P pixels (see tile_pixel).
-fn block_pixel(b: u32, jj: u32) -> u32 {
-    if HALVES == 1u {
-        return b * JB + jj;
-    }
-    return 2u * ((b / 2u) * RB + jj) + b % 2u;
-}
-
-// The block holding pixel j of the invocation's P pixels (the inverse of block_pixel).
+// The block holding pixel j of the invocation's P pixels (see tile_pixel).
 fn block_of(j: u32) -> u32 {
     if HALVES == 1u {
         return j / JB;
@@ -458,24 +450,16 @@ fn walk_has(w: u32, j: u32) -> bool {
     return w == NB || block_of(j) == w;
 }
 
-// The bits walk w visits in a batch whose per-block masks are `masks`.
-fn walk_bits(w: u32, masks: array<u32, NB>, by_blocks: bool) -> u32 {
-    if NB == 1u {
-        return masks[0];
-    }
-    if w == NB {
-        var all = 0u;
-        for (var b = 0u; b < NB; b++) { // unroll: blocks
-            all |= masks[b];
-        }
-        return select(all, 0u, by_blocks);
-    }
-    return select(0u, masks[min(w, NB - 1u)], by_blocks);
+// How a batch with per-block masks `masks` is walked: the masks, their union (the whole
+// tile's), and whether the blocks walk their own splats (else the whole tile walks them all),
+// by the estimated cost (each loop taking at least one trip, with JB or P pixels a visit).
+struct Walks {
+    masks: array<u32, NB>,
+    all: u32,
+    by_blocks: bool,
 }
 
-// Whether the blocks should walk their own splats (else the whole tile walks them all): the
-// estimated cost, each loop taking at least one trip, with JB or P pixels a visit.
-fn walk_by_blocks(masks: array<u32, NB>) -> bool {
+fn plan_walks(masks: array<u32, NB>) -> Walks {
     var all = 0u;
     var block_trips = 0u;
     for (var b = 0u; b < NB; b++) { // unroll: blocks
@@ -483,7 +467,19 @@ fn walk_by_blocks(masks: array<u32, NB>) -> bool {
         block_trips += max(countOneBits(masks[b]), 1u);
     }
     let tile_trips = max(countOneBits(all), 1u);
-    return NB > 1u && block_trips * (VISIT_COST + JB) < tile_trips * (VISIT_COST + P);
+    let by_blocks = NB > 1u && block_trips * (VISIT_COST + JB) < tile_trips * (VISIT_COST + P);
+    return Walks(masks, all, by_blocks);
+}
+
+// The bits walk w of plan `p` visits.
+fn walk_bits(w: u32, p: Walks) -> u32 {
+    if NB == 1u {
+        return p.all;
+    }
+    if w == NB {
+        return select(p.all, 0u, p.by_blocks);
+    }
+    return select(0u, p.masks[min(w, NB - 1u)], p.by_blocks);
 }
 
 // sigma of splat conic (a, b, c) at offset (dx, dy), less a bound on its f32 rounding error.
@@ -497,8 +493,8 @@ fn sigma_low(a: f32, b: f32, c: f32, dx: f32, dy: f32) -> f32 {
 // Whether splat (pos, conic)'s alpha support, the ellipse sigma <= ln(255 opacity) outside
 // which alpha < 1/255, may reach a point of the rectangle [xl, xh] x [yl, yh]: the least
 // sigma over the rectangle (on its edges when the centre lies outside it) against a bound
-// padded like support_box's (by 1 % and 0.02), with the rounding of sigma allowed for. False when the
-// opacity is below 1/255, true when the conic is not safely positive definite.
+// padded like support_box's (by 1 % and 0.02), with the rounding of sigma allowed for. False
+// when the opacity is below 1/255, true when the conic is not safely positive definite.
 fn support_meets(pos: vec4<f32>, con: vec4<f32>, xl: f32, xh: f32, yl: f32, yh: f32) -> bool {
     let op = pos.z;
     let a = con.x;
@@ -601,9 +597,9 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
             // Reset the other parity's masks for the next batch (read before this batch's barrier).
             atomicStore(&hit[1u - parity][b], 0u);
         }
-        let by_blocks = walk_by_blocks(masks);
+        let plan = plan_walks(masks);
         for (var w = 0u; w < NW; w++) { // unroll: walks
-            var bits = walk_bits(w, masks, by_blocks);
+            var bits = walk_bits(w, plan);
             var wdone = true;
             for (var j = 0u; j < P; j++) { // unroll: pixels
                 if walk_has(w, j) {
@@ -1025,10 +1021,8 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
     }
     // The last contributor over this invocation's pixels of each block.
     var block_last: array<u32, NB>;
-    for (var b = 0u; b < NB; b++) { // unroll: blocks
-        for (var jj = 0u; jj < JB; jj++) { // unroll: block pixels
-            block_last[b] = max(block_last[b], last[block_pixel(b, jj)]);
-        }
+    for (var j = 0u; j < P; j++) { // unroll: pixels
+        block_last[block_of(j)] = max(block_last[block_of(j)], last[j]);
     }
     atomicMax(&max_last, my_last);
     workgroupBarrier();
@@ -1045,9 +1039,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         var mine: array<u32, NB>;
         var visited = 0u;
         for (var i = lid; i < count; i += WG) {
-            let g = keys[ids[start_list + start + i]].y;
-            let sp = stage_rows_splat(i, g);
-            sh_b_index[i] = g;
+            let sp = stage_rows_splat(i, keys[ids[start_list + start + i]].y);
             let m = block_bits(sp[0], sp[1], x0, y0, i);
             for (var b = 0u; b < NB; b++) { // unroll: blocks
                 mine[b] |= m[b];
@@ -1069,9 +1061,9 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                 select(0xffffffffu, (1u << keep) - 1u, keep < 32u);
         }
         // Walks as in blend_forward_rows: every pixel still sees the splats back to front.
-        let by_blocks = walk_by_blocks(masks);
+        let plan = plan_walks(masks);
         for (var w = 0u; w < NW; w++) { // unroll: walks
-            var bits = walk_bits(w, masks, by_blocks);
+            var bits = walk_bits(w, plan);
             loop {
                 if bits == 0u {
                     break;
@@ -1139,7 +1131,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
                 v += select(0.0, partial[(jj * WG + q) * STRIDE + s], seen);
             }
             if v != 0.0 {
-                global_add(sh_b_index[jj] * STRIDE + s, v);
+                global_add(bitcast<u32>(rows_conic[jj].w) * STRIDE + s, v);
             }
         }
         for (var b = 0u; b < NB; b++) { // unroll: blocks
