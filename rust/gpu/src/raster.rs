@@ -37,9 +37,20 @@ const SCAN_BLOCK: u32 = 1024;
 /// 0.1 / 0.15); 1.67 against 1.33 at 163 (an earlier build). The forward was slower with
 /// halves at all four (2.9 / 2.5 / 2.3 against 2.5 / 2.3 / 1.8 at the small ones).
 const SMALL_SPLAT_TILES: u32 = 7;
-/// Most chunks the binning cuts the depth order into (bounds the count table to
+/// Most chunks the binning cuts the depth order into on GPUs (bounds the count table to
 /// tiles x this many entries).
 const MAX_CHUNKS: u32 = 1024;
+/// Chunks per CPU thread on CPU adapters. The chunk-serial kernels' work does not depend on
+/// the chunk count, but the count tables and their scans grow with it: at 100k splats 800x800
+/// (SYNC4D_SCALE=0.1) on lavapipe, 391 chunks made a 977k-entry tile table, and the depth
+/// sort, tile counts and tile scan took 20 / 14 / 24 ms; with 32 chunks (2 threads) 11 / 8 /
+/// 3 ms. 16 per thread keep several workgroups per thread.
+const CPU_CHUNKS_PER_THREAD: u32 = 16;
+/// Fewest entries per chunk.
+const MIN_CHUNK: u32 = 256;
+/// Loop trips one invocation of a chunk-serial kernel may run (llvmpipe ends a shader's loops
+/// after 65,535 trips in all; the rest is margin for the digit loop and the loop check).
+const CHUNK_TRIPS: u32 = 60_000;
 /// Floats per packed splat: mean x, mean y, conic a, b, c, opacity, depth, padding.
 const SPLAT_FLOATS: usize = 8;
 /// The compositing counters buffer (u32s): evaluated lo/hi, blended lo/hi, the compositing
@@ -689,6 +700,22 @@ fn grid(groups: u32) -> (u32, u32) {
     (x, groups.div_ceil(x).max(1))
 }
 
+/// Entries per chunk of the chunk-serial kernels (radix sort, tile scatter) for `count`
+/// entries, each costing up to `trips` loop trips of one invocation: up to MAX_CHUNKS chunks
+/// on GPUs; on CPU adapters CPU_CHUNKS_PER_THREAD per CPU thread (smaller count tables to
+/// scan) while a chunk stays within CHUNK_TRIPS trips. At least MIN_CHUNK.
+fn chunk_size(count: u32, trips: u32, cpu_adapter: bool) -> u32 {
+    let gpu_size = count.div_ceil(MAX_CHUNKS);
+    let size = if cpu_adapter {
+        let threads = std::thread::available_parallelism().map_or(1, |t| t.get()) as u32;
+        let cpu_size = count.div_ceil(CPU_CHUNKS_PER_THREAD.saturating_mul(threads).max(1));
+        cpu_size.min(CHUNK_TRIPS / trips.max(1)).max(gpu_size)
+    } else {
+        gpu_size
+    };
+    size.max(MIN_CHUNK)
+}
+
 /// An error when a kernel set its loop check flag (`counters[4]` compositing, `counters[7]`
 /// the tile scatter; see loop_check.wgsl): the driver cut its loops short even
 /// with the smallest compositing window tried, so the results are incomplete.
@@ -1231,6 +1258,8 @@ impl GpuRasterizer {
         // Inputs: packed splats, radii, features with the background appended.
         let mut packed = vec![0.0f32; n.max(1) * SPLAT_FLOATS];
         let mut visible = 0u32;
+        // The widest tile rectangle (in tiles), bounding the tile scatter's trips per splat.
+        let mut widest = 0u32;
         for i in 0..n {
             let s = &mut packed[SPLAT_FLOATS * i..SPLAT_FLOATS * (i + 1)];
             s[0] = splats.means2d[2 * i];
@@ -1238,8 +1267,18 @@ impl GpuRasterizer {
             s[2..5].copy_from_slice(&splats.conics[3 * i..3 * i + 3]);
             s[5] = splats.opacities[i];
             s[6] = splats.depths[i];
-            visible += u32::from(splats.radii[2 * i] > 0 && splats.radii[2 * i + 1] > 0);
+            let shown = splats.radii[2 * i] > 0 && splats.radii[2 * i + 1] > 0;
+            visible += u32::from(shown);
+            if shown {
+                // floor((m - r) / 16) .. ceil((m + r) / 16) spans at most this many tiles.
+                let span = (splats.radii[2 * i] as u32)
+                    .saturating_mul(2)
+                    .div_ceil(TILE_SIZE)
+                    + 2;
+                widest = widest.max(span);
+            }
         }
+        let cpu_adapter = gpu.adapter.kind == "cpu";
         let mut feats = Vec::with_capacity(n * ch + ch);
         feats.extend_from_slice(splats.features);
         feats.extend_from_slice(background);
@@ -1258,7 +1297,7 @@ impl GpuRasterizer {
         // `keys_tmp` and `keys` (four passes: the result lands in `keys`).
         let mut enc = dev.create_command_encoder(&Default::default());
         self.mark(&mut enc, "upload");
-        let sort_chunk = (n as u32).div_ceil(MAX_CHUNKS).max(256);
+        let sort_chunk = chunk_size(n as u32, 1, cpu_adapter);
         let sort_chunks = (n as u32).div_ceil(sort_chunk).max(1);
         let digit_counts = self.storage("digit_counts", u64::from(256 * sort_chunks) * 4)?;
         let digit_cursors = self.storage("digit_cursors", u64::from(256 * sort_chunks + 1) * 4)?;
@@ -1300,7 +1339,9 @@ impl GpuRasterizer {
         self.mark(&mut enc, "depth sort");
 
         // 2. Tile binning: per (tile, chunk) counts, their scan, tile ranges.
-        let chunk_size = visible.div_ceil(MAX_CHUNKS).max(256);
+        // A scatter invocation takes a trip per splat of its chunk, plus the tiles of its row
+        // that each reaches and one more (the inner loop's last, masked on llvmpipe).
+        let chunk_size = chunk_size(visible, widest.min(tiles_x) + 2, cpu_adapter);
         let chunks = visible.div_ceil(chunk_size).max(1);
         let table = u64::from(num_tiles) * u64::from(chunks);
         if table >= u64::from(u32::MAX) {
@@ -1607,7 +1648,29 @@ fn project_params(cam: &Camera, s: &ProjectSettings, n: u32) -> ProjectParams {
 
 #[cfg(test)]
 mod tests {
-    use super::{jumps_out, ColumnHalves};
+    use super::{chunk_size, jumps_out, ColumnHalves, CHUNK_TRIPS, MIN_CHUNK};
+
+    #[test]
+    fn chunks_fit_the_loop_trips_of_cpu_adapters() {
+        // GPUs: up to MAX_CHUNKS chunks of at least MIN_CHUNK entries.
+        assert_eq!(chunk_size(100_000, 50, false), 256);
+        assert_eq!(chunk_size(10_000_000, 1, false), 9766);
+        // CPU adapters: fewer, larger chunks, each within CHUNK_TRIPS trips.
+        let threads = std::thread::available_parallelism().map_or(1, |t| t.get()) as u32;
+        let small = chunk_size(100_000, 5, true);
+        assert_eq!(small, 100_000u32.div_ceil(16 * threads).clamp(256, 12_000));
+        for trips in [1, 5, 52, 1000] {
+            for count in [0, 1000, 100_000, 3_000_000, 100_000_000] {
+                let size = chunk_size(count, trips, true);
+                assert!(size >= MIN_CHUNK);
+                assert!(
+                    size * trips <= CHUNK_TRIPS
+                        || size == MIN_CHUNK
+                        || size == chunk_size(count, trips, false)
+                );
+            }
+        }
+    }
 
     #[test]
     fn column_halves_follow_the_splat_size() {
