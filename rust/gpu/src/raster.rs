@@ -147,6 +147,7 @@ struct Kernels {
     sum_lines: wgpu::ComputePipeline,
     tile_ranges: wgpu::ComputePipeline,
     scatter: wgpu::ComputePipeline,
+    scatter_chunks: wgpu::ComputePipeline,
     /// Compositing kernels by (channel count, column halves, forward), each built on first use
     /// (lavapipe compiles for seconds, and a scene may use halves in one direction only).
     blend: HashMap<(usize, bool, bool), wgpu::ComputePipeline>,
@@ -189,6 +190,7 @@ impl Kernels {
             sum_lines: pipeline(dev, &bin, "sum_lines"),
             tile_ranges: pipeline(dev, &bin, "tile_ranges"),
             scatter: pipeline(dev, &bin, "scatter"),
+            scatter_chunks: pipeline(dev, &bin, "scatter_chunks"),
             blend: HashMap::new(),
         }
     }
@@ -698,6 +700,24 @@ struct Profile {
 fn grid(groups: u32) -> (u32, u32) {
     let x = groups.clamp(1, 65_535);
     (x, groups.div_ceil(x).max(1))
+}
+
+/// Tiles of `tiles` that [m - r, m + r] (pixels) reaches: ceil((m + r) / 16) - floor((m - r) /
+/// 16), both clamped to [0, tiles], in f32 as bin.wgsl's tile_rect.
+fn tile_span(m: f32, r: i32, tiles: u32) -> u32 {
+    let (m, r, t) = (
+        m / TILE_SIZE as f32,
+        r as f32 / TILE_SIZE as f32,
+        tiles as f32,
+    );
+    let lo = (m - r).floor().clamp(0.0, t);
+    let hi = (m + r).ceil().clamp(0.0, t);
+    // NaN means (rejected by validation) count as the whole grid.
+    if hi >= lo {
+        (hi - lo) as u32
+    } else {
+        tiles
+    }
 }
 
 /// Entries per chunk of the chunk-serial kernels (radix sort, tile scatter) for `count`
@@ -1258,8 +1278,10 @@ impl GpuRasterizer {
         // Inputs: packed splats, radii, features with the background appended.
         let mut packed = vec![0.0f32; n.max(1) * SPLAT_FLOATS];
         let mut visible = 0u32;
-        // The widest tile rectangle (in tiles), bounding the tile scatter's trips per splat.
-        let mut widest = 0u32;
+        // The widest and the largest tile rectangle (in tiles), bounding the tile scatter's
+        // trips per splat.
+        let (tiles_x, tiles_y) = (width.div_ceil(TILE_SIZE), height.div_ceil(TILE_SIZE));
+        let (mut widest, mut largest) = (0u32, 0u32);
         for i in 0..n {
             let s = &mut packed[SPLAT_FLOATS * i..SPLAT_FLOATS * (i + 1)];
             s[0] = splats.means2d[2 * i];
@@ -1267,15 +1289,12 @@ impl GpuRasterizer {
             s[2..5].copy_from_slice(&splats.conics[3 * i..3 * i + 3]);
             s[5] = splats.opacities[i];
             s[6] = splats.depths[i];
-            let shown = splats.radii[2 * i] > 0 && splats.radii[2 * i + 1] > 0;
-            visible += u32::from(shown);
-            if shown {
-                // floor((m - r) / 16) .. ceil((m + r) / 16) spans at most this many tiles.
-                let span = (splats.radii[2 * i] as u32)
-                    .saturating_mul(2)
-                    .div_ceil(TILE_SIZE)
-                    + 2;
-                widest = widest.max(span);
+            let (rx, ry) = (splats.radii[2 * i], splats.radii[2 * i + 1]);
+            if rx > 0 && ry > 0 {
+                visible += 1;
+                let w = tile_span(s[0], rx, tiles_x);
+                widest = widest.max(w);
+                largest = largest.max(w * tile_span(s[1], ry, tiles_y));
             }
         }
         let cpu_adapter = gpu.adapter.kind == "cpu";
@@ -1287,8 +1306,6 @@ impl GpuRasterizer {
         let feat_buf = upload_in(gpu, sp, "features", &feats)?;
         let keys = storage_in(gpu, sp, "keys", n.max(1) as u64 * 8)?;
         let keys_tmp = storage_in(gpu, sp, "keys_tmp", n.max(1) as u64 * 8)?;
-        let tiles_x = width.div_ceil(TILE_SIZE);
-        let tiles_y = height.div_ceil(TILE_SIZE);
         let num_tiles = tiles_x * tiles_y;
         let tile_offsets = storage_in(gpu, sp, "tile_offsets", (u64::from(num_tiles) + 1) * 4)?;
         let pixel_state = storage_in(gpu, sp, "pixel_state", npix as u64 * 8)?;
@@ -1339,9 +1356,17 @@ impl GpuRasterizer {
         self.mark(&mut enc, "depth sort");
 
         // 2. Tile binning: per (tile, chunk) counts, their scan, tile ranges.
-        // A scatter invocation takes a trip per splat of its chunk, plus the tiles of its row
-        // that each reaches and one more (the inner loop's last, masked on llvmpipe).
-        let chunk_size = chunk_size(visible, widest.min(tiles_x) + 2, cpu_adapter);
+        // The tile scatter's invocations take a trip per splat of their chunk plus, per splat,
+        // the tiles of its row (`scatter`) or of its whole rectangle (`scatter_chunks`) and one
+        // more (an inner loop's last, masked on llvmpipe). CPU adapters use scatter_chunks
+        // unless the largest rectangle would make its chunks less than half the size the
+        // count tables want, or overrun the trips with the smallest chunks (cpu_vs_wgpu
+        // SYNC4D_SCALE=0.1: scatter 38 -> 10 ms).
+        let by_chunks = cpu_adapter
+            && MIN_CHUNK * (largest + 2) <= CHUNK_TRIPS
+            && 2 * chunk_size(visible, largest + 2, true) >= chunk_size(visible, 1, true);
+        let trips = if by_chunks { largest } else { widest } + 2;
+        let chunk_size = chunk_size(visible, trips, cpu_adapter);
         let chunks = visible.div_ceil(chunk_size).max(1);
         let table = u64::from(num_tiles) * u64::from(chunks);
         if table >= u64::from(u32::MAX) {
@@ -1416,8 +1441,13 @@ impl GpuRasterizer {
         let mut enc = dev.create_command_encoder(&Default::default());
         let counters = self.storage("counters", COUNTERS_BYTES)?;
         enc.clear_buffer(&counters, 0, Some(COUNTERS_BYTES));
+        let (scatter, invocations) = if by_chunks {
+            (&self.kernels.scatter_chunks, chunks)
+        } else {
+            (&self.kernels.scatter, chunks * tiles_y)
+        };
         let g = self.bind(
-            &self.kernels.scatter,
+            scatter,
             &[
                 (0, &bin_params),
                 (5, &cursors),
@@ -1426,13 +1456,13 @@ impl GpuRasterizer {
                 (9, &rects),
             ],
         );
-        Self::dispatch(
-            &mut enc,
-            &self.kernels.scatter,
-            &g,
-            grid((chunks * tiles_y).div_ceil(CHUNK_WG)),
-        );
-        self.mark(&mut enc, "scatter");
+        Self::dispatch(&mut enc, scatter, &g, grid(invocations.div_ceil(CHUNK_WG)));
+        let stage = if by_chunks {
+            "scatter by chunks"
+        } else {
+            "scatter by rows"
+        };
+        self.mark(&mut enc, stage);
         let image_len = npix * (ch + 2);
         let image = self.storage("image", image_len as u64 * 4)?;
         let shape = ForwardShape {

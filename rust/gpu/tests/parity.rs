@@ -641,6 +641,46 @@ fn large_scenes_match_the_cpu_path() {
     check_gradients(&mut r, 21, 20_000, 448, 448, 3);
 }
 
+/// The tile scatter has two kernels: one invocation per (chunk, tile row) on GPUs and for
+/// scenes with large splats, one per chunk on CPU adapters otherwise. Both write the same
+/// tile lists as the CPU path (same intersections and blends, same image).
+#[test]
+fn both_tile_scatters_match_the_cpu_path() {
+    let Some(gpu) = gpu() else { return };
+    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let cpu_adapter = r.device().adapter.kind == "cpu";
+    let mut seen = Vec::new();
+    for (n, size, grow, seed) in [(3000, 160, 1.0, 31u64), (300, 448, 12.0, 32)] {
+        let mut s = random_scene(n, size, size, 3, seed);
+        for sc in s.scales.iter_mut() {
+            *sc *= grow;
+        }
+        let bs = BlendSettings::default();
+        let p = cpu_project(&s, &ProjectSettings::default());
+        let (ci, cc) = composite(None, &p, &s, &bs);
+        r.set_profiling(true);
+        let (gi, gc) = composite(Some(&mut r), &p, &s, &bs);
+        let stages = r.take_profile();
+        r.set_profiling(false);
+        let scatter = stages
+            .iter()
+            .find(|(name, _)| name.starts_with("scatter"))
+            .expect("a scatter stage")
+            .0;
+        seen.push(scatter);
+        assert_eq!(cc.intersections, gc.intersections, "{scatter}");
+        assert_eq!(cc.blended, gc.blended, "{scatter}");
+        assert!(max_abs(&ci.features, &gi.features) <= 1e-4, "{scatter}");
+        assert!(max_abs(&ci.depth, &gi.depth) <= 1e-3, "{scatter}");
+    }
+    let expected = if cpu_adapter {
+        ["scatter by chunks", "scatter by rows"]
+    } else {
+        ["scatter by rows", "scatter by rows"]
+    };
+    assert_eq!(seen, expected);
+}
+
 /// One 16x16 tile whose list holds 70,000 one-pixel splats (alpha ~0.01 near their own pixel
 /// centre, below 1/255 at the next), ~270 a pixel: nothing saturates, so forward and backward
 /// walk the whole list, more loop trips than lavapipe runs in one shader (65,535). Composited

@@ -154,3 +154,44 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
         atomicStore(&counters[7], 1u);
     }
 }
+
+// The same writes with one invocation per chunk, for CPU adapters: it walks its chunk's splats
+// once, in order, and each splat's whole tile rectangle (SIMD lanes take different chunks, so
+// a rectangle read serves one lane instead of being repeated for every tile row; the host
+// picks this kernel only when every chunk stays within the driver's loop trips).
+@compute @workgroup_size(16)
+fn scatter_chunks(@builtin(global_invocation_id) gid: vec3<u32>,
+                  @builtin(num_workgroups) nwg: vec3<u32>) {
+    let chunk = gid.x + gid.y * nwg.x * 16u;
+    if chunk >= B.chunks {
+        return;
+    }
+    let chunks = B.chunks;
+    let tiles_x = B.tiles_x;
+    let end = min((chunk + 1u) * B.chunk_size, B.visible);
+    for (var r = chunk * B.chunk_size; r < end; r++) {
+        let rect = rects[r];
+        let x0 = rect.x & 0xffffu;
+        let y0 = rect.y & 0xffffu;
+        let width = (rect.x >> 16u) - min(x0, rect.x >> 16u);
+        let cells = select(0u, width * ((rect.y >> 16u) - y0), (rect.y >> 16u) > y0);
+        // One flat loop over the rectangle, row by row.
+        var x = x0;
+        var slot = (y0 * tiles_x + x0) * chunks + chunk;
+        for (var c = 0u; c < cells; c++) {
+            let at = cursors[slot];
+            ids[at] = r;
+            cursors[slot] = at + 1u;
+            x += 1u;
+            slot += chunks;
+            if x == x0 + width {
+                x = x0;
+                slot += (tiles_x - width) * chunks;
+            }
+        }
+    }
+    if !loops_completed(B.canary) {
+        atomicStore(&counters[7], 1u);
+    }
+}
+
