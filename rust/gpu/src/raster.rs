@@ -639,6 +639,9 @@ pub struct GpuRasterizer {
     /// Per-stage wall times when profiling is on (see [`GpuRasterizer::set_profiling`]).
     profile: Option<Profile>,
     layout: BlendLayout,
+    /// On a CPU adapter, the threads its driver runs (lavapipe: one per CPU), which size the
+    /// binning chunks; None on GPUs.
+    cpu_threads: Option<u32>,
     /// Tile-list entries composited per dispatch (forward, backward); see
     /// [`GpuRasterizer::set_compositing_window`].
     windows: CompositingWindows,
@@ -722,16 +725,17 @@ fn tile_span(m: f32, r: i32, tiles: u32) -> u32 {
 
 /// Entries per chunk of the chunk-serial kernels (radix sort, tile scatter) for `count`
 /// entries, each costing up to `trips` loop trips of one invocation: up to MAX_CHUNKS chunks
-/// on GPUs; on CPU adapters CPU_CHUNKS_PER_THREAD per CPU thread (smaller count tables to
-/// scan) while a chunk stays within CHUNK_TRIPS trips. At least MIN_CHUNK.
-fn chunk_size(count: u32, trips: u32, cpu_adapter: bool) -> u32 {
+/// on GPUs (`cpu_threads` None); on a CPU adapter running `cpu_threads` threads,
+/// CPU_CHUNKS_PER_THREAD per thread (smaller count tables to scan) while a chunk stays within
+/// CHUNK_TRIPS trips. At least MIN_CHUNK.
+fn chunk_size(count: u32, trips: u32, cpu_threads: Option<u32>) -> u32 {
     let gpu_size = count.div_ceil(MAX_CHUNKS);
-    let size = if cpu_adapter {
-        let threads = std::thread::available_parallelism().map_or(1, |t| t.get()) as u32;
-        let cpu_size = count.div_ceil(CPU_CHUNKS_PER_THREAD.saturating_mul(threads).max(1));
-        cpu_size.min(CHUNK_TRIPS / trips.max(1)).max(gpu_size)
-    } else {
-        gpu_size
+    let size = match cpu_threads {
+        Some(threads) => {
+            let cpu_size = count.div_ceil(CPU_CHUNKS_PER_THREAD.saturating_mul(threads).max(1));
+            cpu_size.min(CHUNK_TRIPS / trips.max(1)).max(gpu_size)
+        }
+        None => gpu_size,
     };
     size.max(MIN_CHUNK)
 }
@@ -801,12 +805,15 @@ impl GpuRasterizer {
     pub fn new(gpu: GpuDevice) -> Self {
         let kernels = Kernels::new(&gpu.device);
         let layout = BlendLayout::for_device(&gpu);
+        let cpu_threads = (gpu.adapter.kind == "cpu")
+            .then(|| std::thread::available_parallelism().map_or(1, |t| t.get()) as u32);
         GpuRasterizer {
             gpu,
             kernels,
             pool: Pool::default(),
             profile: None,
             layout,
+            cpu_threads,
             windows: CompositingWindows::for_layout(layout),
         }
     }
@@ -1297,7 +1304,7 @@ impl GpuRasterizer {
                 largest = largest.max(w * tile_span(s[1], ry, tiles_y));
             }
         }
-        let cpu_adapter = gpu.adapter.kind == "cpu";
+        let cpu_threads = self.cpu_threads;
         let mut feats = Vec::with_capacity(n * ch + ch);
         feats.extend_from_slice(splats.features);
         feats.extend_from_slice(background);
@@ -1314,7 +1321,7 @@ impl GpuRasterizer {
         // `keys_tmp` and `keys` (four passes: the result lands in `keys`).
         let mut enc = dev.create_command_encoder(&Default::default());
         self.mark(&mut enc, "upload");
-        let sort_chunk = chunk_size(n as u32, 1, cpu_adapter);
+        let sort_chunk = chunk_size(n as u32, 1, cpu_threads);
         let sort_chunks = (n as u32).div_ceil(sort_chunk).max(1);
         let digit_counts = self.storage("digit_counts", u64::from(256 * sort_chunks) * 4)?;
         let digit_cursors = self.storage("digit_cursors", u64::from(256 * sort_chunks + 1) * 4)?;
@@ -1362,11 +1369,12 @@ impl GpuRasterizer {
         // unless the largest rectangle would make its chunks less than half the size the
         // count tables want, or overrun the trips with the smallest chunks (cpu_vs_wgpu
         // SYNC4D_SCALE=0.1: scatter 38 -> 10 ms).
-        let by_chunks = cpu_adapter
+        let by_chunks = cpu_threads.is_some()
             && MIN_CHUNK * (largest + 2) <= CHUNK_TRIPS
-            && 2 * chunk_size(visible, largest + 2, true) >= chunk_size(visible, 1, true);
+            && 2 * chunk_size(visible, largest + 2, cpu_threads)
+                >= chunk_size(visible, 1, cpu_threads);
         let trips = if by_chunks { largest } else { widest } + 2;
-        let chunk_size = chunk_size(visible, trips, cpu_adapter);
+        let chunk_size = chunk_size(visible, trips, cpu_threads);
         let chunks = visible.div_ceil(chunk_size).max(1);
         let table = u64::from(num_tiles) * u64::from(chunks);
         if table >= u64::from(u32::MAX) {
@@ -1683,20 +1691,20 @@ mod tests {
     #[test]
     fn chunks_fit_the_loop_trips_of_cpu_adapters() {
         // GPUs: up to MAX_CHUNKS chunks of at least MIN_CHUNK entries.
-        assert_eq!(chunk_size(100_000, 50, false), 256);
-        assert_eq!(chunk_size(10_000_000, 1, false), 9766);
+        assert_eq!(chunk_size(100_000, 50, None), 256);
+        assert_eq!(chunk_size(10_000_000, 1, None), 9766);
         // CPU adapters: fewer, larger chunks, each within CHUNK_TRIPS trips.
         let threads = std::thread::available_parallelism().map_or(1, |t| t.get()) as u32;
-        let small = chunk_size(100_000, 5, true);
+        let small = chunk_size(100_000, 5, Some(threads));
         assert_eq!(small, 100_000u32.div_ceil(16 * threads).clamp(256, 12_000));
         for trips in [1, 5, 52, 1000] {
             for count in [0, 1000, 100_000, 3_000_000, 100_000_000] {
-                let size = chunk_size(count, trips, true);
+                let size = chunk_size(count, trips, Some(threads));
                 assert!(size >= MIN_CHUNK);
                 assert!(
                     size * trips <= CHUNK_TRIPS
                         || size == MIN_CHUNK
-                        || size == chunk_size(count, trips, false)
+                        || size == chunk_size(count, trips, None)
                 );
             }
         }

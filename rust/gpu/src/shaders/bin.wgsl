@@ -39,8 +39,10 @@ struct BinParams {
 
 const TILE: f32 = 16.0;
 
-fn flat_id(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
-    return gid.x + gid.y * nwg.x * 256u;
+// The flat invocation index of a 2D grid of workgroups of `size` invocations (see `grid` in
+// raster.rs: beyond 65,535 workgroups the grid wraps into y).
+fn flat_id(gid: vec3<u32>, nwg: vec3<u32>, size: u32) -> u32 {
+    return gid.x + gid.y * nwg.x * size;
 }
 
 // Tile rectangle [x0, y0, x1, y1) of splat g: floor((m - r) / 16) .. ceil((m + r) / 16).
@@ -72,7 +74,7 @@ fn add_corner(x: u32, y: u32, chunk: u32, v: u32) {
 @compute @workgroup_size(256)
 fn count_corners(@builtin(global_invocation_id) gid: vec3<u32>,
                  @builtin(num_workgroups) nwg: vec3<u32>) {
-    let r = flat_id(gid, nwg);
+    let r = flat_id(gid, nwg, 256u);
     if r >= B.visible {
         return;
     }
@@ -93,7 +95,7 @@ fn count_corners(@builtin(global_invocation_id) gid: vec3<u32>,
 @compute @workgroup_size(256)
 fn sum_lines(@builtin(global_invocation_id) gid: vec3<u32>,
              @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = flat_id(gid, nwg);
+    let i = flat_id(gid, nwg, 256u);
     let rows = B.axis == 0u;
     let lines = select(B.tiles_x, B.tiles_y, rows);
     if i >= B.chunks * lines {
@@ -114,7 +116,7 @@ fn sum_lines(@builtin(global_invocation_id) gid: vec3<u32>,
 @compute @workgroup_size(256)
 fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>,
                @builtin(num_workgroups) nwg: vec3<u32>) {
-    let t = flat_id(gid, nwg);
+    let t = flat_id(gid, nwg, 256u);
     if t > B.num_tiles {
         return;
     }
@@ -129,7 +131,7 @@ fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>,
 @compute @workgroup_size(16)
 fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
            @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = gid.x + gid.y * nwg.x * 16u;
+    let i = flat_id(gid, nwg, 16u);
     if i >= B.chunks * B.tiles_y {
         return;
     }
@@ -162,7 +164,7 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
 @compute @workgroup_size(16)
 fn scatter_chunks(@builtin(global_invocation_id) gid: vec3<u32>,
                   @builtin(num_workgroups) nwg: vec3<u32>) {
-    let chunk = gid.x + gid.y * nwg.x * 16u;
+    let chunk = flat_id(gid, nwg, 16u);
     if chunk >= B.chunks {
         return;
     }
