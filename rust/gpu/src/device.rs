@@ -113,6 +113,10 @@ pub struct GpuDevice {
     /// The smallest subgroup the adapter may run (8 on 256-bit lavapipe), when the device was
     /// opened with subgroup operations (wgpu's `SUBGROUP` feature); `None` without them.
     pub subgroup_min_size: Option<u32>,
+    /// Whether the device adds `f32` values to storage buffers atomically (wgpu's
+    /// `SHADER_FLOAT32_ATOMIC`: lavapipe and most Vulkan GPUs), used for the backward's
+    /// per-splat gradient sums instead of compare-and-swap loops.
+    pub float_atomics: bool,
 }
 
 impl GpuDevice {
@@ -152,10 +156,11 @@ impl GpuDevice {
         };
         let limits = adapter.limits();
         let info = adapter.get_info();
-        let subgroups = adapter.features() & wgpu::Features::SUBGROUP;
+        let features =
+            adapter.features() & (wgpu::Features::SUBGROUP | wgpu::Features::SHADER_FLOAT32_ATOMIC);
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("sync4d"),
-            required_features: subgroups,
+            required_features: features,
             required_limits: limits.clone(),
             ..Default::default()
         }))
@@ -165,7 +170,10 @@ impl GpuDevice {
             queue,
             adapter: summary(&info),
             limits,
-            subgroup_min_size: (!subgroups.is_empty()).then_some(info.subgroup_min_size),
+            subgroup_min_size: features
+                .contains(wgpu::Features::SUBGROUP)
+                .then_some(info.subgroup_min_size),
+            float_atomics: features.contains(wgpu::Features::SHADER_FLOAT32_ATOMIC),
         })
     }
 }

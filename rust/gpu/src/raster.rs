@@ -251,6 +251,11 @@ pub struct BlendLayout {
     /// Row-block kernels with 32 pixels per invocation only: when to split each block of rows
     /// into the tile's left and right halves (8 pixels wide, one SIMD lane group each).
     pub column_halves: ColumnHalves,
+    /// Backward: add each splat's gradients into the global sums with `f32` atomic adds
+    /// instead of compare-and-swap loops. Needs a device with float atomics
+    /// ([`GpuDevice::float_atomics`]). On lavapipe a compare-and-swap loop costs an atomic
+    /// load and an exchange, each a per-lane loop; the add is one.
+    pub float_atomics: bool,
 }
 
 /// When the row-block kernels split each block of rows into the tile's two halves. A batch of
@@ -307,6 +312,7 @@ impl BlendLayout {
                 block_rows: 16,
                 subgroup_sums: false,
                 column_halves: ColumnHalves::BackwardBelowTilesPerSplat(SMALL_SPLAT_TILES),
+                float_atomics: false,
             }
         } else {
             BlendLayout {
@@ -315,6 +321,7 @@ impl BlendLayout {
                 block_rows: 0,
                 subgroup_sums: false,
                 column_halves: ColumnHalves::Never,
+                float_atomics: false,
             }
         }
     }
@@ -324,6 +331,7 @@ impl BlendLayout {
     pub fn for_device(gpu: &GpuDevice) -> Self {
         let mut layout = Self::for_adapter(gpu.adapter.kind);
         layout.subgroup_sums = layout.block_rows > 0 && layout.subgroups_fit(gpu);
+        layout.float_atomics = gpu.float_atomics;
         layout
     }
 
@@ -371,7 +379,19 @@ impl BlendLayout {
                 "subgroups"
             },
         );
+        strip_sections(
+            &mut src,
+            if self.float_atomics {
+                "no-float-atomics"
+            } else {
+                "float-atomics"
+            },
+        );
         let src = src
+            .replace(
+                "{{GRAD_ATOMIC}}",
+                if self.float_atomics { "f32" } else { "u32" },
+            )
             .replace(
                 "{{SUBGROUP_SUMS}}",
                 if self.subgroup_sums { "true" } else { "false" },
@@ -386,6 +406,7 @@ impl BlendLayout {
             .replace("{{BATCH}}", &batch.to_string())
             .replace("{{ACC}}", &acc.to_string())
             .replace("{{PARTIAL_LEN}}", &partial.to_string());
+        let src = unroll_loops(&src, "l", "WG", "lanes", invocations);
         let src = unroll_loops(&src, "c", "C", "channels", channels);
         let src = unroll_loops(&src, "s", "STRIDE", "stride", stride);
         let src = unroll_loops(&src, "h", "SPANS", "spans", stride.div_ceil(invocations));
@@ -407,9 +428,9 @@ fn strip_sections(src: &mut String, name: &str) {
 
 /// Replace every loop `for (var V = 0u; V < N; V++) { // unroll: NAME` ... `}` of `src` by
 /// `count` copies of its body, each inside a one-trip loop (so that `continue` keeps its
-/// meaning) with `V` bound to a constant. Naga and some drivers (llvmpipe) leave such loops
-/// rolled; unrolled, every per-pixel and per-channel array index is a constant and the arrays
-/// live in registers instead of scratch memory.
+/// meaning) with `V` a `const` (which subgroup broadcasts need as their lane). Naga and some
+/// drivers (llvmpipe) leave such loops rolled; unrolled, every per-pixel and per-channel array
+/// index is a constant and the arrays live in registers instead of scratch memory.
 fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> String {
     let head = format!("for (var {var} = 0u; {var} < {bound}; {var}++) {{ // unroll: {name}");
     let mut out = String::with_capacity(src.len() * 2);
@@ -428,10 +449,10 @@ fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> 
         for k in 0..count {
             if jumps {
                 out.push_str(&format!(
-                    "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ let {var} = {k}u;{body}}}\n"
+                    "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ const {var} = {k}u;{body}}}\n"
                 ));
             } else {
-                out.push_str(&format!("{{ let {var} = {k}u;{body}}}\n"));
+                out.push_str(&format!("{{ const {var} = {k}u;{body}}}\n"));
             }
         }
         rest = &rest[end + 1..];
@@ -949,6 +970,13 @@ impl GpuRasterizer {
                 "subgroup_sums",
                 "needs block_rows > 0, partials, and a device whose subgroups hold 256 / \
                  pixels_per_invocation invocations",
+            )
+            .into());
+        }
+        if layout.float_atomics && !self.gpu.float_atomics {
+            return Err(RasterError::invalid(
+                "float_atomics",
+                "needs a device with f32 atomic adds (wgpu's SHADER_FLOAT32_ATOMIC)",
             )
             .into());
         }

@@ -43,6 +43,7 @@ const LAYOUTS: [BlendLayout; 6] = [
         block_rows: 0,
         subgroup_sums: false,
         column_halves: ColumnHalves::Never,
+        float_atomics: false,
     },
     BlendLayout {
         pixels_per_invocation: 32,
@@ -50,6 +51,7 @@ const LAYOUTS: [BlendLayout; 6] = [
         block_rows: 16,
         subgroup_sums: false,
         column_halves: ColumnHalves::Never,
+        float_atomics: false,
     },
     BlendLayout {
         pixels_per_invocation: 16,
@@ -57,6 +59,7 @@ const LAYOUTS: [BlendLayout; 6] = [
         block_rows: 0,
         subgroup_sums: false,
         column_halves: ColumnHalves::Never,
+        float_atomics: false,
     },
     BlendLayout {
         pixels_per_invocation: 8,
@@ -64,6 +67,7 @@ const LAYOUTS: [BlendLayout; 6] = [
         block_rows: 4,
         subgroup_sums: false,
         column_halves: ColumnHalves::Never,
+        float_atomics: false,
     },
     BlendLayout {
         pixels_per_invocation: 4,
@@ -71,6 +75,7 @@ const LAYOUTS: [BlendLayout; 6] = [
         block_rows: 8,
         subgroup_sums: false,
         column_halves: ColumnHalves::Never,
+        float_atomics: false,
     },
     BlendLayout {
         pixels_per_invocation: 32,
@@ -78,13 +83,17 @@ const LAYOUTS: [BlendLayout; 6] = [
         block_rows: 4,
         subgroup_sums: false,
         column_halves: ColumnHalves::Always,
+        float_atomics: false,
     },
 ];
 
-/// [`LAYOUTS`], plus the CPU-adapter layout with subgroup gradient sums where the device has
-/// subgroups that hold its workgroup (lavapipe: its default).
+/// [`LAYOUTS`] (gradient sums by compare-and-swap), plus the CPU-adapter layout with subgroup
+/// gradient sums where the device has subgroups that hold its workgroup, and layouts with
+/// float atomic gradient sums where it has those (lavapipe: both; its small-splat layout has
+/// both).
 fn layouts(r: &GpuRasterizer) -> Vec<BlendLayout> {
     let mut all = LAYOUTS.to_vec();
+    let floats = r.device().float_atomics;
     let sub = BlendLayout {
         subgroup_sums: true,
         ..LAYOUTS[1]
@@ -94,10 +103,20 @@ fn layouts(r: &GpuRasterizer) -> Vec<BlendLayout> {
         // lavapipe's layout for small splats.
         all.push(BlendLayout {
             column_halves: ColumnHalves::Always,
+            float_atomics: floats,
             ..sub
         });
     } else {
         eprintln!("no subgroups of 8 or more on this device: skipping {sub:?}");
+    }
+    if floats {
+        // The GPU layout, whose backward adds every splat's sums from every tile.
+        all.push(BlendLayout {
+            float_atomics: true,
+            ..LAYOUTS[0]
+        });
+    } else {
+        eprintln!("no f32 atomics on this device: the float-atomic layouts are skipped");
     }
     all
 }
@@ -387,6 +406,7 @@ fn bad_input_is_an_error_not_a_panic() {
             } else {
                 ColumnHalves::Never
             },
+            float_atomics: false,
         };
         let err = r.set_blend_layout(bad).unwrap_err();
         assert!(err.to_string().contains(field), "{bad:?}: {err}");

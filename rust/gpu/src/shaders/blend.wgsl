@@ -661,8 +661,8 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
 // pixel recovers its transmittance by division (T_i = T_{i+1} / (1 - alpha_i)) and keeps the
 // running sum of what lies behind, exactly as sync4d-raster's f32 backward. A batch of splats'
 // gradients is summed over the tile's pixels in workgroup memory, then added to the global
-// per-splat gradients (float adds by compare-and-swap, so the summation order, and the last
-// bits, depend on scheduling).
+// per-splat gradients (float atomic adds, or compare-and-swap, so the summation order, and the
+// last bits, depend on scheduling).
 
 // Per splat: mean x, mean y, conic a, b, c, opacity, C features, depth.
 const STRIDE: u32 = 7u + C;
@@ -671,8 +671,8 @@ const BATCH: u32 = {{BATCH}}u;
 
 // dL/d image: H*W*C features, then H*W alpha, then H*W depth.
 @group(0) @binding(9) var<storage, read> v_image: array<f32>;
-// Per splat STRIDE gradient sums (f32 bits, added by compare-and-swap).
-@group(0) @binding(10) var<storage, read_write> grads: array<atomic<u32>>;
+// Per splat STRIDE gradient sums (f32; u32 bits without float atomics, see global_add).
+@group(0) @binding(10) var<storage, read_write> grads: array<atomic<{{GRAD_ATOMIC}}>>;
 // Per pixel between backward windows: the transmittance and running sum (`PixelGrad` t, vr).
 @group(0) @binding(11) var<storage, read_write> walk_state: array<f32>;
 
@@ -701,6 +701,14 @@ fn shared_add(i: u32, v: f32) {
     }
 }
 
+// Add v to gradient sum i: a float atomic add where the device has them (BlendLayout's
+// float_atomics), else a compare-and-swap loop on the bits.
+// <float-atomics>
+fn global_add(i: u32, v: f32) {
+    atomicAdd(&grads[i], v);
+}
+// </float-atomics>
+// <no-float-atomics>
 fn global_add(i: u32, v: f32) {
     var old = atomicLoad(&grads[i]);
     loop {
@@ -711,6 +719,7 @@ fn global_add(i: u32, v: f32) {
         old = r.old_value;
     }
 }
+// </no-float-atomics>
 
 // What the backward needs of pixel q: its last contributor from the forward, dL/d features
 // (`vc`) and dL/d depth, `tail` = T_final (dL/dfeatures . background - dL/dalpha), the gradient
@@ -961,9 +970,16 @@ const SUBGROUP_SUMS: bool = {{SUBGROUP_SUMS}};
 // Spans of WG gradients in a splat's STRIDE (ceil(STRIDE / WG)).
 const SPANS: u32 = {{SPANS}}u;
 // <subgroups>
-// Sum and maximum over the workgroup's invocations (one subgroup).
+// Sum and maximum over the workgroup's invocations (one subgroup, all of it active: the walks
+// are uniform). The sum adds the lanes in order through broadcasts from constant lanes, which
+// llvmpipe compiles to register extracts, where subgroupAdd is a per-lane loop (backward
+// compositing ~7 % faster with small splats); llvmpipe's subgroupAdd adds in the same order.
 fn lanes_sum(v: f32) -> f32 {
-    return subgroupAdd(v);
+    var s = 0.0;
+    for (var l = 0u; l < WG; l++) { // unroll: lanes
+        s += subgroupBroadcast(v, l);
+    }
+    return s;
 }
 fn lanes_max(v: u32) -> u32 {
     return subgroupMax(v);
