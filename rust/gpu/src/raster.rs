@@ -232,7 +232,8 @@ impl Kernels {
 pub struct BlendLayout {
     /// Pixels composited by one invocation (a power of two dividing 256).
     pub pixels_per_invocation: u32,
-    /// Backward reduction through per-invocation partials instead of float atomics.
+    /// Backward reduction through per-invocation partials instead of compare-and-swap float
+    /// adds in workgroup memory.
     pub partials: bool,
     /// Row-block kernels (CPU adapters): the tile is split into blocks of this many rows (a
     /// power of two, 16 = the whole tile, `pixels_per_invocation * block_rows >= 16`) and
