@@ -617,6 +617,34 @@ fn projection_gradients_match_the_cpu_path() {
 }
 
 #[test]
+fn float_atomics_need_a_device_that_has_them() {
+    let dev = match GpuDevice::new(AdapterChoice::Auto) {
+        Ok(dev) => dev,
+        Err(e) => {
+            eprintln!("skipping: {e}");
+            return;
+        }
+    };
+    // The same adapter, described as one without f32 atomics: its default layout adds gradients
+    // by compare-and-swap, and a layout asking for float atomics is an error naming the field.
+    let plain = GpuDevice {
+        float_atomics: false,
+        ..dev
+    };
+    let mut r = GpuRasterizer::new(plain);
+    let before = r.blend_layout();
+    assert!(!before.float_atomics);
+    let err = r
+        .set_blend_layout(BlendLayout {
+            float_atomics: true,
+            ..before
+        })
+        .unwrap_err();
+    assert!(err.to_string().contains("float_atomics"), "{err}");
+    assert_eq!(r.blend_layout(), before);
+}
+
+#[test]
 fn backward_without_its_forward_is_an_error() {
     let Some(gpu) = gpu() else { return };
     let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
