@@ -566,7 +566,6 @@ struct Forward {
 /// The device buffers both compositing kernels read.
 struct ForwardBuffers {
     splats: wgpu::Buffer,
-    keys: wgpu::Buffer,
     ids: wgpu::Buffer,
     tile_offsets: wgpu::Buffer,
     features: wgpu::Buffer,
@@ -574,11 +573,10 @@ struct ForwardBuffers {
 }
 
 impl ForwardBuffers {
-    /// Their bindings (blend.wgsl 1-5 and 7).
-    fn bindings(&self) -> [(u32, &wgpu::Buffer); 6] {
+    /// Their bindings (blend.wgsl 1, 3-5 and 7).
+    fn bindings(&self) -> [(u32, &wgpu::Buffer); 5] {
         [
             (1, &self.splats),
-            (2, &self.keys),
             (3, &self.ids),
             (4, &self.tile_offsets),
             (5, &self.features),
@@ -1473,7 +1471,7 @@ impl GpuRasterizer {
 
         self.mark_host("read total");
 
-        // 3. Scatter ranks into tile lists, then composite.
+        // 3. Scatter splat indices into tile lists, then composite.
         let ids = storage_in(&self.gpu, &mut state.pool, "ids", u64::from(total) * 4)?;
         let mut enc = dev.create_command_encoder(&Default::default());
         let counters = self.storage("counters", COUNTERS_BYTES)?;
@@ -1487,6 +1485,7 @@ impl GpuRasterizer {
             scatter,
             &[
                 (0, &bin_params),
+                (1, &keys),
                 (5, &cursors),
                 (6, &ids),
                 (8, &counters),
@@ -1515,7 +1514,6 @@ impl GpuRasterizer {
         };
         let buffers = ForwardBuffers {
             splats: splat_buf,
-            keys,
             ids,
             tile_offsets,
             features: feat_buf,

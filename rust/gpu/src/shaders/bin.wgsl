@@ -1,8 +1,8 @@
 // Tile binning: which splats touch which 16x16 tile, front to back within a tile. The depth
 // ordered list (ranks) is cut into chunks; `count_corners` and `sum_lines` count
 // each chunk's splats per tile (tile-major counts), an exclusive scan turns the counts into write cursors, and `scatter`
-// walks each chunk in order and writes ranks: a stable counting sort by tile of the depth
-// order, as sync4d-raster's TileBins builds it, deterministic on any hardware.
+// walks each chunk in order and writes the splats' indices: a stable counting sort by tile of
+// the depth order, as sync4d-raster's TileBins builds it, deterministic on any hardware.
 
 struct BinParams {
     visible: u32,
@@ -26,7 +26,7 @@ struct BinParams {
 @group(0) @binding(4) var<storage, read_write> counts: array<atomic<u32>>;
 // Exclusive scan of `counts` (plus the total): write cursors, advanced by `scatter`.
 @group(0) @binding(5) var<storage, read_write> cursors: array<u32>;
-// Depth ranks, grouped by tile.
+// Splat indices, grouped by tile, front to back within a tile.
 @group(0) @binding(6) var<storage, read_write> ids: array<u32>;
 // tile_offsets[t]..tile_offsets[t + 1] indexes `ids` for tile t.
 @group(0) @binding(7) var<storage, read_write> tile_offsets: array<u32>;
@@ -123,7 +123,7 @@ fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>,
     tile_offsets[t] = cursors[t * B.chunks];
 }
 
-// One invocation per (chunk, tile row) walks the chunk in order and writes the ranks of the
+// One invocation per (chunk, tile row) walks the chunk in order and writes the indices of the
 // splats that reach its row: a few hundred loop trips each (llvmpipe ends a shader's loops
 // after 65,535 trips in all, which one invocation per chunk reached on large scenes).
 // Neighbouring invocations take neighbouring rows of one chunk, so SIMD lanes read the same
@@ -148,7 +148,7 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
         for (var x = rect.x & 0xffffu; x < x1; x++) {
             let slot = row_slots + x * chunks;
             let at = cursors[slot];
-            ids[at] = r;
+            ids[at] = keys[r].y;
             cursors[slot] = at + 1u;
         }
     }
@@ -182,7 +182,7 @@ fn scatter_chunks(@builtin(global_invocation_id) gid: vec3<u32>,
         var slot = (y0 * tiles_x + x0) * chunks + chunk;
         for (var c = 0u; c < cells; c++) {
             let at = cursors[slot];
-            ids[at] = r;
+            ids[at] = keys[r].y;
             cursors[slot] = at + 1u;
             x += 1u;
             slot += chunks;

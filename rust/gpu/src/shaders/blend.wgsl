@@ -39,7 +39,7 @@ struct BlendParams {
 @group(0) @binding(0) var<uniform> F: BlendParams;
 // Per splat: mean x, mean y, conic a, b, c, opacity, depth, 0.
 @group(0) @binding(1) var<storage, read> splats: array<f32>;
-@group(0) @binding(2) var<storage, read> keys: array<vec2<u32>>;
+// Splat indices grouped by tile, front to back (bin.wgsl's scatter).
 @group(0) @binding(3) var<storage, read> ids: array<u32>;
 @group(0) @binding(4) var<storage, read> tile_offsets: array<u32>;
 // N*C features, then C background values.
@@ -328,7 +328,7 @@ fn blend_forward(@builtin(local_invocation_index) lid: u32,
             break;
         }
         for (var i = lid; i < FB && batch + i < end; i += WG) {
-            let g = keys[ids[batch + i]].y;
+            let g = ids[batch + i];
             sh_pos[i] = splat_pos(g);
             sh_conic[i] = splat_conic(g);
             sh_index[i] = g;
@@ -579,7 +579,7 @@ fn blend_forward_rows(@builtin(local_invocation_index) lid: u32,
         }
         var mine: array<u32, NB>;
         for (var i = lid; i < 32u && batch + i < end; i += WG) {
-            let sp = stage_rows_splat(i, keys[ids[batch + i]].y);
+            let sp = stage_rows_splat(i, ids[batch + i]);
             let m = block_bits(sp[0], sp[1], x0, y0, i);
             for (var b = 0u; b < NB; b++) { // unroll: blocks
                 mine[b] |= m[b];
@@ -876,7 +876,7 @@ fn blend_backward(@builtin(local_invocation_index) lid: u32,
         let start = batch_start(end, BATCH);
         let count = end - start;
         for (var i = lid; i < count; i += WG) {
-            let g = keys[ids[start_list + start + i]].y;
+            let g = ids[start_list + start + i];
             sh_b_pos[i] = splat_pos(g);
             sh_b_conic[i] = splat_conic(g);
             sh_b_index[i] = g;
@@ -1055,7 +1055,7 @@ fn blend_backward_rows(@builtin(local_invocation_index) lid: u32,
         var mine: array<u32, NB>;
         var visited = 0u;
         for (var i = lid; i < count; i += WG) {
-            let sp = stage_rows_splat(i, keys[ids[start_list + start + i]].y);
+            let sp = stage_rows_splat(i, ids[start_list + start + i]);
             let m = block_bits(sp[0], sp[1], x0, y0, i);
             for (var b = 0u; b < NB; b++) { // unroll: blocks
                 mine[b] |= m[b];
