@@ -145,6 +145,9 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>,
     for (var r = chunk * B.chunk_size; r < end; r++) {
         let rect = rects[r];
         let x1 = select(0u, rect.x >> 16u, y >= (rect.y & 0xffffu) && y < (rect.y >> 16u));
+        // The splat index is read per written entry, not per (splat, row): most rows of a
+        // chunk's splats miss this invocation's row, and on llvmpipe every read costs a
+        // per-lane loop even where all lanes skip it.
         for (var x = rect.x & 0xffffu; x < x1; x++) {
             let slot = row_slots + x * chunks;
             let at = cursors[slot];
@@ -173,6 +176,7 @@ fn scatter_chunks(@builtin(global_invocation_id) gid: vec3<u32>,
     let end = min((chunk + 1u) * B.chunk_size, B.visible);
     for (var r = chunk * B.chunk_size; r < end; r++) {
         let rect = rects[r];
+        let g = keys[r].y;
         let x0 = rect.x & 0xffffu;
         let y0 = rect.y & 0xffffu;
         let width = (rect.x >> 16u) - min(x0, rect.x >> 16u);
@@ -182,7 +186,7 @@ fn scatter_chunks(@builtin(global_invocation_id) gid: vec3<u32>,
         var slot = (y0 * tiles_x + x0) * chunks + chunk;
         for (var c = 0u; c < cells; c++) {
             let at = cursors[slot];
-            ids[at] = keys[r].y;
+            ids[at] = g;
             cursors[slot] = at + 1u;
             x += 1u;
             slot += chunks;
