@@ -14,13 +14,13 @@ use sync4d_gpu::{
 };
 use sync4d_raster::*;
 
-/// One rasterizer shared by the tests (kernel compilation is the slow part on lavapipe).
-fn gpu() -> Option<&'static Mutex<GpuRasterizer>> {
-    static GPU: OnceLock<Option<Mutex<GpuRasterizer>>> = OnceLock::new();
-    GPU.get_or_init(|| match GpuDevice::new(AdapterChoice::Auto) {
+/// A device on the adapter `AdapterChoice::Auto` picks; None (the caller skips) when there is
+/// none, unless `SYNC4D_REQUIRE_GPU=1`, which makes that a failure.
+fn open_device() -> Option<GpuDevice> {
+    match GpuDevice::new(AdapterChoice::Auto) {
         Ok(dev) => {
             eprintln!("wgpu adapter: {}", dev.adapter);
-            Some(Mutex::new(GpuRasterizer::new(dev)))
+            Some(dev)
         }
         Err(e) => {
             if std::env::var("SYNC4D_REQUIRE_GPU").is_ok_and(|v| v == "1") {
@@ -29,8 +29,14 @@ fn gpu() -> Option<&'static Mutex<GpuRasterizer>> {
             eprintln!("skipping wgpu tests: {e}");
             None
         }
-    })
-    .as_ref()
+    }
+}
+
+/// One rasterizer shared by the tests (kernel compilation is the slow part on lavapipe).
+fn gpu() -> Option<&'static Mutex<GpuRasterizer>> {
+    static GPU: OnceLock<Option<Mutex<GpuRasterizer>>> = OnceLock::new();
+    GPU.get_or_init(|| open_device().map(|dev| Mutex::new(GpuRasterizer::new(dev))))
+        .as_ref()
 }
 
 /// Compositing layouts every adapter must run identically: the GPU one (one pixel per
@@ -618,13 +624,7 @@ fn projection_gradients_match_the_cpu_path() {
 
 #[test]
 fn float_atomics_need_a_device_that_has_them() {
-    let dev = match GpuDevice::new(AdapterChoice::Auto) {
-        Ok(dev) => dev,
-        Err(e) => {
-            eprintln!("skipping: {e}");
-            return;
-        }
-    };
+    let Some(dev) = open_device() else { return };
     // The same adapter, described as one without f32 atomics: its default layout adds gradients
     // by compare-and-swap, and a layout asking for float atomics is an error naming the field.
     let plain = GpuDevice {
