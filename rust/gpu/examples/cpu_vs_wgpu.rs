@@ -77,9 +77,8 @@ fn main() {
     };
     layout.pixels_per_invocation =
         env_u32("SYNC4D_GPU_PIXELS").unwrap_or(layout.pixels_per_invocation);
-    // Subgroup sums belong to the row-block backward of the default pixel count.
-    layout.subgroup_sums &= layout.block_rows > 0
-        && layout.pixels_per_invocation == gpu.blend_layout().pixels_per_invocation;
+    // Keep subgroup sums only where the chosen layout can have them on this device.
+    layout.subgroup_sums &= layout.can_sum_by_subgroups(gpu.device());
     gpu.set_blend_layout(layout).expect("compositing layout");
     println!("layout: {layout:?}");
     let profiling = std::env::var("SYNC4D_GPU_PROFILE").is_ok_and(|v| v == "1");

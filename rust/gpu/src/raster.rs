@@ -331,9 +331,16 @@ impl BlendLayout {
     /// has them (lavapipe: backward compositing 3.1 s -> 1.2-1.7 s on the cpu_vs_wgpu scene).
     pub fn for_device(gpu: &GpuDevice) -> Self {
         let mut layout = Self::for_adapter(gpu.adapter.kind);
-        layout.subgroup_sums = layout.block_rows > 0 && layout.subgroups_fit(gpu);
+        layout.subgroup_sums = layout.can_sum_by_subgroups(gpu);
         layout.float_atomics = gpu.float_atomics;
         layout
+    }
+
+    /// Whether this layout may sum the backward's gradients by subgroup operations on `gpu`
+    /// (`subgroup_sums`): row-block kernels with partials, on a device whose subgroups hold
+    /// one workgroup.
+    pub fn can_sum_by_subgroups(&self, gpu: &GpuDevice) -> bool {
+        self.block_rows > 0 && self.partials && self.subgroups_fit(gpu)
     }
 
     /// Whether `gpu`'s subgroups hold one workgroup of this layout.
@@ -964,7 +971,7 @@ impl GpuRasterizer {
             )
             .into());
         }
-        if layout.subgroup_sums && !(r > 0 && layout.partials && layout.subgroups_fit(&self.gpu)) {
+        if layout.subgroup_sums && !layout.can_sum_by_subgroups(&self.gpu) {
             return Err(RasterError::invalid(
                 "subgroup_sums",
                 "needs block_rows > 0, partials, and a device whose subgroups hold 256 / \
