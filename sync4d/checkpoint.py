@@ -91,6 +91,7 @@ def save_checkpoint(trainer: Phase1Trainer, path: str | Path, extra: dict | None
     tensors["densify.grad_accum"] = trainer.densifier.grad_accum
     tensors["densify.count"] = trainer.densifier.count
     tensors["densify.max_radius"] = trainer.densifier.max_radius
+    tensors["densify.rng"] = trainer.densifier.generator.get_state()
     phase2 = None
     if isinstance(trainer, Phase2Trainer):
         phase2 = _phase2_state(trainer, tensors)
@@ -236,6 +237,11 @@ def resume_trainer(
     trainer.densifier.count = tensors["densify.count"].clone()
     if "densify.max_radius" in tensors:  # absent in checkpoints before sync4d 0.2
         trainer.densifier.max_radius = tensors["densify.max_radius"].clone()
+    if "densify.rng" in tensors:  # absent in older checkpoints: the seed's generator
+        try:
+            trainer.densifier.generator.set_state(tensors["densify.rng"].clone())
+        except (RuntimeError, TypeError) as e:
+            raise CheckpointError(path, f"bad 'densify.rng' generator state ({e})") from None
     try:
         version, internal, gauss = meta["python_rng"]
         trainer._rng = random.Random()

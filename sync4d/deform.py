@@ -92,18 +92,34 @@ def quat_to_matrix(q: Tensor) -> Tensor:
     ).reshape(*q.shape[:-1], 3, 3)  # fmt: skip
 
 
+@torch.no_grad()
+def _default_linear_init(layer: nn.Linear, generator: torch.Generator) -> None:
+    """nn.Linear's own initialisation (weights Kaiming-uniform with a = sqrt(5), biases
+    uniform in +-1/sqrt(fan_in)), drawn from `generator`."""
+    nn.init.kaiming_uniform_(layer.weight, a=math.sqrt(5), generator=generator)
+    bound = 1.0 / math.sqrt(layer.in_features)
+    nn.init.uniform_(layer.bias, -bound, bound, generator=generator)
+
+
 class DeformationMLP(nn.Module):
     """D_theta: [x0; z; gamma(t)] (48-d) -> Lin 128 -> ReLU -> ... -> Lin 9 (zero-initialised),
-    scaled to (dx 0.10, dw 0.10, dl 0.05)."""
+    scaled to (dx 0.10, dw 0.10, dl 0.05). Hidden layers start with torch's default Linear
+    initialisation drawn from `generator` (torch's unseeded global generator when None), so a
+    seeded model is the same in every process."""
 
-    def __init__(self, config: DeformConfig | None = None) -> None:
+    def __init__(
+        self, config: DeformConfig | None = None, generator: torch.Generator | None = None
+    ) -> None:
         super().__init__()
         self.config = config or DeformConfig()
         c = self.config
         dims = [c.input_dim] + [c.hidden] * (c.layers - 1)
         blocks: list[nn.Module] = []
         for d_in, d_out in zip(dims[:-1], dims[1:], strict=True):
-            blocks += [nn.Linear(d_in, d_out), nn.ReLU()]
+            layer = nn.Linear(d_in, d_out)
+            if generator is not None:
+                _default_linear_init(layer, generator)
+            blocks += [layer, nn.ReLU()]
         self.trunk = nn.Sequential(*blocks)
         self.head = nn.Linear(dims[-1], 9)
         nn.init.zeros_(self.head.weight)

@@ -69,8 +69,11 @@ def _replace_rows(optimizer: torch.optim.Optimizer, model: DeformableGaussians, 
 class Densifier:
     """Accumulates screen-space gradient statistics and densifies / prunes on schedule."""
 
-    def __init__(self, config: DensifyConfig | None = None) -> None:
+    def __init__(self, config: DensifyConfig | None = None, seed: int = 0) -> None:
         self.config = config or DensifyConfig()
+        #: Draws the split children's offsets; its state is checkpointed, so a resumed run
+        #: densifies as an uninterrupted one would.
+        self.generator = torch.Generator().manual_seed(seed)
         self.grad_accum = torch.zeros(0)
         self.count = torch.zeros(0)
         #: Largest projected radius of each Gaussian since the last densification, as a
@@ -159,7 +162,8 @@ class Densifier:
             # New rows: clones copy; split children are sampled inside the parent and shrunk.
             stds = model.log_scales.data[split].exp().repeat(c.split_count, 1)
             rot = quat_to_matrix(model.quats.data[split]).repeat(c.split_count, 1, 1)
-            offsets = (rot @ (torch.randn_like(stds) * stds).unsqueeze(-1)).squeeze(-1)
+            noise = torch.randn(stds.shape, generator=self.generator, dtype=stds.dtype)
+            offsets = (rot @ (noise * stds).unsqueeze(-1)).squeeze(-1)
             shrink = math.log(0.8 * c.split_count)
 
             def grow(name: str, t: Tensor, is_state: bool) -> Tensor:

@@ -71,7 +71,7 @@ class DeformableGaussians(nn.Module):
         self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3, dtype=f32))
         z = torch.randn(n, self.config.embed_dim, generator=generator, dtype=f32) * embed_std
         self.embeddings = nn.Parameter(z)
-        self.deform = DeformationMLP(self.config)
+        self.deform = DeformationMLP(self.config, generator)
 
     @classmethod
     def random_in_box(

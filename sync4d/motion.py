@@ -65,8 +65,17 @@ class MotionConfig:
     #: shape instead of rotating its Gaussians (measured on the embedded scene: 9 of the box's 45
     #: degrees); the images pin the rotation down. Not in the paper.
     refine_steps: int = 0
-    #: Adam learning rate of the refinement (radians and metres per step).
+    #: Adam learning rate of the refinement (radians and metres per step) at each frame's first
+    #: step; it is cosine-annealed to `refine_lr_final` over the frame's steps.
     refine_lr: float = 0.01
+    #: Learning rate at each frame's last refinement step (at most `refine_lr`). Equal to
+    #: `refine_lr` is a constant rate, as before 2026-12-01: Adam's steps then stay ~0.01 rad
+    #: (0.6 degrees) to the end and the result is wherever the last one-view steps left it
+    #: (box 2.04 against 1.28 degrees annealed, docs/results/phase2-robustness.md).
+    refine_lr_final: float = 0.0005
+    #: Training views rendered per refinement step (their losses summed); 0: all of the frame's
+    #: views. 1 draws one view per step in turn.
+    refine_views: int = 1
     #: For ``mlp``: whether it outputs an affine transform (12) instead of SE(3) (6).
     mlp_affine: bool = False
     init_std: float = 1e-4

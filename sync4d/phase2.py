@@ -193,6 +193,12 @@ class Phase2Trainer(Phase1Trainer):
             raise ValueError(f"phase2.motion.refine_steps: expected >= 0, got {mc.refine_steps}")
         if mc.refine_lr <= 0:
             raise ValueError(f"phase2.motion.refine_lr: expected > 0, got {mc.refine_lr}")
+        if mc.refine_lr_final <= 0:
+            raise ValueError(
+                f"phase2.motion.refine_lr_final: expected > 0, got {mc.refine_lr_final}"
+            )
+        if mc.refine_views < 0:
+            raise ValueError(f"phase2.motion.refine_views: expected >= 0, got {mc.refine_views}")
         if mc.refine_steps > 0 and (mc.init != "fit" or mc.kind != "se3"):
             raise ValueError(
                 "phase2.motion.refine_steps refines the fitted SE(3) table: it needs "
@@ -201,7 +207,10 @@ class Phase2Trainer(Phase1Trainer):
         if mc.init == "fit":
             self.fit_motion()
             if mc.refine_steps > 0:
-                self.refine_motion(mc.refine_steps, mc.refine_lr)
+                self.refine_motion(
+                    mc.refine_steps, mc.refine_lr, min(mc.refine_lr_final, mc.refine_lr),
+                    mc.refine_views,
+                )  # fmt: skip
 
     @torch.no_grad()
     def fit_motion(self) -> None:
@@ -211,17 +220,27 @@ class Phase2Trainer(Phase1Trainer):
         pos = [self.model.at_time(float(t))[0].double().numpy() for t in self.times]
         self.motion.fit_to(x0, pos, self.labels.numpy())
 
-    def refine_motion(self, steps: int, lr: float, progress: bool = True) -> None:
+    def refine_motion(
+        self,
+        steps: int,
+        lr: float,
+        lr_final: float | None = None,
+        views_per_step: int = 1,
+        progress: bool = True,
+    ) -> None:
         """Photometric refinement of the SE(3) table (MotionConfig.refine_steps): every moving
         object's Gaussians of the first frame, moved rigidly as R_k (x - c_k) + c_k + d_k (c_k:
         their centroid), are rendered beside D_theta's other Gaussians and compared with each
-        stored frame's training views in time order: `steps` Adam steps (learning rate `lr`)
-        per frame on every R_k and d_k, starting from the previous frame's rotation and from
-        D_theta's centroid offset. The first frame is refined too (4 x `steps`, from the
-        identity): D_theta's Gaussians there may carry their texture turned away from the
-        images (a time-averaged orientation when D_theta morphs instead of rotating), and the
-        motion is relative to that frame. Table entries become the result composed with the
-        first frame's fitted transform; static objects and the model are unchanged."""
+        stored frame's training views in time order: `steps` Adam steps per frame on every
+        R_k and d_k (learning rate cosine-annealed from `lr` to `lr_final`, default `lr`; each
+        step renders `views_per_step` of the frame's views in turn, 0: all), starting from the
+        previous frame's rotation and from D_theta's centroid offset. The first frame is
+        refined too (4 x `steps`, from the identity): D_theta's Gaussians there may carry their
+        texture turned away from the images (a time-averaged orientation when D_theta morphs
+        instead of rotating), and the motion is relative to that frame. Table entries become
+        the result composed with the first frame's fitted transform; static objects and the
+        model are unchanged."""
+        lr_final = lr if lr_final is None else lr_final
         motion = self.motion
         if not isinstance(motion, SE3Table):
             raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
@@ -243,58 +262,97 @@ class Phase2Trainer(Phase1Trainer):
             return torch.zeros(len(moving), 3).index_add_(0, owner, x) / count
 
         model = self.model
-        with torch.no_grad():
-            x_ref, q_ref, s_ref = (v[sel] for v in model.at_time(float(times[0])))
-            centre = centroids(x_ref)
-            offsets = (x_ref - centre[owner]).unsqueeze(-1)  # about each object's centroid
-            r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
-            b0 = motion.translations[moving, 0].detach().float()
-        w = torch.zeros(len(moving), 3)
+
+        @torch.no_grad()
+        def template(t: float) -> tuple[Tensor, ...]:
+            """The objects' D_theta Gaussians at `t`: positions, quaternions, scales, their
+            objects' centroids and offsets [M, 3, 1] about them."""
+            x, q, sc = (v[sel] for v in model.at_time(t))
+            c = centroids(x)
+            return x, q, sc, c, (x - c[owner]).unsqueeze(-1)
+
         bar = Progress(len(times), desc="refine M_phi", log_every=10) if progress else None
-        for j in range(len(times)):
-            t = float(times[j])
-            with torch.no_grad():
-                x_t, q_t, scales = model.at_time(t)
-                scales[sel] = s_ref  # fixed through the frame's steps
-            w_j = w.clone().requires_grad_(True)
-            d_j = (centroids(x_t[sel]) - centre).requires_grad_(True)
-            opt = torch.optim.Adam([w_j, d_j], lr=lr)
-            loss_value = float("nan")
-            # The first frame starts from the fitted pose, which holds whatever orientation
-            # D_theta's texture has there: it gets more steps than the warm-started rest.
-            for s in range((steps if j else 4 * steps) if views[j] else 0):
-                index = views[j][s % len(views[j])]
-                frame = self.scene.train[index]
-                means, quats = x_t.clone(), q_t.clone()
-                moved = (rotvec_to_matrix(w_j)[owner] @ offsets).squeeze(-1)
-                means[sel] = moved + centre[owner] + d_j[owner]
-                quats[sel] = quat_multiply(axis_angle_to_quat(w_j)[owner], q_ref)
-                out = model.render(
-                    frame.camera, t, sh_degree=model.sh_degree, background=self._background,
-                    deformed=(means, quats, scales), threads=self.threads,
-                )  # fmt: skip
-                loss = photometric_loss(
-                    out.features, self._image(index, frame), self.config.lambda_l1,
-                    self.config.lambda_dssim, threads=self.threads,
-                )  # fmt: skip
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                loss_value = float(loss.detach())
-            with torch.no_grad():
-                w = w_j.detach().clone()
-                r = rotvec_to_matrix(w)
-                a_j = r @ r0
-                b_j = (r @ (b0 - centre).unsqueeze(-1)).squeeze(-1) + centre + d_j.detach()
+        done = 0
+
+        def track(order: list[int]) -> dict[int, tuple[Tensor, Tensor]]:
+            """Refine the frames `order` in turn from the template of the first of them, posed
+            by its fitted table entry; (A [K', 3, 3], b [K', 3]) per frame."""
+            nonlocal done
+            x_ref, q_ref, s_ref, centre, offsets = template(float(times[order[0]]))
+            r0 = rotvec_to_matrix(motion.rotvecs[moving, order[0]].detach().float())
+            b0 = motion.translations[moving, order[0]].detach().float()
+            w = torch.zeros(len(moving), 3)
+            poses = {}
+            for n, j in enumerate(order):
+                t = float(times[j])
+                with torch.no_grad():
+                    x_t, q_t, scales = model.at_time(t)
+                    scales[sel] = s_ref  # fixed through the frame's steps
+                w_j = w.clone().requires_grad_(True)
+                d_j = (centroids(x_t[sel]) - centre).requires_grad_(True)
+                opt = torch.optim.Adam([w_j, d_j], lr=lr)
+                loss_value = float("nan")
+                # The template's own frame starts from the fitted pose, which holds whatever
+                # orientation D_theta's texture has there: more steps than the warm starts.
+                n_steps = (steps if n else 4 * steps) if views[j] else 0
+                per_step = len(views[j]) if views_per_step <= 0 else views_per_step
+                drawn = 0
+                for s in range(n_steps):
+                    for g in opt.param_groups:
+                        g["lr"] = cosine_lr(lr, lr_final, s / max(1, n_steps - 1))
+                    opt.zero_grad(set_to_none=True)
+                    loss_value = 0.0
+                    for _ in range(per_step):
+                        index = views[j][drawn % len(views[j])]
+                        drawn += 1
+                        loss = self._rigid_render_loss(
+                            index, t, w_j, d_j, (x_t, q_t, scales), sel, owner, offsets,
+                            centre, q_ref,
+                        )  # fmt: skip
+                        loss.backward()
+                        loss_value += float(loss.detach()) / per_step
+                    opt.step()
+                with torch.no_grad():
+                    w = w_j.detach().clone()
+                    r = rotvec_to_matrix(w)
+                    b_j = (r @ (b0 - centre).unsqueeze(-1)).squeeze(-1) + centre + d_j.detach()
+                    poses[j] = (r @ r0, b_j)
+                done += 1
+                if bar is not None:
+                    bar.update(done, {"loss": f"{loss_value:.4f}"})
+            return poses
+
+        poses = track(list(range(len(times))))
+        with torch.no_grad():
+            for j, (a_j, b_j) in poses.items():
                 for i, k in enumerate(moving):
                     motion.rotvecs[k, j] = torch.as_tensor(
                         matrix_to_rotvec(a_j[i].double().numpy()), dtype=motion.rotvecs.dtype
                     )
                     motion.translations[k, j] = b_j[i].to(motion.translations.dtype)
-            if bar is not None:
-                bar.update(j + 1, {"loss": f"{loss_value:.4f}"})
         if bar is not None:
             bar.close()
+
+    def _rigid_render_loss(
+        self, index, t, w, d, deformed, sel, owner, offsets, centre, q_ref
+    ) -> Tensor:
+        """Photometric loss of training frame `index` when the moving objects' first-frame
+        Gaussians (`sel`; `offsets` [M, 3, 1] about their object's `centre`) are turned by
+        rotation vectors `w` [K', 3] and shifted by `d` [K', 3], the rest as in `deformed`."""
+        frame = self.scene.train[index]
+        x_t, q_t, scales = deformed
+        means, quats = x_t.clone(), q_t.clone()
+        moved = (rotvec_to_matrix(w)[owner] @ offsets).squeeze(-1)
+        means[sel] = moved + centre[owner] + d[owner]
+        quats[sel] = quat_multiply(axis_angle_to_quat(w)[owner], q_ref)
+        out = self.model.render(
+            frame.camera, t, sh_degree=self.model.sh_degree, background=self._background,
+            deformed=(means, quats, scales), threads=self.threads,
+        )  # fmt: skip
+        return photometric_loss(
+            out.features, self._image(index, frame), self.config.lambda_l1,
+            self.config.lambda_dssim, threads=self.threads,
+        )  # fmt: skip
 
     # -- assignment state ----------------------------------------------------------------
     def _set_labels(self, labels: np.ndarray) -> None:

@@ -124,7 +124,7 @@ class Phase1Trainer:
         self.threads = threads
         self.extent = scene_extent(scene)
         self.iteration = 0
-        self.densifier = Densifier(self.config.densify)
+        self.densifier = Densifier(self.config.densify, seed=self.config.seed)
         self._rng = random.Random(self.config.seed)
         self._images: dict[int, torch.Tensor] = {}
         self._background = torch.tensor(self.config.background, dtype=torch.float32)

@@ -116,3 +116,19 @@ def test_near_plane_is_a_model_setting_saved_with_it(tmp_path: Path) -> None:
     assert near_img.alpha.mean() > far_img.alpha.mean() + 0.3
     ck = save_checkpoint(trainer, tmp_path / "near.safetensors")
     assert load_model(ck)[0].near == 0.1
+
+
+def test_resume_continues_the_densification_generator(tmp_path: Path) -> None:
+    trainer, scene, cfg = _trainer(tmp_path)
+    fresh = torch.Generator().manual_seed(cfg.seed).get_state()
+    trainer.train(9)
+    # Splits have drawn child offsets before the save, so its generator state is not fresh.
+    assert not torch.equal(trainer.densifier.generator.get_state(), fresh)
+    ck = save_checkpoint(trainer, tmp_path / "run" / "ckpt.safetensors")
+    trainer.train(8)  # two more densification steps (12, 16)
+    resumed = resume_trainer(ck, scene, cfg, threads=1)
+    resumed.train(8)
+    assert resumed.model.num_gaussians == trainer.model.num_gaussians
+    assert torch.equal(resumed.model.means.data, trainer.model.means.data)
+    assert torch.equal(resumed.densifier.generator.get_state(),
+                       trainer.densifier.generator.get_state())  # fmt: skip

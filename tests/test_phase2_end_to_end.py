@@ -1,9 +1,12 @@
 """Phase 2 end to end on the embedded synthetic scene: `fit` (Phase 1 from random points, the
 photometric refinement of M_phi, Phase 2) with `configs/synthetic.toml`, then every object's
-exported motion against the scene's known SE(3) trajectories (issue 4's acceptance).
+exported motion against the scene's known SE(3) trajectories (issue 4's acceptance), with
+torch's default CPU kernels, whatever the machine has.
 
-About 15 minutes on two cores, hence `slow`; the unit tests of each piece are in
-test_phase2.py.
+Slow (minutes on two cores). The spread over seeds and kernel sets is
+`scripts/phase2_study.py`; the unit tests of each piece are in test_phase2.py. A smaller
+scene (96x96, 20 time steps, 2000 Phase 1 iterations) was tried as a cheaper test and does
+not hold the bounds (ball 1.7-6.1, box 5.4-6.1 degrees; docs/results/phase2-robustness.md).
 """
 
 from __future__ import annotations
@@ -21,7 +24,6 @@ from sync4d.data.detect import load_scene
 
 pytestmark = pytest.mark.slow
 
-
 def test_fit_recovers_the_synthetic_scene_motion(tmp_path) -> None:
     root = syn.write_synthetic_scene(tmp_path / "scene", syn.SyntheticConfig())
     cfg = load_config(repo_configs() / "synthetic.toml", ["eval_every=0", "checkpoint_every=0"])
@@ -34,21 +36,14 @@ def test_fit_recovers_the_synthetic_scene_motion(tmp_path) -> None:
     export = {k.removeprefix("export."): v.astype(np.float64)
               for k, v in tensors.items() if k.startswith("export.")}  # fmt: skip
     gt = syn.load_ground_truth(root)
-    errors = {}
-    for label in gt.ids:
-        rot, centre = gt.motion_errors(
-            export["rotations"][label], export["translations"][label], export["times"], label
-        )
-        errors[gt.names[gt.ids.index(label)]] = (
-            round(float(rot.mean()), 3), round(float(100 * centre.mean() / gt.extent), 3)
-        )
+    errors = gt.export_errors(export)
     print("mean rotation error (degrees), mean centre error (% of the extent):", errors)
-    for label in gt.ids:
-        rot, centre = errors[gt.names[gt.ids.index(label)]]
-        if gt.static[gt.ids.index(label)]:
-            assert rot < 1.0 and centre < 0.5, (label, rot, centre)
+    for name, static in zip(gt.names, gt.static, strict=True):
+        rot, centre = errors[name]
+        if static:
+            assert rot < 1.0 and centre < 0.5, (name, rot, centre)
         else:
-            assert rot < 2.0 and centre < 2.0, (label, rot, centre)
+            assert rot < 2.0 and centre < 2.0, (name, rot, centre)
 
     diag = json.loads((run / PHASE2_FILE).read_text())
     assert diag["shuffle_ratio"] >= 1.5, diag["shuffle_ratio"]

@@ -70,10 +70,16 @@ def repo_configs() -> Path:
 
 
 def _set_threads(threads: int | None) -> int:
+    """Use `threads` CPU threads (all the process may use when None) and torch's deterministic
+    kernels: with a fixed seed, thread count and machine, a run is then bit-identical to the
+    last. Without them the backward of indexing with repeated indices (M_phi's `A[labels]`,
+    the refinement's per-object gathers) adds from several threads in a timing-dependent
+    order and Phase 2 differed run to run at 2 threads (docs/results/reproducibility.md)."""
     import os
 
     n = threads or len(os.sched_getaffinity(0))
     torch.set_num_threads(n)
+    torch.use_deterministic_algorithms(True, warn_only=True)
     return n
 
 

@@ -394,6 +394,18 @@ class SyntheticGroundTruth:
         centre = np.linalg.norm(a_rel @ tg[rows[0]] + b_rel - tg[rows], axis=1)
         return rot, centre
 
+    def export_errors(self, export: dict[str, np.ndarray]) -> dict[str, tuple[float, float]]:
+        """Mean rotation error (degrees) and mean centre error (% of `extent`) of every object,
+        by name, for a Phase 2 motion export (`rotations` [K, T, 3, 3], `translations`
+        [K, T, 3], `times` [T]; the checkpoint's `export.*` tensors)."""
+        out = {}
+        for name, label in zip(self.names, self.ids, strict=True):
+            rot, centre = self.motion_errors(
+                export["rotations"][label], export["translations"][label], export["times"], label
+            )
+            out[name] = (float(rot.mean()), float(100.0 * centre.mean() / self.extent))
+        return out
+
 
 def load_ground_truth(root: str | Path) -> SyntheticGroundTruth:
     """Read `root/ground_truth.json`; `DatasetError` naming the file when it is malformed."""
