@@ -262,74 +262,56 @@ class Phase2Trainer(Phase1Trainer):
             return torch.zeros(len(moving), 3).index_add_(0, owner, x) / count
 
         model = self.model
-
-        @torch.no_grad()
-        def template(t: float) -> tuple[Tensor, ...]:
-            """The objects' D_theta Gaussians at `t`: positions, quaternions, scales, their
-            objects' centroids and offsets [M, 3, 1] about them."""
-            x, q, sc = (v[sel] for v in model.at_time(t))
-            c = centroids(x)
-            return x, q, sc, c, (x - c[owner]).unsqueeze(-1)
-
-        bar = Progress(len(times), desc="refine M_phi", log_every=10) if progress else None
-        done = 0
-
-        def track(order: list[int]) -> dict[int, tuple[Tensor, Tensor]]:
-            """Refine the frames `order` in turn from the template of the first of them, posed
-            by its fitted table entry; (A [K', 3, 3], b [K', 3]) per frame."""
-            nonlocal done
-            x_ref, q_ref, s_ref, centre, offsets = template(float(times[order[0]]))
-            r0 = rotvec_to_matrix(motion.rotvecs[moving, order[0]].detach().float())
-            b0 = motion.translations[moving, order[0]].detach().float()
-            w = torch.zeros(len(moving), 3)
-            poses = {}
-            for n, j in enumerate(order):
-                t = float(times[j])
-                with torch.no_grad():
-                    x_t, q_t, scales = model.at_time(t)
-                    scales[sel] = s_ref  # fixed through the frame's steps
-                w_j = w.clone().requires_grad_(True)
-                d_j = (centroids(x_t[sel]) - centre).requires_grad_(True)
-                opt = torch.optim.Adam([w_j, d_j], lr=lr)
-                loss_value = float("nan")
-                # The template's own frame starts from the fitted pose, which holds whatever
-                # orientation D_theta's texture has there: more steps than the warm starts.
-                n_steps = (steps if n else 4 * steps) if views[j] else 0
-                per_step = len(views[j]) if views_per_step <= 0 else views_per_step
-                drawn = 0
-                for s in range(n_steps):
-                    for g in opt.param_groups:
-                        g["lr"] = cosine_lr(lr, lr_final, s / max(1, n_steps - 1))
-                    opt.zero_grad(set_to_none=True)
-                    loss_value = 0.0
-                    for _ in range(per_step):
-                        index = views[j][drawn % len(views[j])]
-                        drawn += 1
-                        loss = self._rigid_render_loss(
-                            index, t, w_j, d_j, (x_t, q_t, scales), sel, owner, offsets,
-                            centre, q_ref,
-                        )  # fmt: skip
-                        loss.backward()
-                        loss_value += float(loss.detach()) / per_step
-                    opt.step()
-                with torch.no_grad():
-                    w = w_j.detach().clone()
-                    r = rotvec_to_matrix(w)
-                    b_j = (r @ (b0 - centre).unsqueeze(-1)).squeeze(-1) + centre + d_j.detach()
-                    poses[j] = (r @ r0, b_j)
-                done += 1
-                if bar is not None:
-                    bar.update(done, {"loss": f"{loss_value:.4f}"})
-            return poses
-
-        poses = track(list(range(len(times))))
         with torch.no_grad():
-            for j, (a_j, b_j) in poses.items():
+            x_ref, q_ref, s_ref = (v[sel] for v in model.at_time(float(times[0])))
+            centre = centroids(x_ref)
+            offsets = (x_ref - centre[owner]).unsqueeze(-1)  # about each object's centroid
+        # The template's pose: the table's fitted first-frame transform (canonical -> world).
+        r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
+        b0 = motion.translations[moving, 0].detach().float()
+        w = torch.zeros(len(moving), 3)
+        bar = Progress(len(times), desc="refine M_phi", log_every=10) if progress else None
+        for j in range(len(times)):
+            t = float(times[j])
+            with torch.no_grad():
+                x_t, q_t, scales = model.at_time(t)
+                scales[sel] = s_ref  # fixed through the frame's steps
+            w_j = w.clone().requires_grad_(True)
+            d_j = (centroids(x_t[sel]) - centre).requires_grad_(True)
+            opt = torch.optim.Adam([w_j, d_j], lr=lr)
+            loss_value = float("nan")
+            # The first frame starts from the fitted pose, which holds whatever orientation
+            # D_theta's texture has there: it gets more steps than the warm-started rest.
+            n_steps = (steps if j else 4 * steps) if views[j] else 0
+            per_step = len(views[j]) if views_per_step <= 0 else views_per_step
+            drawn = 0
+            for s in range(n_steps):
+                for g in opt.param_groups:
+                    g["lr"] = cosine_lr(lr, lr_final, s / max(1, n_steps - 1))
+                opt.zero_grad(set_to_none=True)
+                loss_value = 0.0
+                for _ in range(per_step):
+                    index = views[j][drawn % len(views[j])]
+                    drawn += 1
+                    loss = self._rigid_render_loss(
+                        index, t, w_j, d_j, (x_t, q_t, scales), sel, owner, offsets, centre,
+                        q_ref,
+                    )  # fmt: skip
+                    loss.backward()
+                    loss_value += float(loss.detach()) / per_step
+                opt.step()
+            with torch.no_grad():
+                w = w_j.detach().clone()
+                r = rotvec_to_matrix(w)
+                a_j = r @ r0
+                b_j = (r @ (b0 - centre).unsqueeze(-1)).squeeze(-1) + centre + d_j.detach()
                 for i, k in enumerate(moving):
                     motion.rotvecs[k, j] = torch.as_tensor(
                         matrix_to_rotvec(a_j[i].double().numpy()), dtype=motion.rotvecs.dtype
                     )
                     motion.translations[k, j] = b_j[i].to(motion.translations.dtype)
+            if bar is not None:
+                bar.update(j + 1, {"loss": f"{loss_value:.4f}"})
         if bar is not None:
             bar.close()
 
