@@ -48,9 +48,8 @@ def main() -> None:
     report("closed-form fit", trainer)
     if mc.refine_steps > 0:
         trainer.refine_motion(
-            mc.refine_steps, mc.refine_lr, min(mc.refine_lr_final, mc.refine_lr),
-            mc.refine_views, progress=False,
-        )  # fmt: skip
+            mc.refine_steps, mc.refine_lr, mc.refine_lr_final, mc.refine_views, progress=False
+        )
         report("refined", trainer)
     if args.per_frame:
         export = trainer.motion_export()

@@ -208,9 +208,8 @@ class Phase2Trainer(Phase1Trainer):
             self.fit_motion()
             if mc.refine_steps > 0:
                 self.refine_motion(
-                    mc.refine_steps, mc.refine_lr, min(mc.refine_lr_final, mc.refine_lr),
-                    mc.refine_views,
-                )  # fmt: skip
+                    mc.refine_steps, mc.refine_lr, mc.refine_lr_final, mc.refine_views
+                )
 
     @torch.no_grad()
     def fit_motion(self) -> None:
@@ -232,15 +231,15 @@ class Phase2Trainer(Phase1Trainer):
         object's Gaussians of the first frame, moved rigidly as R_k (x - c_k) + c_k + d_k (c_k:
         their centroid), are rendered beside D_theta's other Gaussians and compared with each
         stored frame's training views in time order: `steps` Adam steps per frame on every
-        R_k and d_k (learning rate cosine-annealed from `lr` to `lr_final`, default `lr`; each
-        step renders `views_per_step` of the frame's views in turn, 0: all), starting from the
-        previous frame's rotation and from D_theta's centroid offset. The first frame is
-        refined too (4 x `steps`, from the identity): D_theta's Gaussians there may carry their
-        texture turned away from the images (a time-averaged orientation when D_theta morphs
-        instead of rotating), and the motion is relative to that frame. Table entries become
-        the result composed with the first frame's fitted transform; static objects and the
-        model are unchanged."""
-        lr_final = lr if lr_final is None else lr_final
+        R_k and d_k (learning rate cosine-annealed from `lr` to `lr_final`, at most and by
+        default `lr`; each step renders `views_per_step` of the frame's views in turn, 0: all),
+        starting from the previous frame's rotation and from D_theta's centroid offset. The
+        first frame is refined too (4 x `steps`, from the identity): D_theta's Gaussians there
+        may carry their texture turned away from the images (a time-averaged orientation when
+        D_theta morphs instead of rotating), and the motion is relative to that frame. Table
+        entries become the result composed with the first frame's fitted transform; static
+        objects and the model are unchanged."""
+        lr_final = lr if lr_final is None else min(lr_final, lr)
         motion = self.motion
         if not isinstance(motion, SE3Table):
             raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
@@ -266,9 +265,8 @@ class Phase2Trainer(Phase1Trainer):
             x_ref, q_ref, s_ref = (v[sel] for v in model.at_time(float(times[0])))
             centre = centroids(x_ref)
             offsets = (x_ref - centre[owner]).unsqueeze(-1)  # about each object's centroid
-        # The template's pose: the table's fitted first-frame transform (canonical -> world).
-        r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
-        b0 = motion.translations[moving, 0].detach().float()
+            r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
+            b0 = motion.translations[moving, 0].detach().float()
         w = torch.zeros(len(moving), 3)
         bar = Progress(len(times), desc="refine M_phi", log_every=10) if progress else None
         for j in range(len(times)):

@@ -132,3 +132,19 @@ def test_resume_continues_the_densification_generator(tmp_path: Path) -> None:
     assert torch.equal(resumed.model.means.data, trainer.model.means.data)
     assert torch.equal(resumed.densifier.generator.get_state(),
                        trainer.densifier.generator.get_state())  # fmt: skip
+
+
+def test_a_bad_densification_generator_state_is_named(tmp_path: Path) -> None:
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    trainer, scene, cfg = _trainer(tmp_path)
+    ck = save_checkpoint(trainer, tmp_path / "ok.safetensors")
+    with safe_open(str(ck), framework="pt") as f:
+        header = f.metadata()
+    tensors = load_file(str(ck))
+    tensors["densify.rng"] = tensors["densify.rng"][:10].clone()  # a truncated state
+    bad = tmp_path / "rng.safetensors"
+    save_file(tensors, str(bad), metadata=header)
+    with pytest.raises(CheckpointError, match="rng.safetensors: bad 'densify.rng'"):
+        resume_trainer(bad, scene, cfg, threads=1)

@@ -279,3 +279,11 @@ def test_photometric_refinement_recovers_rotations_the_correspondences_miss(orac
     # The static pillar keeps its fitted identity transform.
     rot, cen = _relative_errors(refined, gt, 3)
     assert rot < 0.5 and cen < 0.005
+
+
+def test_bad_refinement_schedules_are_named(oracle):
+    scene, model, _, _ = oracle
+    with pytest.raises(ValueError, match="refine_lr_final: expected > 0"):
+        _trainer(scene, model, init="fit", refine_steps=5, refine_lr_final=0.0)
+    with pytest.raises(ValueError, match="refine_views: expected >= 0"):
+        _trainer(scene, model, init="fit", refine_steps=5, refine_views=-1)

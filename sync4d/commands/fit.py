@@ -74,7 +74,7 @@ def _set_threads(threads: int | None) -> int:
     kernels: with a fixed seed, thread count and machine, a run is then bit-identical to the
     last. Without them the backward of indexing with repeated indices (M_phi's `A[labels]`,
     the refinement's per-object gathers) adds from several threads in a timing-dependent
-    order and Phase 2 differed run to run at 2 threads (docs/results/reproducibility.md)."""
+    order and Phase 2 differed run to run at 2 threads (docs/results/phase2-robustness.md)."""
     import os
 
     n = threads or len(os.sched_getaffinity(0))
