@@ -48,8 +48,10 @@ def main() -> None:
     report("closed-form fit", trainer)
     if mc.refine_steps > 0:
         trainer.refine_motion(
-            mc.refine_steps, mc.refine_lr, mc.refine_lr_final, mc.refine_views, progress=False
-        )
+            mc.refine_steps, mc.refine_lr, mc.refine_lr_final, mc.refine_views,
+            mc.refine_texture_rounds, mc.refine_colour_lr, mc.refine_colour_epochs,
+            mc.refine_retrack_steps or None, mc.refine_retrack_lr or None, progress=False,
+        )  # fmt: skip
         report("refined", trainer)
     if args.per_frame:
         export = trainer.motion_export()

@@ -4,6 +4,10 @@ torch CPU kernels, each object's recovered motion against the known trajectories
     python scripts/phase2_study.py --seeds 1 2 3 4 5 --kernels default avx2 \\
         --jobs 2 --json docs/results/phase2-study.json
 
+With `--phase1-cache DIR` each setting's Phase 1 is fitted once (`fit --phases 1`) and kept
+there, and each study run fits Phase 2 on a copy (`fit --phases 2`): the same two halves that
+one `fit` runs in one process, so a change to Phase 2 is re-measured without Phase 1.
+
 Each run is its own `python` process (ATEN_CPU_CAPABILITY is read when torch starts), with
 `--threads` torch and rasterizer threads; `--jobs` runs go at once. Each fits the scene and
 schedule of tests/test_phase2_end_to_end.py (the embedded scene, 128x128, 40 time steps, with
@@ -31,7 +35,7 @@ STATIC_BOUND = (1.0, 0.5)
 SHUFFLE_BOUND = 1.5
 
 ONE_RUN = r"""
-import json, sys
+import json, shutil, sys
 from pathlib import Path
 import numpy as np, safetensors.numpy
 from sync4d.commands.fit import CHECKPOINT_NAME, PHASE2_FILE, run_fit
@@ -41,10 +45,19 @@ from sync4d.commands.fit import repo_configs
 from sync4d.config import load_config
 
 scene_kind, seed, threads, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4])
+phase1 = Path(sys.argv[5]) if sys.argv[5] else None
 root = syn.write_synthetic_scene(out / "scene", syn.SyntheticConfig(frames=int(scene_kind)))
-cfg = load_config(repo_configs() / "synthetic.toml",
-                  ["eval_every=0", "checkpoint_every=0", f"phase1.seed={seed}"])
-summary = run_fit(load_scene(root), cfg, out / "run", root, threads=threads, quiet=True)
+sets = ["eval_every=0", "checkpoint_every=0", f"phase1.seed={seed}"]
+cfg = load_config(repo_configs() / "synthetic.toml", sets)
+if phase1 is None:
+    summary = run_fit(load_scene(root), cfg, out / "run", root, threads=threads, quiet=True)
+else:  # fit's two halves: Phase 1 once into the cache, then --phases 2 on a copy of it
+    if not (phase1 / CHECKPOINT_NAME).exists():
+        cfg1 = load_config(repo_configs() / "synthetic.toml", sets + ["phases=1"])
+        run_fit(load_scene(root), cfg1, phase1, root, threads=threads, quiet=True)
+    shutil.copytree(phase1, out / "run")
+    cfg2 = load_config(repo_configs() / "synthetic.toml", sets + ["phases=2"])
+    summary = run_fit(load_scene(root), cfg2, out / "run", root, threads=threads, quiet=True)
 tensors = safetensors.numpy.load_file(str(out / "run" / CHECKPOINT_NAME))
 export = {k.removeprefix("export."): v.astype(np.float64)
           for k, v in tensors.items() if k.startswith("export.")}
@@ -59,8 +72,15 @@ print("RESULT " + json.dumps({
 """
 
 
-def run_one(frames: int, seed: int, kernels: str, threads: int) -> dict:
-    """One `fit` in a fresh process; its errors, shuffle ratio, PSNR and wall time."""
+def run_one(
+    frames: int, seed: int, kernels: str, threads: int, phase1_cache: Path | None = None
+) -> dict:
+    """One `fit` in a fresh process; its errors, shuffle ratio, PSNR and wall time. With
+    `phase1_cache` its Phase 1 runs once (`fit --phases 1`) into a folder there named by the
+    setting, and each call fits Phase 2 (`fit --phases 2`) on a copy of it."""
+    phase1 = ""
+    if phase1_cache is not None:
+        phase1 = str(phase1_cache.resolve() / f"frames{frames}-{kernels}-t{threads}-seed{seed}")
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "RAYON_NUM_THREADS": str(threads)}
     env.pop("ATEN_CPU_CAPABILITY", None)
     if kernels != "default":
@@ -68,7 +88,7 @@ def run_one(frames: int, seed: int, kernels: str, threads: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="sync4d-study-") as tmp:
         t0 = time.perf_counter()
         done = subprocess.run(
-            [sys.executable, "-c", ONE_RUN, str(frames), str(seed), str(threads), tmp],
+            [sys.executable, "-c", ONE_RUN, str(frames), str(seed), str(threads), tmp, phase1],
             env=env, capture_output=True, text=True,
         )  # fmt: skip
         wall = time.perf_counter() - t0
@@ -117,11 +137,18 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1, help="threads per run")
     ap.add_argument("--jobs", type=int, default=2, help="runs at once")
     ap.add_argument("--json", type=Path, help="write every result here")
+    ap.add_argument(
+        "--phase1-cache", type=Path,
+        help="keep each setting's Phase 1 run here and reuse it (fit --phases 1, then 2)",
+    )  # fmt: skip
     args = ap.parse_args()
     jobs = [(s, k) for k in args.kernels for s in args.seeds]
     results = []
     with ThreadPoolExecutor(args.jobs) as pool:
-        futures = [pool.submit(run_one, args.frames, s, k, args.threads) for s, k in jobs]
+        futures = [
+            pool.submit(run_one, args.frames, s, k, args.threads, args.phase1_cache)
+            for s, k in jobs
+        ]
         for i, f in enumerate(futures, 1):
             r = f.result()
             results.append(r)

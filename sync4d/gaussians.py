@@ -104,14 +104,16 @@ class DeformableGaussians(nn.Module):
         background: Tensor | None = None,
         deform: bool = True,
         deformed: tuple[Tensor, Tensor, Tensor] | None = None,
+        sh_dc: Tensor | None = None,
         **raster_kw,
     ) -> raster.RasterOutput:
         """Render the scene deformed to time `t` from `camera` (RGB features from SH of degree
         `sh_degree`, default the model's; the canonical scene when `deform` is False).
-        `deformed` passes `at_time(t)`'s result when the caller already computed it."""
+        `deformed` passes `at_time(t)`'s result when the caller already computed it; `sh_dc`
+        [N, 1, 3] replaces the model's base colours."""
         means, quats, scales = deformed if deformed is not None else self.at_time(t, deform)
         viewmat = torch.as_tensor(camera.viewmat, dtype=torch.float32)
-        coeffs = torch.cat([self.sh_dc, self.sh_rest], dim=1)
+        coeffs = torch.cat([self.sh_dc if sh_dc is None else sh_dc, self.sh_rest], dim=1)
         degree = self.sh_degree if sh_degree is None else sh_degree
         colors = raster.sh_features(means, coeffs, viewmat, degree)
         K = torch.as_tensor(camera.K, dtype=torch.float32)

@@ -76,6 +76,21 @@ class MotionConfig:
     #: Training views rendered per refinement step (their losses summed); 0: all of the frame's
     #: views. 1 draws one view per step in turn.
     refine_views: int = 1
+    #: Rounds of texture fit and re-tracking after the first tracking pass: the template's
+    #: base colours (a copy of the moving Gaussians' SH DC) are fitted to every training view
+    #: with the poses fixed, then every frame is tracked again from its pose. D_theta's colours
+    #: are averaged over a morph, so the rigidly turned template is blurred where the object
+    #: turned most and pulls those poses toward the blur. Not in the paper.
+    refine_texture_rounds: int = 0
+    #: Adam learning rate of the texture fit (SH DC units per step).
+    refine_colour_lr: float = 0.005
+    #: Passes over every training view in each texture fit (one view per step).
+    refine_colour_epochs: int = 2
+    #: Adam steps per frame when re-tracking after a texture fit; 0: `refine_steps`.
+    refine_retrack_steps: int = 0
+    #: Adam learning rate at the first re-tracking step of each frame (annealed to
+    #: `refine_lr_final` like the first pass); 0: `refine_lr`.
+    refine_retrack_lr: float = 0.0
     #: For ``mlp``: whether it outputs an affine transform (12) instead of SE(3) (6).
     mlp_affine: bool = False
     init_std: float = 1e-4

@@ -150,6 +150,78 @@ def _scale_grad(x: Tensor, scale: float) -> Tensor:
     return x.detach() + scale * (x - x.detach())
 
 
+@dataclass
+class _RigidTemplate:
+    """The refinement's rigid template: the moving objects' Gaussians of the first frame.
+    `sel` [N] marks them, `owner` [M] their index in `moving`, `offsets` [M, 3, 1] their
+    positions about their object's centroid `centre` [K', 3], `quats` [M, 4] and `scales`
+    [M, 3] their shape there; `views` the training frame indices per stored frame; `sh_dc`
+    [N, 1, 3] the base colours rendered (a copy of the model's that the texture fit changes)."""
+
+    moving: list[int]
+    sel: Tensor
+    owner: Tensor
+    offsets: Tensor
+    centre: Tensor
+    quats: Tensor
+    scales: Tensor
+    views: list[list[int]]
+    sh_dc: Tensor
+
+    @property
+    def rows(self) -> Tensor:
+        """Indices [M] of the template's Gaussians in the model."""
+        return torch.nonzero(self.sel).squeeze(-1)
+
+    @classmethod
+    @torch.no_grad()
+    def build(cls, trainer: Phase2Trainer, moving: list[int]) -> _RigidTemplate:
+        """The template of `moving` objects from `trainer`'s model and labels."""
+        views: list[list[int]] = [[] for _ in trainer.times]
+        for index, f in enumerate(trainer.scene.train):
+            views[trainer.motion.frame_index(f.time)].append(index)
+        slot = torch.full_like(trainer.labels, -1)  # index into `moving`, -1 elsewhere
+        for i, k in enumerate(moving):
+            slot[trainer.labels == k] = i
+        sel = slot >= 0
+        owner = slot[sel]
+        x_ref, q_ref, s_ref = (v[sel] for v in trainer.model.at_time(float(trainer.times[0])))
+        template = cls(moving, sel, owner, torch.zeros(0), torch.zeros(0), q_ref, s_ref, views,
+                       trainer.model.sh_dc.detach().clone())  # fmt: skip
+        template.centre = template.centroids(x_ref)
+        template.offsets = (x_ref - template.centre[owner]).unsqueeze(-1)
+        return template
+
+    def centroids(self, x: Tensor) -> Tensor:
+        """Each moving object's centroid [K', 3] of the template's points `x` [M, 3]."""
+        count = torch.bincount(self.owner, minlength=len(self.moving)).clamp_min(1)
+        return torch.zeros(len(self.moving), 3).index_add_(0, self.owner, x) / count[:, None]
+
+    @torch.no_grad()
+    def deformed(self, model: DeformableGaussians, t: float) -> tuple[Tensor, Tensor, Tensor]:
+        """D_theta's Gaussians at `t` with the template's scales (fixed while it is posed)."""
+        x_t, q_t, scales = model.at_time(t)
+        scales[self.sel] = self.scales
+        return x_t, q_t, scales
+
+    @torch.no_grad()
+    def centroid_offset(self, model: DeformableGaussians, t: float) -> Tensor:
+        """D_theta's shift [K', 3] of each moving object's centroid from the first frame to `t`."""
+        return self.centroids(model.at_time(t)[0][self.sel]) - self.centre
+
+    def pose(
+        self, w: Tensor, d: Tensor, deformed: tuple[Tensor, Tensor, Tensor]
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """`deformed` with the template's Gaussians turned by rotation vectors `w` [K', 3] about
+        their centroids and shifted by `d` [K', 3] (differentiable in both)."""
+        x_t, q_t, scales = deformed
+        means, quats = x_t.clone(), q_t.clone()
+        moved = (rotvec_to_matrix(w)[self.owner] @ self.offsets).squeeze(-1)
+        means[self.sel] = moved + self.centre[self.owner] + d[self.owner]
+        quats[self.sel] = quat_multiply(axis_angle_to_quat(w)[self.owner], self.quats)
+        return means, quats, scales
+
+
 class Phase2Trainer(Phase1Trainer):
     """Phase 1's loop plus M_phi and the Phase 2 regularisers, on a Phase 1 model."""
 
@@ -179,6 +251,9 @@ class Phase2Trainer(Phase1Trainer):
         if mc.init not in ("identity", "fit"):
             raise ValueError(f"phase2.motion.init: expected 'identity' or 'fit', got {mc.init!r}")
         self.motion: ObjectMotion = make_motion(mc, k, self.times, self.config.seed)
+        #: Base colours [N, 1, 3] the refinement's template was last rendered with (its texture
+        #: fit's result; None before a refinement).
+        self.template_colours: Tensor | None = None
         if mc.init == "fit" and not self.motion.fits_closed_form:
             raise ValueError(
                 f"phase2.motion.init=fit: the {mc.kind} M_phi has no closed-form start; "
@@ -197,6 +272,14 @@ class Phase2Trainer(Phase1Trainer):
             raise ValueError(
                 f"phase2.motion.refine_lr_final: expected > 0, got {mc.refine_lr_final}"
             )
+        for name in ("refine_texture_rounds", "refine_colour_epochs", "refine_retrack_steps",
+                     "refine_retrack_lr"):  # fmt: skip
+            if getattr(mc, name) < 0:
+                raise ValueError(f"phase2.motion.{name}: expected >= 0, got {getattr(mc, name)}")
+        if mc.refine_colour_lr <= 0:
+            raise ValueError(
+                f"phase2.motion.refine_colour_lr: expected > 0, got {mc.refine_colour_lr}"
+            )
         if mc.refine_views < 0:
             raise ValueError(f"phase2.motion.refine_views: expected >= 0, got {mc.refine_views}")
         if mc.refine_steps > 0 and (mc.init != "fit" or mc.kind != "se3"):
@@ -208,8 +291,10 @@ class Phase2Trainer(Phase1Trainer):
             self.fit_motion()
             if mc.refine_steps > 0:
                 self.refine_motion(
-                    mc.refine_steps, mc.refine_lr, mc.refine_lr_final, mc.refine_views
-                )
+                    mc.refine_steps, mc.refine_lr, mc.refine_lr_final, mc.refine_views,
+                    mc.refine_texture_rounds, mc.refine_colour_lr, mc.refine_colour_epochs,
+                    mc.refine_retrack_steps or None, mc.refine_retrack_lr or None,
+                )  # fmt: skip
 
     @torch.no_grad()
     def fit_motion(self) -> None:
@@ -225,9 +310,14 @@ class Phase2Trainer(Phase1Trainer):
         lr: float,
         lr_final: float | None = None,
         views_per_step: int = 1,
+        texture_rounds: int = 0,
+        colour_lr: float = 0.005,
+        colour_epochs: int = 2,
+        retrack_steps: int | None = None,
+        retrack_lr: float | None = None,
         progress: bool = True,
     ) -> None:
-        """Photometric refinement of the SE(3) table (MotionConfig.refine_steps): every moving
+        """Photometric refinement of the SE(3) table (MotionConfig.refine_*): every moving
         object's Gaussians of the first frame, moved rigidly as R_k (x - c_k) + c_k + d_k (c_k:
         their centroid), are rendered beside D_theta's other Gaussians and compared with each
         stored frame's training views in time order: `steps` Adam steps per frame on every
@@ -236,10 +326,20 @@ class Phase2Trainer(Phase1Trainer):
         starting from the previous frame's rotation and from D_theta's centroid offset. The
         first frame is refined too (4 x `steps`, from the identity): D_theta's Gaussians there
         may carry their texture turned away from the images (a time-averaged orientation when
-        D_theta morphs instead of rotating), and the motion is relative to that frame. Table
-        entries become the result composed with the first frame's fitted transform; static
-        objects and the model are unchanged."""
+        D_theta morphs instead of rotating), and the motion is relative to that frame.
+
+        Then `texture_rounds` times: the template's base colours (SH DC of the moving
+        Gaussians, a copy: the model keeps its own) are fitted to every training view with the
+        poses fixed (`colour_epochs` passes in a seeded random order, Adam at `colour_lr`), and
+        every frame is tracked again from its last pose with `retrack_steps` steps (default
+        `steps`) from rate `retrack_lr` (default `lr`). D_theta's colours are a texture
+        averaged over a morph; seen through the rigid motion it is blurred where the object
+        turned most, which pulls the poses there toward the blur. Table entries become the
+        result composed with the first frame's fitted transform; static objects and the model
+        are unchanged."""
         lr_final = lr if lr_final is None else min(lr_final, lr)
+        retrack_steps = steps if retrack_steps is None else retrack_steps
+        retrack_lr = lr if retrack_lr is None else retrack_lr
         motion = self.motion
         if not isinstance(motion, SE3Table):
             raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
@@ -247,87 +347,141 @@ class Phase2Trainer(Phase1Trainer):
         times = self.times
         if not moving or len(times) < 2 or steps <= 0:
             return
-        views: list[list[int]] = [[] for _ in times]  # training frame indices per stored time
-        for index, f in enumerate(self.scene.train):
-            views[motion.frame_index(f.time)].append(index)
-        slot = torch.full_like(self.labels, -1)  # index into `moving`, -1 elsewhere
-        for i, k in enumerate(moving):
-            slot[self.labels == k] = i
-        sel = slot >= 0
-        owner = slot[sel]
-        count = torch.bincount(owner, minlength=len(moving)).clamp_min(1).unsqueeze(-1)
-
-        def centroids(x: Tensor) -> Tensor:  # [len(moving), 3] of the objects' points x [M, 3]
-            return torch.zeros(len(moving), 3).index_add_(0, owner, x) / count
-
-        model = self.model
+        template = _RigidTemplate.build(self, moving)
         with torch.no_grad():
-            x_ref, q_ref, s_ref = (v[sel] for v in model.at_time(float(times[0])))
-            centre = centroids(x_ref)
-            offsets = (x_ref - centre[owner]).unsqueeze(-1)  # about each object's centroid
             r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
             b0 = motion.translations[moving, 0].detach().float()
+        total = len(times) * (1 + texture_rounds) + texture_rounds
+        bar = Progress(total, desc="refine M_phi", log_every=10) if progress else None
+        done = 0
+
+        def advance(loss: float) -> None:
+            nonlocal done
+            done += 1
+            if bar is not None:
+                bar.update(done, {"loss": f"{loss:.4f}"})
+
+        poses: list[tuple[Tensor, Tensor]] = []
         w = torch.zeros(len(moving), 3)
-        bar = Progress(len(times), desc="refine M_phi", log_every=10) if progress else None
         for j in range(len(times)):
-            t = float(times[j])
-            with torch.no_grad():
-                x_t, q_t, scales = model.at_time(t)
-                scales[sel] = s_ref  # fixed through the frame's steps
-            w_j = w.clone().requires_grad_(True)
-            d_j = (centroids(x_t[sel]) - centre).requires_grad_(True)
-            opt = torch.optim.Adam([w_j, d_j], lr=lr)
-            loss_value = float("nan")
             # The first frame starts from the fitted pose, which holds whatever orientation
             # D_theta's texture has there: it gets more steps than the warm-started rest.
-            n_steps = (steps if j else 4 * steps) if views[j] else 0
-            per_step = len(views[j]) if views_per_step <= 0 else views_per_step
-            drawn = 0
-            for s in range(n_steps):
-                for g in opt.param_groups:
-                    g["lr"] = cosine_lr(lr, lr_final, s / max(1, n_steps - 1))
-                opt.zero_grad(set_to_none=True)
-                loss_value = 0.0
-                for _ in range(per_step):
-                    index = views[j][drawn % len(views[j])]
-                    drawn += 1
-                    loss = self._rigid_render_loss(
-                        index, t, w_j, d_j, (x_t, q_t, scales), sel, owner, offsets, centre,
-                        q_ref,
-                    )  # fmt: skip
-                    loss.backward()
-                    loss_value += float(loss.detach()) / per_step
-                opt.step()
-            with torch.no_grad():
-                w = w_j.detach().clone()
+            d = template.centroid_offset(self.model, float(times[j]))
+            pose, loss = self._track_frame(
+                template, j, w, d, 4 * steps if j == 0 else steps, lr, lr_final, views_per_step
+            )
+            poses.append(pose)
+            w = pose[0]
+            advance(loss)
+        for r in range(texture_rounds):
+            loss = self._fit_template_colours(template, poses, colour_lr, colour_epochs, seed=r)
+            advance(loss)
+            for j in range(len(times)):
+                poses[j], loss = self._track_frame(
+                    template, j, *poses[j], retrack_steps, retrack_lr,
+                    min(lr_final, retrack_lr), views_per_step,
+                )  # fmt: skip
+                advance(loss)
+        if bar is not None:
+            bar.close()
+        self.template_colours = template.sh_dc
+        with torch.no_grad():
+            centre = template.centre
+            for j, (w, d) in enumerate(poses):
                 r = rotvec_to_matrix(w)
                 a_j = r @ r0
-                b_j = (r @ (b0 - centre).unsqueeze(-1)).squeeze(-1) + centre + d_j.detach()
+                b_j = (r @ (b0 - centre).unsqueeze(-1)).squeeze(-1) + centre + d
                 for i, k in enumerate(moving):
                     motion.rotvecs[k, j] = torch.as_tensor(
                         matrix_to_rotvec(a_j[i].double().numpy()), dtype=motion.rotvecs.dtype
                     )
                     motion.translations[k, j] = b_j[i].to(motion.translations.dtype)
-            if bar is not None:
-                bar.update(j + 1, {"loss": f"{loss_value:.4f}"})
-        if bar is not None:
-            bar.close()
 
-    def _rigid_render_loss(
-        self, index, t, w, d, deformed, sel, owner, offsets, centre, q_ref
+    def _track_frame(
+        self,
+        template: _RigidTemplate,
+        j: int,
+        w: Tensor,
+        d: Tensor,
+        n_steps: int,
+        lr: float,
+        lr_final: float,
+        views_per_step: int,
+    ) -> tuple[tuple[Tensor, Tensor], float]:
+        """`n_steps` Adam steps on the moving objects' rotation vectors `w` [K', 3] and shifts
+        `d` [K', 3] at stored frame `j` (refine_motion); the new pose and the last loss."""
+        views = template.views[j]
+        if not views or n_steps <= 0:
+            return (w.clone(), d.clone()), float("nan")
+        t = float(self.times[j])
+        deformed = template.deformed(self.model, t)
+        w_j = w.clone().requires_grad_(True)
+        d_j = d.clone().requires_grad_(True)
+        opt = torch.optim.Adam([w_j, d_j], lr=lr)
+        per_step = len(views) if views_per_step <= 0 else views_per_step
+        drawn = 0
+        loss_value = float("nan")
+        for s in range(n_steps):
+            for g in opt.param_groups:
+                g["lr"] = cosine_lr(lr, lr_final, s / max(1, n_steps - 1))
+            opt.zero_grad(set_to_none=True)
+            loss_value = 0.0
+            for _ in range(per_step):
+                index = views[drawn % len(views)]
+                drawn += 1
+                pose = template.pose(w_j, d_j, deformed)
+                loss = self._template_loss(index, t, pose, template.sh_dc)
+                loss.backward()
+                loss_value += float(loss.detach()) / per_step
+            opt.step()
+        return (w_j.detach().clone(), d_j.detach().clone()), loss_value
+
+    def _fit_template_colours(
+        self,
+        template: _RigidTemplate,
+        poses: list[tuple[Tensor, Tensor]],
+        lr: float,
+        epochs: int,
+        seed: int,
+    ) -> float:
+        """Fit the template's base colours (the moving Gaussians' rows of `template.sh_dc`) to
+        every training view, each frame's objects at its pose in `poses`: `epochs` passes in an
+        order drawn from `seed`, one view per Adam step. Returns the mean loss of the last pass."""
+        frames = [(j, index) for j, views in enumerate(template.views) for index in views]
+        if not frames or epochs <= 0:
+            return float("nan")
+        with torch.no_grad():
+            posed = [
+                template.pose(w, d, template.deformed(self.model, float(self.times[j])))
+                for j, (w, d) in enumerate(poses)
+            ]
+        rows = template.rows
+        colours = template.sh_dc[rows].clone().requires_grad_(True)
+        opt = torch.optim.Adam([colours], lr=lr)
+        generator = torch.Generator().manual_seed(self.config.seed * 1000 + seed)
+        total = 0.0
+        for _ in range(epochs):
+            total = 0.0
+            for k in torch.randperm(len(frames), generator=generator).tolist():
+                j, index = frames[k]
+                opt.zero_grad(set_to_none=True)
+                sh_dc = template.sh_dc.index_put((rows,), colours)
+                loss = self._template_loss(index, float(self.times[j]), posed[j], sh_dc)
+                loss.backward()
+                opt.step()
+                total += float(loss.detach())
+        template.sh_dc[rows] = colours.detach()
+        return total / len(frames)
+
+    def _template_loss(
+        self, index: int, t: float, deformed: tuple[Tensor, Tensor, Tensor], sh_dc: Tensor
     ) -> Tensor:
-        """Photometric loss of training frame `index` when the moving objects' first-frame
-        Gaussians (`sel`; `offsets` [M, 3, 1] about their object's `centre`) are turned by
-        rotation vectors `w` [K', 3] and shifted by `d` [K', 3], the rest as in `deformed`."""
+        """Photometric loss of training frame `index` rendered at time `t` with `deformed`
+        means, quaternions and scales and base colours `sh_dc` [N, 1, 3]."""
         frame = self.scene.train[index]
-        x_t, q_t, scales = deformed
-        means, quats = x_t.clone(), q_t.clone()
-        moved = (rotvec_to_matrix(w)[owner] @ offsets).squeeze(-1)
-        means[sel] = moved + centre[owner] + d[owner]
-        quats[sel] = quat_multiply(axis_angle_to_quat(w)[owner], q_ref)
         out = self.model.render(
             frame.camera, t, sh_degree=self.model.sh_degree, background=self._background,
-            deformed=(means, quats, scales), threads=self.threads,
+            deformed=deformed, sh_dc=sh_dc, threads=self.threads,
         )  # fmt: skip
         return photometric_loss(
             out.features, self._image(index, frame), self.config.lambda_l1,

@@ -244,7 +244,10 @@ def _textured(model: DeformableGaussians, seed: int = 1) -> DeformableGaussians:
     return model
 
 
-def test_photometric_refinement_recovers_rotations_the_correspondences_miss(oracle, tmp_path):
+def _taught(oracle, tmp_path):
+    """The oracle scene re-drawn by a textured teacher (true rigid motion, so the appearance
+    is exact), a student with the same texture whose Gaussians do not turn (the closed-form fit
+    then sees no rotation), and the true assignment."""
     from PIL import Image
 
     from sync4d.assign import Assignment
@@ -253,7 +256,6 @@ def test_photometric_refinement_recovers_rotations_the_correspondences_miss(orac
     points = oracle_model.means.detach().double().numpy()
     teacher = _textured(OracleGaussians(points, truth))
     student = _textured(OracleGaussians(points, truth, rotate=False))
-    # Training images drawn by the teacher (true rigid motion), so the appearance is exact.
     frames = []
     with torch.no_grad():
         for i, f in enumerate(scene.train):
@@ -263,6 +265,12 @@ def test_photometric_refinement_recovers_rotations_the_correspondences_miss(orac
             frames.append(dataclasses.replace(f, image_path=path, mask_path=None))
     taught = dataclasses.replace(scene, train=frames, test=[])
     assignment = Assignment(labels=truth.astype(np.int64), num_objects=4)
+    return taught, teacher, student, assignment
+
+
+def test_photometric_refinement_recovers_rotations_the_correspondences_miss(oracle, tmp_path):
+    _, _, _, gt = oracle
+    taught, _, student, assignment = _taught(oracle, tmp_path)
 
     def trainer(refine_steps: int) -> Phase2Trainer:
         p2 = Phase2Config(motion=MotionConfig(init="fit", refine_steps=refine_steps))
@@ -281,9 +289,45 @@ def test_photometric_refinement_recovers_rotations_the_correspondences_miss(orac
     assert rot < 0.5 and cen < 0.005
 
 
+def test_texture_fit_restores_the_template_colours_and_keeps_the_model(oracle, tmp_path):
+    """The template's colours of a third of the moving Gaussians are scrambled (as D_theta's
+    averaged texture is wrong where an object turns): refine_texture_rounds fits them back from
+    the images, the rotations stay recovered, and the model's own colours are untouched."""
+    _, _, truth, gt = oracle
+    taught, teacher, student, assignment = _taught(oracle, tmp_path)
+    moving = torch.as_tensor(np.isin(truth, (1, 2)))
+    g = torch.Generator().manual_seed(7)
+    scrambled = moving & (torch.rand(len(truth), generator=g) < 1 / 3)
+    with torch.no_grad():
+        student.sh_dc[scrambled] = (torch.rand(int(scrambled.sum()), 1, 3, generator=g) - 0.5) * 3
+    before = student.sh_dc.detach().clone()
+    colours = {}
+    for rounds in (0, 1):
+        motion = MotionConfig(init="fit", refine_steps=60, refine_texture_rounds=rounds,
+                              refine_colour_epochs=10, refine_colour_lr=0.02)  # 32 views only
+        tr = Phase2Trainer(student, taught, Phase1Config(), Phase2Config(motion=motion), 10,
+                           threads=1, assignment=assignment)  # fmt: skip
+        assert tr.template_colours is not None
+        colours[rounds] = tr.template_colours
+        assert torch.equal(student.sh_dc.detach(), before)  # the model keeps its colours
+        for label in (1, 2):
+            rot, _ = _relative_errors(tr, gt, label)
+            assert rot < 2.0, (rounds, label, rot)
+    assert torch.equal(colours[0], before)  # no texture fit: the template is the model's
+    # Gaussians inside the objects are never seen; compare the scrambled ones the fit reached.
+    fitted = scrambled & (colours[1] != before).any(-1).any(-1)
+    assert fitted.sum() > 0.2 * scrambled.sum(), (int(fitted.sum()), int(scrambled.sum()))
+    err = {r: float((c - teacher.sh_dc.detach())[fitted].abs().mean()) for r, c in colours.items()}
+    assert err[1] < 0.5 * err[0], err  # measured 0.33 against 1.02
+
+
 def test_bad_refinement_schedules_are_named(oracle):
     scene, model, _, _ = oracle
     with pytest.raises(ValueError, match="refine_lr_final: expected > 0"):
         _trainer(scene, model, init="fit", refine_steps=5, refine_lr_final=0.0)
     with pytest.raises(ValueError, match="refine_views: expected >= 0"):
         _trainer(scene, model, init="fit", refine_steps=5, refine_views=-1)
+    with pytest.raises(ValueError, match="refine_texture_rounds: expected >= 0"):
+        _trainer(scene, model, init="fit", refine_steps=5, refine_texture_rounds=-1)
+    with pytest.raises(ValueError, match="refine_colour_lr: expected > 0"):
+        _trainer(scene, model, init="fit", refine_steps=5, refine_colour_lr=0.0)
