@@ -80,7 +80,8 @@ class MotionConfig:
     #: base colours (a copy of the moving Gaussians' SH DC) are fitted to every training view
     #: with the poses fixed, then every frame is tracked again from its pose. D_theta's colours
     #: are averaged over a morph, so the rigidly turned template is blurred where the object
-    #: turned most and pulls those poses toward the blur. Not in the paper.
+    #: turned most and pulls those poses toward the blur (embedded scene, phase1.seed 42: ball
+    #: 2.00 -> 0.85 degrees with one round, docs/results/phase2-robustness.md). Not in the paper.
     refine_texture_rounds: int = 0
     #: Adam learning rate of the texture fit (SH DC units per step).
     refine_colour_lr: float = 0.005

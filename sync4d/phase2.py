@@ -14,6 +14,12 @@ transforms capture the dominant rigid component first" needs M_phi to learn befo
 ends, so the warm-up scales only the gradient the auxiliary terms send into the scene (D_theta,
 Gaussians); M_phi always sees them at full weight from their start iteration. `simultaneous`
 switches every term on at iteration 0 without warm-up (the paper's failing ablation).
+
+Before the loop, `MotionConfig.init = "fit"` starts the SE(3) table at the closed-form fit of
+D_theta's motion, and `refine_steps` > 0 refines it photometrically (not in the paper): a rigid
+template of each moving object's first-frame Gaussians (`_RigidTemplate`) is tracked through
+the stored frames against the training views, optionally with rounds of fitting the template's
+own colours to every view and tracking again (`refine_texture_rounds`). The model is unchanged.
 """
 
 from __future__ import annotations
