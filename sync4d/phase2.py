@@ -357,14 +357,17 @@ class Phase2Trainer(Phase1Trainer):
         with torch.no_grad():
             r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
             b0 = motion.translations[moving, 0].detach().float()
-        total = len(times) * (1 + texture_rounds) + texture_rounds
-        bar = Progress(total, desc="refine M_phi", log_every=10) if progress else None
+        # The bar counts Adam steps (tracking and texture fit), so its ETA holds across passes.
+        first = [(4 * steps if j == 0 else steps) if v else 0 for j, v in enumerate(template.views)]
+        n_views = sum(len(v) for v in template.views)
+        per_round = colour_epochs * n_views + retrack_steps * sum(1 for v in template.views if v)
+        bar = Progress(sum(first) + texture_rounds * per_round, desc="refine M_phi", log_every=10)
         done = 0
 
-        def advance(loss: float) -> None:
+        def advance(n: int, loss: float) -> None:
             nonlocal done
-            done += 1
-            if bar is not None:
+            done += n
+            if progress:
                 bar.update(done, {"loss": f"{loss:.4f}"})
 
         poses: list[tuple[Tensor, Tensor]] = []
@@ -378,17 +381,17 @@ class Phase2Trainer(Phase1Trainer):
             )
             poses.append(pose)
             w = pose[0]
-            advance(loss)
+            advance(first[j], loss)
         for r in range(texture_rounds):
             loss = self._fit_template_colours(template, poses, colour_lr, colour_epochs, seed=r)
-            advance(loss)
+            advance(colour_epochs * n_views, loss)
             for j in range(len(times)):
                 poses[j], loss = self._track_frame(
                     template, j, *poses[j], retrack_steps, retrack_lr,
                     min(lr_final, retrack_lr), views_per_step,
                 )  # fmt: skip
-                advance(loss)
-        if bar is not None:
+                advance(retrack_steps if template.views[j] else 0, loss)
+        if progress:
             bar.close()
         self.template_colours = template.sh_dc
         with torch.no_grad():
