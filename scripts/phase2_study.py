@@ -155,13 +155,14 @@ def main() -> int:
             errs = ", ".join(f"{n} {a:.2f}/{b:.2f}" for n, (a, b) in r["errors"].items())
             print(
                 f"[{i}/{len(jobs)}] {r['kernels']} seed {r['seed']}: {errs}, shuffle "
-                f"{r['shuffle_ratio']:.1f} ({r['wall_seconds'] / 60:.1f} min)", flush=True,
+                f"{r['shuffle_ratio']:.1f}, PSNR {r['psnr']:.2f} dB "
+                f"({r['wall_seconds'] / 60:.1f} min)", flush=True,
             )  # fmt: skip
+            if args.json:  # after every run, so a stopped study keeps what it measured
+                args.json.parent.mkdir(parents=True, exist_ok=True)
+                record = {"frames": args.frames, "threads": args.threads, "results": results}
+                args.json.write_text(json.dumps(record, indent=2) + "\n")
     print(table(results))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"frames": args.frames, "threads": args.threads,
-                                         "results": results}, indent=2) + "\n")  # fmt: skip
     return 0 if all(r["within_bounds"] for r in results) else 1
 
 
