@@ -47,11 +47,7 @@ def main() -> None:
     trainer = Phase2Trainer(model, scene, cfg.phase1, fitted, max(1, args.iters), threads)
     report("closed-form fit", trainer)
     if mc.refine_steps > 0:
-        trainer.refine_motion(
-            mc.refine_steps, mc.refine_lr, mc.refine_lr_final, mc.refine_views,
-            mc.refine_texture_rounds, mc.refine_colour_lr, mc.refine_colour_epochs,
-            mc.refine_retrack_steps or None, mc.refine_retrack_lr or None, progress=False,
-        )  # fmt: skip
+        trainer.refine_motion(mc, progress=False)
         report("refined", trainer)
     if args.per_frame:
         export = trainer.motion_export()

@@ -156,6 +156,12 @@ def _scale_grad(x: Tensor, scale: float) -> Tensor:
     return x.detach() + scale * (x - x.detach())
 
 
+def _centroids(x: Tensor, owner: Tensor, k: int) -> Tensor:
+    """Mean [k, 3] of the points `x` [M, 3] of each owner index in `owner` [M] (0 if none)."""
+    count = torch.bincount(owner, minlength=k).clamp_min(1)
+    return torch.zeros(k, 3).index_add_(0, owner, x) / count[:, None]
+
+
 @dataclass
 class _RigidTemplate:
     """The refinement's rigid template: the moving objects' Gaussians of the first frame.
@@ -192,16 +198,14 @@ class _RigidTemplate:
         sel = slot >= 0
         owner = slot[sel]
         x_ref, q_ref, s_ref = (v[sel] for v in trainer.model.at_time(float(trainer.times[0])))
-        template = cls(moving, sel, owner, torch.zeros(0), torch.zeros(0), q_ref, s_ref, views,
-                       trainer.model.sh_dc.detach().clone())  # fmt: skip
-        template.centre = template.centroids(x_ref)
-        template.offsets = (x_ref - template.centre[owner]).unsqueeze(-1)
-        return template
+        centre = _centroids(x_ref, owner, len(moving))
+        offsets = (x_ref - centre[owner]).unsqueeze(-1)
+        return cls(moving, sel, owner, offsets, centre, q_ref, s_ref, views,
+                   trainer.model.sh_dc.detach().clone())  # fmt: skip
 
     def centroids(self, x: Tensor) -> Tensor:
         """Each moving object's centroid [K', 3] of the template's points `x` [M, 3]."""
-        count = torch.bincount(self.owner, minlength=len(self.moving)).clamp_min(1)
-        return torch.zeros(len(self.moving), 3).index_add_(0, self.owner, x) / count[:, None]
+        return _centroids(x, self.owner, len(self.moving))
 
     @torch.no_grad()
     def deformed(self, model: DeformableGaussians, t: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -209,11 +213,6 @@ class _RigidTemplate:
         x_t, q_t, scales = model.at_time(t)
         scales[self.sel] = self.scales
         return x_t, q_t, scales
-
-    @torch.no_grad()
-    def centroid_offset(self, model: DeformableGaussians, t: float) -> Tensor:
-        """D_theta's shift [K', 3] of each moving object's centroid from the first frame to `t`."""
-        return self.centroids(model.at_time(t)[0][self.sel]) - self.centre
 
     def pose(
         self, w: Tensor, d: Tensor, deformed: tuple[Tensor, Tensor, Tensor]
@@ -296,11 +295,7 @@ class Phase2Trainer(Phase1Trainer):
         if mc.init == "fit":
             self.fit_motion()
             if mc.refine_steps > 0:
-                self.refine_motion(
-                    mc.refine_steps, mc.refine_lr, mc.refine_lr_final, mc.refine_views,
-                    mc.refine_texture_rounds, mc.refine_colour_lr, mc.refine_colour_epochs,
-                    mc.refine_retrack_steps or None, mc.refine_retrack_lr or None,
-                )  # fmt: skip
+                self.refine_motion()
 
     @torch.no_grad()
     def fit_motion(self) -> None:
@@ -310,20 +305,10 @@ class Phase2Trainer(Phase1Trainer):
         pos = [self.model.at_time(float(t))[0].double().numpy() for t in self.times]
         self.motion.fit_to(x0, pos, self.labels.numpy())
 
-    def refine_motion(
-        self,
-        steps: int,
-        lr: float,
-        lr_final: float | None = None,
-        views_per_step: int = 1,
-        texture_rounds: int = 0,
-        colour_lr: float = 0.005,
-        colour_epochs: int = 2,
-        retrack_steps: int | None = None,
-        retrack_lr: float | None = None,
-        progress: bool = True,
-    ) -> None:
-        """Photometric refinement of the SE(3) table (MotionConfig.refine_*): every moving
+    def refine_motion(self, config: MotionConfig | None = None, progress: bool = True) -> None:
+        """Photometric refinement of the SE(3) table with the `refine_*` settings of `config`
+        (default: this trainer's `phase2.motion`; `steps` below is `refine_steps`, `lr`
+        `refine_lr`, and so on): every moving
         object's Gaussians of the first frame, moved rigidly as R_k (x - c_k) + c_k + d_k (c_k:
         their centroid), are rendered beside D_theta's other Gaussians and compared with each
         stored frame's training views in time order: `steps` Adam steps per frame on every
@@ -343,9 +328,12 @@ class Phase2Trainer(Phase1Trainer):
         turned most, which pulls the poses there toward the blur. Table entries become the
         result composed with the first frame's fitted transform; static objects and the model
         are unchanged."""
-        lr_final = lr if lr_final is None else min(lr_final, lr)
-        retrack_steps = steps if retrack_steps is None else retrack_steps
-        retrack_lr = lr if retrack_lr is None else retrack_lr
+        mc = config or self.phase2.motion
+        steps, lr, views_per_step = mc.refine_steps, mc.refine_lr, mc.refine_views
+        lr_final = min(mc.refine_lr_final, lr)
+        texture_rounds, colour_epochs = mc.refine_texture_rounds, mc.refine_colour_epochs
+        retrack_steps = mc.refine_retrack_steps or steps
+        retrack_lr = mc.refine_retrack_lr or lr
         motion = self.motion
         if not isinstance(motion, SE3Table):
             raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
@@ -375,15 +363,19 @@ class Phase2Trainer(Phase1Trainer):
         for j in range(len(times)):
             # The first frame starts from the fitted pose, which holds whatever orientation
             # D_theta's texture has there: it gets more steps than the warm-started rest.
-            d = template.centroid_offset(self.model, float(times[j]))
+            deformed = template.deformed(self.model, float(times[j]))
+            d = template.centroids(deformed[0][template.sel]) - template.centre
             pose, loss = self._track_frame(
-                template, j, w, d, 4 * steps if j == 0 else steps, lr, lr_final, views_per_step
-            )
+                template, j, w, d, 4 * steps if j == 0 else steps, lr, lr_final, views_per_step,
+                deformed,
+            )  # fmt: skip
             poses.append(pose)
             w = pose[0]
             advance(first[j], loss)
         for r in range(texture_rounds):
-            loss = self._fit_template_colours(template, poses, colour_lr, colour_epochs, seed=r)
+            loss = self._fit_template_colours(
+                template, poses, mc.refine_colour_lr, colour_epochs, seed=r
+            )
             advance(colour_epochs * n_views, loss)
             for j in range(len(times)):
                 poses[j], loss = self._track_frame(
@@ -416,14 +408,17 @@ class Phase2Trainer(Phase1Trainer):
         lr: float,
         lr_final: float,
         views_per_step: int,
+        deformed: tuple[Tensor, Tensor, Tensor] | None = None,
     ) -> tuple[tuple[Tensor, Tensor], float]:
         """`n_steps` Adam steps on the moving objects' rotation vectors `w` [K', 3] and shifts
-        `d` [K', 3] at stored frame `j` (refine_motion); the new pose and the last loss."""
+        `d` [K', 3] at stored frame `j` (refine_motion; `deformed`: the template's
+        `deformed` at that frame when the caller has it); the new pose and the last loss."""
         views = template.views[j]
         if not views or n_steps <= 0:
             return (w.clone(), d.clone()), float("nan")
         t = float(self.times[j])
-        deformed = template.deformed(self.model, t)
+        if deformed is None:
+            deformed = template.deformed(self.model, t)
         w_j = w.clone().requires_grad_(True)
         d_j = d.clone().requires_grad_(True)
         opt = torch.optim.Adam([w_j, d_j], lr=lr)

@@ -331,3 +331,6 @@ def test_bad_refinement_schedules_are_named(oracle):
         _trainer(scene, model, init="fit", refine_steps=5, refine_texture_rounds=-1)
     with pytest.raises(ValueError, match="refine_colour_lr: expected > 0"):
         _trainer(scene, model, init="fit", refine_steps=5, refine_colour_lr=0.0)
+    for name in ("refine_colour_epochs", "refine_retrack_steps", "refine_retrack_lr"):
+        with pytest.raises(ValueError, match=f"{name}: expected >= 0"):
+            _trainer(scene, model, init="fit", refine_steps=5, **{name: -1})
