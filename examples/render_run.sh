@@ -5,4 +5,4 @@ set -eu
 RUN="${1:-runs/synthetic}"
 PY="${PYTHON:-.venv/bin/python}"
 "$PY" -m sync4d render "$RUN"
-"$PY" -m sync4d render "$RUN" --camera train:1 --times 0 0.5 1 --no-gif
+"$PY" -m sync4d render "$RUN" --camera train:1 --time 0 0.5 1 --no-gif

@@ -13,12 +13,11 @@ import argparse
 import dataclasses
 import time
 
-from sync4d.checkpoint import load_model
-from sync4d.commands.fit import _set_threads, repo_configs
-from sync4d.config import load_config
+from sync4d.config import load_config, repo_configs
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
-from sync4d.phase2 import Phase2Trainer
+from sync4d.phase2.trainer import Phase2Trainer
+from sync4d.runs import load_model, set_threads
 
 
 def main() -> None:
@@ -31,7 +30,7 @@ def main() -> None:
     args = ap.parse_args()
     root = syn.default_scene_dir()
     cfg = load_config(repo_configs() / "synthetic.toml", args.set)
-    threads = _set_threads(args.threads)
+    threads = set_threads(args.threads)
     scene = load_scene(root, cfg.resolution_scale)
     gt = syn.load_ground_truth(root)
     model, _ = load_model(args.checkpoint)

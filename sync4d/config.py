@@ -9,18 +9,24 @@ from typing import Any
 
 import tomllib
 
-from sync4d.deform import DeformConfig
-from sync4d.phase2 import Phase2Config
-from sync4d.train import Phase1Config
+from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase2.trainer import Phase2Config
 
 __all__ = [
     "ConfigError",
+    "ALIASES",
     "RunConfig",
     "apply_overrides",
     "load_config",
     "parse_phases",
+    "repo_configs",
     "with_budget",
 ]
+
+
+def repo_configs() -> Path:
+    """The repository's `configs/` folder (next to the package in a source checkout)."""
+    return Path(__file__).resolve().parents[1] / "configs"
 
 
 class ConfigError(ValueError):
@@ -29,41 +35,45 @@ class ConfigError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
-    """Everything a run (Phase 1, then Phase 2) needs besides the data."""
+    """Everything a run (Phase 1, then Phase 2) needs besides the data: one section per phase
+    and the run's own settings (which phases, image scale, evaluation and checkpoints)."""
 
     phase1: Phase1Config = dataclasses.field(default_factory=Phase1Config)
     phase2: Phase2Config = dataclasses.field(default_factory=Phase2Config)
     #: Which phases `fit` runs: "1", "2" (from the run's Phase 1 checkpoint) or "1,2".
     phases: str = "1,2"
-    #: Phase 2 iterations after Phase 1 (Appendix A: 20k).
-    phase2_iterations: int = 20_000
-    deform: DeformConfig = dataclasses.field(default_factory=DeformConfig)
-    iterations: int = 30_000
-    sh_degree: int = 3
     resolution_scale: float = 1.0
     #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames.
     test_split: str = "test"
-    #: Near clipping plane of every render (training, evaluation, `render`), world units;
-    #: Gaussians whose centre is closer to the camera are not drawn. Capture domes need more
-    #: than the default: each camera's own housing, reconstructed from the cameras facing it,
-    #: sits a few centimetres in front of its lens and would cover its whole view.
-    near: float = 0.01
-    #: Where the initial Gaussians come from: "points" (the dataset's point cloud, e.g.
-    #: COLMAP's), "triangulate" (SIFT matches of the training cameras at one instant,
-    #: triangulated with the dataset's poses; multi-view captures), "random" (`init_points`
-    #: uniform in a cube), or "auto": points if the dataset has them, else triangulate when
-    #: several cameras see one instant, else random.
-    init_from: str = "auto"
-    #: Random initial Gaussians when the dataset has no point cloud (3DGS uses 100k on a GPU).
-    init_points: int = 20_000
-    #: Half-size of the random-init cube as a fraction of the mean camera distance.
-    init_box_fraction: float = 0.33
     #: Test-split PSNR/SSIM every this many iterations during `fit` (0: only at the end).
     eval_every: int = 1_000
     #: Test frames used by the periodic evaluation (0: all); the final evaluation uses all.
     eval_frames: int = 0
     #: Atomic checkpoint every this many iterations (and always at the end and on Ctrl-C).
     checkpoint_every: int = 1_000
+
+    def __getattr__(self, name: str) -> Any:
+        """Read-only spellings of the keys that moved into the phase sections (`ALIASES`):
+        ``cfg.iterations`` is ``cfg.phase1.iterations``."""
+        if name not in ALIASES:
+            raise AttributeError(f"'RunConfig' object has no attribute '{name}'")
+        value: Any = self
+        for part in ALIASES[name].split("."):
+            value = getattr(value, part)
+        return value
+
+
+#: Top-level keys of earlier config files and their place in the phase sections.
+ALIASES = {
+    "iterations": "phase1.iterations",
+    "sh_degree": "phase1.sh_degree",
+    "deform": "phase1.deform",
+    "near": "phase1.near",
+    "init_from": "phase1.init_from",
+    "init_points": "phase1.init_points",
+    "init_box_fraction": "phase1.init_box_fraction",
+    "phase2_iterations": "phase2.iterations",
+}
 
 
 def parse_phases(text: str) -> tuple[int, ...]:
@@ -85,7 +95,7 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     training."""
     if iterations < 1:
         raise ConfigError(f"iterations: expected a positive integer, got {iterations}")
-    r = iterations / cfg.iterations
+    r = iterations / cfg.phase1.iterations
 
     def scaled(v: int, floor: int = 1) -> int:
         return max(floor, int(round(v * r)))
@@ -100,6 +110,7 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     )
     phase1 = dataclasses.replace(
         cfg.phase1,
+        iterations=iterations,
         densify=densify,
         sh_degree_interval=scaled(cfg.phase1.sh_degree_interval),
         static_warmup=scaled(cfg.phase1.static_warmup, 0),
@@ -107,13 +118,14 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     return dataclasses.replace(
         cfg,
         phase1=phase1,
-        iterations=iterations,
         eval_every=scaled(cfg.eval_every) if cfg.eval_every else 0,
         checkpoint_every=scaled(cfg.checkpoint_every) if cfg.checkpoint_every else 0,
     )
 
 
 def _replace(obj: Any, path: list[str], value: Any, full: str) -> Any:
+    if isinstance(obj, RunConfig) and path[0] in ALIASES:
+        path = ALIASES[path[0]].split(".") + path[1:]
     fields = {f.name: f for f in dataclasses.fields(obj)}
     name = path[0]
     if name not in fields:

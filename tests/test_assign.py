@@ -1,13 +1,18 @@
-"""Object assignment (sync4d.assign): vote rule, mask voting on the synthetic scene, clustering."""
+"""Object assignment (sync4d.phase2.assign): vote rule, mask voting, clustering."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sync4d.assign import AssignConfig, assign_from_masks, cluster_trajectories, labels_from_votes
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
+from sync4d.phase2.assign import (
+    AssignConfig,
+    assign_from_masks,
+    cluster_trajectories,
+    labels_from_votes,
+)
 
 SMALL = syn.SyntheticConfig(size=64, frames=6, train_cameras=4, test_cameras=1, test_every=3,
                             supersample=1)  # fmt: skip
@@ -107,7 +112,7 @@ def test_trajectory_clustering_of_a_static_scene_is_all_background():
 
 
 def test_adjusted_rand_index():
-    from sync4d.assign import adjusted_rand_index
+    from sync4d.phase2.assign import adjusted_rand_index
 
     a = np.array([0, 0, 1, 1, 2, 2])
     assert adjusted_rand_index(a, a) == pytest.approx(1.0)

@@ -9,10 +9,10 @@ import pytest
 import torch
 from test_train_phase1 import _scene
 
-from sync4d.checkpoint import CheckpointError, load_model, resume_trainer, save_checkpoint
-from sync4d.densify import DensifyConfig
-from sync4d.gaussians import DeformableGaussians
-from sync4d.train import Phase1Config, Phase1Trainer
+from sync4d.phase1.densify import DensifyConfig
+from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.runs import CheckpointError, load_model, resume_trainer, save_checkpoint
 
 
 def _trainer(tmp_path: Path) -> tuple[Phase1Trainer, object, Phase1Config]:
@@ -63,7 +63,7 @@ def test_bad_checkpoints_are_named(tmp_path: Path) -> None:
 
 
 def test_phase2_checkpoint_resumes_the_same_next_step(tmp_path: Path) -> None:
-    from sync4d.phase2 import Phase2Config, Phase2Trainer
+    from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 
     trainer, scene, cfg = _trainer(tmp_path)
     trainer.train(3)
@@ -88,7 +88,7 @@ def test_phase2_checkpoint_resumes_the_same_next_step(tmp_path: Path) -> None:
 
 
 def test_phase2_keeps_the_phase1_scene_size_and_sh_degree_by_default(tmp_path: Path) -> None:
-    from sync4d.phase2 import Phase2Config, Phase2Trainer
+    from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 
     trainer, scene, cfg = _trainer(tmp_path)
     trainer.train(3)

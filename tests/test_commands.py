@@ -16,10 +16,10 @@ import pytest
 from PIL import Image
 from test_data_blender import _write_scene
 
-from sync4d.checkpoint import load_model
 from sync4d.cli import main
+from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.progress import Progress, format_duration
-from sync4d.train import Phase1Trainer
+from sync4d.runs import load_model
 
 TINY = ["--set", "init_points=300", "--set", "eval_frames=2", "--threads", "1",
         "--set", "phases=1"]  # fmt: skip

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 from test_data_blender import _write_scene
 
-from sync4d.commands.fit import with_initial_points
-from sync4d.config import ConfigError, RunConfig
+from sync4d.config import ConfigError, RunConfig, load_config
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.data.scene import DatasetError
@@ -21,6 +20,7 @@ from sync4d.data.triangulate import (
     triangulate_scene,
     views_at_one_instant,
 )
+from sync4d.runs import with_initial_points
 
 SCENE = syn.SyntheticConfig(size=256, frames=2, train_cameras=24, test_cameras=1, test_every=2,
                             supersample=1)  # fmt: skip
@@ -98,12 +98,12 @@ def test_init_from_chooses_the_source(synthetic, tmp_path, monkeypatch) -> None:
     got = with_initial_points(multi, cfg, quiet=True)
     assert got.points is not None and len(got.points) >= 100  # auto: multi-view -> triangulate
     assert with_initial_points(mono, cfg, quiet=True).points is None  # auto: mono -> random
-    random = RunConfig(init_from="random")
+    random = load_config(None, ["init_from=random"])
     assert with_initial_points(got, random, quiet=True).points is None
-    assert with_initial_points(got, RunConfig(init_from="points"), quiet=True) is got
+    assert with_initial_points(got, load_config(None, ["init_from=points"]), quiet=True) is got
     with pytest.raises(ConfigError, match="has no point cloud"):
-        with_initial_points(mono, RunConfig(init_from="points"), quiet=True)
+        with_initial_points(mono, load_config(None, ["init_from=points"]), quiet=True)
     with pytest.raises(ConfigError, match="init_from: expected one of"):
-        with_initial_points(mono, RunConfig(init_from="sfm"), quiet=True)
+        with_initial_points(mono, load_config(None, ["init_from=sfm"]), quiet=True)
     with pytest.raises(DatasetError, match="at least two training cameras"):
-        with_initial_points(mono, RunConfig(init_from="triangulate"), quiet=True)
+        with_initial_points(mono, load_config(None, ["init_from=triangulate"]), quiet=True)

@@ -6,13 +6,8 @@ import math
 
 import torch
 
-from sync4d.deform import (
-    DeformationMLP,
-    axis_angle_to_quat,
-    deform_gaussians,
-    quat_multiply,
-    time_encoding,
-)
+from sync4d.geometry import axis_angle_to_quat, quat_multiply
+from sync4d.phase1.deform import DeformationMLP, deform_gaussians, time_encoding
 
 
 def _rotmat(q: torch.Tensor) -> torch.Tensor:

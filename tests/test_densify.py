@@ -7,8 +7,8 @@ import math
 
 import torch
 
-from sync4d.densify import PER_GAUSSIAN, Densifier, DensifyConfig
-from sync4d.gaussians import DeformableGaussians
+from sync4d.phase1.densify import PER_GAUSSIAN, Densifier, DensifyConfig
+from sync4d.phase1.gaussians import DeformableGaussians
 
 
 def _setup():

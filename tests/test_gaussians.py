@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from sync4d.data.scene import Camera
-from sync4d.gaussians import SH_C0, DeformableGaussians
+from sync4d.phase1.gaussians import SH_C0, DeformableGaussians
 
 
 def _camera(w: int = 32, h: int = 24) -> Camera:

@@ -1,4 +1,4 @@
-"""Checks of the gsplat CPU reference harness (``sync4d.bench.gsplat_reference``).
+"""Checks of the gsplat CPU reference harness (``sync4d.reference.gsplat``).
 
 The harness runs gsplat 1.5.3's pure-torch rasterizer on the CPU by substituting its CUDA-only
 pieces. These tests pin the substitutes to an independent float64 per-pixel loop
@@ -20,7 +20,7 @@ gsplat = pytest.importorskip("gsplat")
 
 from gsplat.cuda import _torch_impl  # noqa: E402
 
-from sync4d.bench import gsplat_reference as gr  # noqa: E402
+from sync4d.reference import gsplat as gr  # noqa: E402
 
 SMALL = dict(width=48, height=40)
 

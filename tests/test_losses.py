@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from sync4d import _core
-from sync4d.losses import dssim, photometric_loss, photometric_loss_reference, psnr, ssim
+from sync4d.metrics import dssim, psnr, ssim
+from sync4d.phase1.losses import photometric_loss, photometric_loss_reference
 
 
 def test_ssim_identity_and_degradation() -> None:

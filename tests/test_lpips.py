@@ -10,7 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from sync4d import lpips as lp
+from sync4d.metrics import lpips as lp
 
 
 def _weights_or_skip() -> lp.LPIPSAlex:

@@ -1,4 +1,4 @@
-"""M_phi (sync4d.motion): rotation helpers, the three parameterisations, interpolation, losses."""
+"""M_phi (sync4d.phase2.motion): rotations, the three parameterisations, interpolation, losses."""
 
 from __future__ import annotations
 
@@ -8,15 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from sync4d.deform import axis_angle_to_quat
-from sync4d.motion import (
-    MotionConfig,
-    cosine_lr,
-    make_motion,
-    quat_slerp,
-    quat_to_matrix,
-    rotvec_to_matrix,
-)
+from sync4d.geometry import axis_angle_to_quat, quat_slerp, rotvec_to_matrix
+from sync4d.phase2.motion import MotionConfig, cosine_lr, make_motion, quat_to_matrix
 
 TIMES = np.linspace(0.0, 1.0, 5)
 
@@ -132,7 +125,7 @@ def test_cosine_lr():
 
 
 def test_closed_form_fits_recover_known_transforms():
-    from sync4d.motion import fit_affine, kabsch, matrix_to_rotvec
+    from sync4d.geometry import fit_affine, kabsch, matrix_to_rotvec
 
     rng = np.random.default_rng(3)
     src = rng.normal(size=(50, 3))

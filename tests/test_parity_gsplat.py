@@ -1,7 +1,7 @@
 """Parity of ``sync4d.raster`` with gsplat 1.5.3 (contract: docs/raster-contract.md).
 
 The reference is gsplat's own pure-torch pipeline run in **float64** on the CPU through
-``sync4d.bench.gsplat_reference`` (its CUDA-only pieces substituted; those substitutes are
+``sync4d.reference.gsplat`` (its CUDA-only pieces substituted; those substitutes are
 checked against a brute-force loop in tests/test_gsplat_reference.py). sync4d runs in float32
 (the tiled Rust path) and, in one test, float64 (its plain reference path).
 
@@ -35,7 +35,7 @@ pytestmark = pytest.mark.reference
 
 pytest.importorskip("gsplat")
 
-from sync4d.bench import gsplat_reference as gr  # noqa: E402
+from sync4d.reference import gsplat as gr  # noqa: E402
 
 ALPHA_MAX = gr.ALPHA_MAX  # gsplat's clamp; sync4d's default is 0.99, so it is passed explicitly
 

@@ -16,10 +16,10 @@ import torch
 
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
-from sync4d.gaussians import DeformableGaussians
-from sync4d.motion import MotionConfig
-from sync4d.phase2 import Phase2Config, Phase2Trainer, frame_times
-from sync4d.train import Phase1Config
+from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase2.motion import MotionConfig
+from sync4d.phase2.trainer import Phase2Config, Phase2Trainer, frame_times
 
 SMALL = syn.SyntheticConfig(size=64, frames=8, train_cameras=4, test_cameras=1, test_every=4,
                             supersample=1)  # fmt: skip
@@ -170,8 +170,7 @@ def test_frame_times_are_the_distinct_training_times(oracle):
 
 
 def test_unsupervised_assignment_separates_the_moving_objects(oracle):
-    from sync4d.assign import cluster_trajectories
-    from sync4d.phase2 import displacement_curves
+    from sync4d.phase2.assign import cluster_trajectories, displacement_curves
 
     _, model, truth, _ = oracle
     a = cluster_trajectories(displacement_curves(model, np.linspace(0, 1, 16)), extent=3.0)
@@ -203,7 +202,7 @@ def test_unsupervised_source_on_a_masked_scene_reports_agreement(oracle, tmp_pat
     """source=trajectories ignores the masks for the assignment; the diagnostics then compare
     the clusters with mask voting (the pillar is a mask object but never moves, so the ARI
     is high but below 1); the trajectory plot is written."""
-    from sync4d.assign import AssignConfig
+    from sync4d.phase2.assign import AssignConfig
     from sync4d.report import plot_object_trajectories
 
     scene, model, _, _ = oracle
@@ -220,7 +219,7 @@ def test_unsupervised_source_on_a_masked_scene_reports_agreement(oracle, tmp_pat
 
 
 def test_unknown_or_impossible_assignment_source_is_named(oracle):
-    from sync4d.assign import AssignConfig
+    from sync4d.phase2.assign import AssignConfig
 
     scene, model, _, _ = oracle
     with pytest.raises(ValueError, match="phase2.assign.source"):
@@ -250,7 +249,7 @@ def _taught(oracle, tmp_path):
     then sees no rotation), and the true assignment."""
     from PIL import Image
 
-    from sync4d.assign import Assignment
+    from sync4d.phase2.assign import Assignment
 
     scene, oracle_model, truth, gt = oracle
     points = oracle_model.means.detach().double().numpy()

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import safetensors.numpy
 
-from sync4d.commands.fit import CHECKPOINT_NAME, PHASE2_FILE, repo_configs, run_fit
-from sync4d.config import load_config
+from sync4d.config import load_config, repo_configs
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
+from sync4d.runs import CHECKPOINT_NAME, PHASE2_FILE, run_fit
 
 pytestmark = pytest.mark.slow
 

@@ -18,9 +18,9 @@ import torch
 from PIL import Image
 from test_train_phase1 import _scene
 
-from sync4d.checkpoint import camera_records, save_checkpoint
-from sync4d.gaussians import DeformableGaussians
-from sync4d.train import Phase1Config, Phase1Trainer
+from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.runs import camera_records, save_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 

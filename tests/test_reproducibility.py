@@ -20,8 +20,9 @@ import numpy as np
 import pytest
 import safetensors.numpy
 
-from sync4d.commands.fit import CHECKPOINT_NAME, PHASE2_FILE, repo_configs
+from sync4d.config import repo_configs
 from sync4d.data import synthetic as syn
+from sync4d.runs import CHECKPOINT_NAME, PHASE2_FILE
 
 pytestmark = pytest.mark.slow  # two fits in fresh processes: about a minute on two cores
 

@@ -10,9 +10,9 @@ import torch
 from PIL import Image
 
 from sync4d.data.scene import Camera, Frame, Scene
-from sync4d.densify import DensifyConfig
-from sync4d.gaussians import DeformableGaussians
-from sync4d.train import Phase1Config, Phase1Trainer
+from sync4d.phase1.densify import DensifyConfig
+from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
 
 
 def _orbit_camera(angle: float, w: int = 40, h: int = 32) -> Camera:

@@ -52,7 +52,7 @@ def run_grid(
     work_dir: Path,
 ) -> list[dict[str, Any]]:
     """Train every budget in the grid; one result record per budget."""
-    from sync4d.commands.fit import run_fit
+    from sync4d.runs import run_fit
 
     rows: list[dict[str, Any]] = []
     grid = list(product(scales, caps, iterations))
@@ -148,15 +148,15 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sync4d.commands.fit import FitInterrupted, resolve_data
+    from sync4d.runs import FitInterrupted, resolve_data
 
     try:
-        data, default_cfg = resolve_data(args)
+        data, default_cfg = resolve_data(args.data)
         base = load_config(args.config or default_cfg, list(args.set or []))
         scales = args.scales or [base.resolution_scale]
         caps = args.caps or [base.phase1.densify.max_gaussians]
-        iterations = args.iters or [max(100, base.iterations // 8), base.iterations // 4,
-                                    base.iterations // 2, base.iterations]  # fmt: skip
+        n = base.phase1.iterations
+        iterations = args.iters or [max(100, n // 8), n // 4, n // 2, n]
         out = Path(args.out or f"bench-fit-{data.name}.json")
         with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
             work = Path(args.keep_runs) if args.keep_runs else Path(tmp)

@@ -4,7 +4,7 @@ Times :func:`sync4d.raster.rasterize` — forward under ``torch.no_grad`` and fo
 (``loss = features.sum() + alpha.sum()``, gradients w.r.t. means, quats, scales, opacities and
 colours) — on seeded random scenes, over a grid of scene sizes x resolutions x thread counts,
 side by side with gsplat 1.5.3's pure-torch pipeline run on the CPU
-(:func:`sync4d.bench.gsplat_reference.gsplat_render`) on the same scene with the same thread
+(:func:`sync4d.reference.gsplat.gsplat_render`) on the same scene with the same thread
 count. Prints an aligned table and writes everything (machine, versions, allocators,
 environment, per-call times, memory, work counters) as JSON.
 
@@ -384,7 +384,7 @@ def _sync4d_calls(
 
 def _reference_calls(scene: BenchScene) -> dict[str, Callable[[], None]]:
     """gsplat reference forward / forward+backward closures (gsplat's own defaults)."""
-    from sync4d.bench.gsplat_reference import gsplat_render
+    from sync4d.reference.gsplat import gsplat_render
 
     cam = (scene.viewmat, scene.K, scene.width, scene.height)
     leaves = _leaves(scene)
@@ -856,9 +856,11 @@ class _Plan:
 def _as_namespace(args: argparse.Namespace | Sequence[str] | None) -> argparse.Namespace:
     if isinstance(args, argparse.Namespace):
         return args
-    from sync4d.cli import build_parser
+    from sync4d.options import add_bench_raster_options
 
-    return build_parser().parse_args(["bench", "raster", *(args or [])])
+    parser = argparse.ArgumentParser(prog="python -m sync4d bench raster")
+    add_bench_raster_options(parser)
+    return parser.parse_args(list(args or []))
 
 
 def _plan(args: argparse.Namespace) -> _Plan:
@@ -1049,7 +1051,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             "opacities, colors (torch.autograd.grad)",
             "sync4d_call": "sync4d.raster.rasterize(..., threads=T) with its defaults "
             "(alpha_max 0.99); forward under torch.no_grad",
-            "reference_call": "sync4d.bench.gsplat_reference.gsplat_render (gsplat 1.5.3 torch "
+            "reference_call": "sync4d.reference.gsplat.gsplat_render (gsplat 1.5.3 torch "
             "pipeline, fast_isect, CPU substitutes; alpha clamp 0.999) in a child process",
             "torch_threads": "torch.set_num_threads(T) for every measurement",
             "repeats": {

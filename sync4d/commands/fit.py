@@ -1,7 +1,5 @@
 """``python -m sync4d fit [DATA] --out runs/NAME``: Phase 1 then Phase 2 training (``phases``)
-with a progress bar, periodic test evaluation, atomic checkpoints every K iterations and on
-Ctrl-C, ``--resume``, a final evaluation (PSNR, SSIM, LPIPS) written to ``RUN/eval.json`` and
-Phase 2's diagnostics to ``RUN/phase2.json``.
+into a run folder (`sync4d.runs.run_fit`), then the test metrics and Phase 2's diagnostics.
 
 Without DATA it trains on the embedded synthetic scene (generated once into a cache folder).
 """
@@ -9,24 +7,9 @@ Without DATA it trains on the embedded synthetic scene (generated once into a ca
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
-import math
-import shutil
-import signal
 import sys
-import time
 from pathlib import Path
 
-import torch
-
-from sync4d.checkpoint import (
-    CheckpointError,
-    camera_records,
-    load_model,
-    resume_trainer,
-    save_checkpoint,
-)
 from sync4d.config import (
     ConfigError,
     RunConfig,
@@ -35,68 +18,26 @@ from sync4d.config import (
     parse_phases,
     with_budget,
 )
-from sync4d.data import DatasetError, Scene, load_scene
-from sync4d.evaluate import evaluate_frames, summarize
-from sync4d.phase2 import Phase2Trainer
-from sync4d.progress import Progress, format_duration
-from sync4d.report import align_table, plot_object_trajectories
-from sync4d.train import Phase1Trainer, initial_model
+from sync4d.data import DatasetError, load_scene
+from sync4d.progress import format_duration
+from sync4d.runs import (
+    CHECKPOINT_NAME,
+    METRICS_FILE,
+    PHASE1_CHECKPOINT_NAME,
+    PHASE2_FILE,
+    TRAJECTORY_PLOT,
+    CheckpointError,
+    FitInterrupted,
+    resolve_data,
+    restart_phase2,
+    run_fit,
+)
 
-__all__ = [
-    "CHECKPOINT_NAME",
-    "FitInterrupted",
-    "RUN_FILE",
-    "main",
-    "repo_configs",
-    "resolve_data",
-    "run_fit",
-]
-
-#: File names inside a run directory.
-CHECKPOINT_NAME = "checkpoint.safetensors"
-#: Copy of the Phase 1 checkpoint kept when Phase 2 starts (Phase 2 can restart from it).
-PHASE1_CHECKPOINT_NAME = "phase1.safetensors"
-#: Phase 2 diagnostics (Appendix C) of the final model.
-PHASE2_FILE = "phase2.json"
-#: Phase 2's per-object centroid curves (x, y, z against time).
-TRAJECTORY_PLOT = "phase2-trajectories.png"
-RUN_FILE = "run.json"
-METRICS_FILE = "metrics.jsonl"
-
-
-def repo_configs() -> Path:
-    """The repository's `configs/` folder (next to the package in a source checkout)."""
-    return Path(__file__).resolve().parents[2] / "configs"
-
-
-def _set_threads(threads: int | None) -> int:
-    """Use `threads` CPU threads (all the process may use when None) and torch's deterministic
-    kernels: with a fixed seed, thread count and machine, a run is then bit-identical to the
-    last. Without them the backward of indexing with repeated indices (M_phi's `A[labels]`,
-    the refinement's per-object gathers) adds from several threads in a timing-dependent
-    order and Phase 2 differed run to run at 2 threads (docs/results/phase2-robustness.md)."""
-    import os
-
-    n = threads or len(os.sched_getaffinity(0))
-    torch.set_num_threads(n)
-    torch.use_deterministic_algorithms(True, warn_only=True)
-    return n
-
-
-def resolve_data(args: argparse.Namespace) -> tuple[Path, Path | None]:
-    """Dataset folder and default config: the user's, or the embedded synthetic scene."""
-    if args.data is not None:
-        return Path(args.data), None
-    from sync4d.data.synthetic import ensure_default_scene
-
-    print("fit: no dataset given; using the embedded synthetic scene", file=sys.stderr)
-    root = ensure_default_scene()
-    cfg = repo_configs() / "synthetic.toml"
-    return root, cfg if cfg.exists() else None
+__all__ = ["main"]
 
 
 def _load(args: argparse.Namespace) -> tuple[Path, RunConfig]:
-    data, default_cfg = resolve_data(args)
+    data, default_cfg = resolve_data(args.data)
     overrides = list(args.set or [])
     if args.resolution_scale is not None:
         overrides.append(f"resolution_scale={args.resolution_scale}")
@@ -108,294 +49,8 @@ def _load(args: argparse.Namespace) -> tuple[Path, RunConfig]:
     return data, apply_overrides(cfg, overrides)
 
 
-class FitInterrupted(Exception):
-    """Training stopped by Ctrl-C or SIGTERM after saving its checkpoint."""
-
-
-def _raise_interrupt(signum, frame) -> None:  # noqa: ARG001
-    raise KeyboardInterrupt
-
-
-def _train_loop(
-    trainer: Phase1Trainer,
-    total: int,
-    cfg: RunConfig,
-    ckpt: Path,
-    extra: dict,
-    log,
-    periodic: list,
-    target,
-    n_threads: int,
-    desc: str,
-    log_every: int,
-    train_seconds: float,
-) -> tuple[float, bool]:
-    """Step `trainer` up to `total` iterations with a progress bar, periodic evaluation and
-    checkpoints; returns (training seconds, whether Ctrl-C / SIGTERM stopped it). The last
-    state is always checkpointed."""
-    bar = Progress(total, start=trainer.iteration, desc=desc, log_every=log_every)
-    ema: dict[str, float] = {}
-    previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
-    interrupted = False
-    try:
-        while trainer.iteration < total:
-            t0 = time.perf_counter()
-            stats = trainer.step()
-            train_seconds += time.perf_counter() - t0
-            for k in ("loss", "psnr", "rho"):
-                v = stats.get(k)
-                if v is not None and math.isfinite(v):
-                    ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
-            it = trainer.iteration
-            shown = {
-                "loss": f"{ema.get('loss', float('nan')):.4f}",
-                "PSNR": f"{ema.get('psnr', float('nan')):.2f}",
-                "#G": f"{trainer.model.num_gaussians}",
-            }
-            if "rho" in ema:
-                shown["rho"] = f"{ema['rho']:.3f}"
-            bar.update(it, shown)
-            if it % log_every == 0:
-                log({"phase": desc, "iteration": it, "train_seconds": train_seconds, **stats})
-            if cfg.eval_every and it % cfg.eval_every == 0 and it < total:
-                res = summarize(
-                    evaluate_frames(
-                        trainer.model, periodic, cfg.phase1.background, n_threads, images=target
-                    )
-                )
-                log({"phase": desc, "iteration": it, "train_seconds": train_seconds, "test": res})
-                bar.message(
-                    f"[eval @ {it}] test PSNR {res['psnr']:.2f} dB, SSIM {res['ssim']:.4f} "
-                    f"({res['frames']} frames, {trainer.model.num_gaussians} Gaussians, "
-                    f"{format_duration(train_seconds)} training)"
-                )
-            if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
-                save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        signal.signal(signal.SIGTERM, previous_sigterm)
-        bar.close()
-    save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
-    return train_seconds, interrupted
-
-
-def checkpoint_kind(path: Path) -> str | None:
-    """"sync4d.phase1" or "sync4d.phase2" for an existing checkpoint, None when absent."""
-    if not path.exists():
-        return None
-    return load_model(path)[1].get("kind", "sync4d.phase1")
-
-
-INIT_SOURCES = ("auto", "points", "triangulate", "random")
-
-
-def with_initial_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Scene:
-    """`scene` with the point cloud `cfg.init_from` asks for: its own points, points
-    triangulated from one instant of a multi-view capture, or none (random initialisation)."""
-    from sync4d.data.triangulate import TriangulationConfig, is_multiview, triangulate_scene
-
-    source = cfg.init_from
-    if source not in INIT_SOURCES:
-        raise ConfigError(f"init_from: expected one of {', '.join(INIT_SOURCES)}, got {source!r}")
-    has_points = scene.points is not None and len(scene.points) > 0
-    if source == "auto":
-        source = "points" if has_points else "triangulate" if is_multiview(scene) else "random"
-    if source == "points":
-        if not has_points:
-            raise ConfigError(
-                f"init_from=points: the dataset '{scene.name}' has no point cloud; "
-                "use init_from=triangulate (multi-view) or init_from=random"
-            )
-        return scene
-    if source == "random":
-        return dataclasses.replace(scene, points=None, point_colors=None)
-    if not quiet:
-        print("fit: triangulating initial points (pycolmap, fixed poses)...", file=sys.stderr)
-    tri = triangulate_scene(scene, TriangulationConfig(threads=torch.get_num_threads()))
-    if len(tri.points) == 0:
-        raise DatasetError(
-            scene.train[0].image_path.parent,
-            "triangulation found no points (too little texture?); use init_from=random",
-        )
-    if not quiet:
-        how = "cached" if tri.cached else f"{tri.seconds:.0f} s"
-        print(
-            f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "
-            f"({how})", file=sys.stderr,
-        )  # fmt: skip
-    return dataclasses.replace(scene, points=tri.points, point_colors=tri.colors)
-
-
-def run_fit(
-    scene: Scene,
-    cfg: RunConfig,
-    run_dir: Path,
-    data: Path,
-    resume: bool = False,
-    threads: int | None = None,
-    log_every: int = 100,
-    quiet: bool = False,
-) -> dict:
-    """Train (or resume) the phases `cfg.phases` on `scene` into `run_dir`: Phase 1, then Phase 2
-    from its model (the Phase 1 checkpoint is kept as ``phase1.safetensors``); returns the final
-    summary (test metrics, and Phase 2's diagnostics when it ran)."""
-    phases = parse_phases(cfg.phases)
-    if not (math.isfinite(cfg.near) and cfg.near > 0):
-        raise ConfigError(f"near: must be a finite distance > 0 (world units), got {cfg.near}")
-    n_threads = _set_threads(threads)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    ckpt = run_dir / CHECKPOINT_NAME
-    run_info = {
-        "data": str(data.resolve()),
-        "scene": scene.name,
-        "resolution_scale": cfg.resolution_scale,
-        "test_split": cfg.test_split,
-        "config": dataclasses.asdict(cfg),
-        "threads": n_threads,
-    }
-    kind = checkpoint_kind(ckpt)
-    trainer: Phase1Trainer | None = None
-    if kind == "sync4d.phase2" and 2 not in phases:
-        raise ConfigError(f"{ckpt} is a Phase 2 checkpoint; Phase 1 cannot continue it")
-    if resume and kind is not None:
-        total = cfg.phase2_iterations if kind == "sync4d.phase2" else cfg.iterations
-        trainer = resume_trainer(ckpt, scene, cfg.phase1, n_threads, total, cfg.phase2)
-        trainer.model.near = cfg.near
-        print(f"fit: resumed {ckpt} at iteration {trainer.iteration}", file=sys.stderr)
-    elif 1 in phases:
-        scene = with_initial_points(scene, cfg, quiet)
-        model = initial_model(
-            scene, cfg.init_points, cfg.sh_degree, cfg.deform, cfg.init_box_fraction,
-            cfg.phase1.seed,
-        )  # fmt: skip
-        model.near = cfg.near
-        trainer = Phase1Trainer(model, scene, cfg.phase1, cfg.iterations, threads=n_threads)
-    elif kind is None:
-        raise ConfigError(
-            f"{run_dir}: Phase 2 alone needs the run's Phase 1 checkpoint ({CHECKPOINT_NAME}); "
-            "run with phases=1,2 or fit Phase 1 first"
-        )
-    (run_dir / RUN_FILE).write_text(json.dumps(run_info, indent=2) + "\n")
-    extra = {**run_info, "cameras": camera_records(scene)}
-    metrics_log = (run_dir / METRICS_FILE).open("a")
-    test_frames = scene.test or scene.train
-    periodic = test_frames
-    if cfg.eval_frames and len(test_frames) > cfg.eval_frames:
-        step = len(test_frames) / cfg.eval_frames
-        periodic = [test_frames[int(i * step)] for i in range(cfg.eval_frames)]
-    test_cache: dict[str, torch.Tensor] = {}
-
-    def target(i: int, frame) -> torch.Tensor:
-        key = str(frame.image_path)
-        if key not in test_cache:
-            test_cache[key] = torch.from_numpy(frame.load_image(cfg.phase1.background))
-        return test_cache[key]
-
-    def log(record: dict) -> None:
-        metrics_log.write(json.dumps(record) + "\n")
-        metrics_log.flush()
-
-    wall0 = time.perf_counter()
-    train_seconds = 0.0
-    loop = dict(cfg=cfg, ckpt=ckpt, extra=extra, log=log, periodic=periodic, target=target,
-                n_threads=n_threads, log_every=log_every)  # fmt: skip
-    interrupted = False
-    if trainer is not None and not isinstance(trainer, Phase2Trainer) and 1 in phases:
-        train_seconds, interrupted = _train_loop(
-            trainer, cfg.iterations, desc="fit", train_seconds=train_seconds, **loop
-        )
-    if not interrupted and 2 in phases:
-        if not isinstance(trainer, Phase2Trainer):
-            shutil.copyfile(ckpt, run_dir / PHASE1_CHECKPOINT_NAME)
-            model = trainer.model if trainer is not None else load_model(ckpt)[0]
-            model.near = cfg.near
-            print(
-                f"fit: Phase 2 ({cfg.phase2_iterations} iterations) from "
-                f"{run_dir / PHASE1_CHECKPOINT_NAME}: assigning Gaussians to objects ...",
-                file=sys.stderr,
-            )
-            try:
-                trainer = Phase2Trainer(
-                    model, scene, cfg.phase1, cfg.phase2, cfg.phase2_iterations, n_threads
-                )
-            except ValueError as e:  # bad Phase 2 settings or assignment input
-                raise ConfigError(str(e)) from None
-            counts = trainer.assignment.counts()
-            names = trainer.assignment.names
-            print(
-                f"fit: {trainer.assignment.source} assignment, K = "
-                f"{trainer.assignment.num_objects}: "
-                + ", ".join(f"{names.get(k, k)} {n}" for k, n in counts.items()),
-                file=sys.stderr,
-            )
-        train_seconds, interrupted = _train_loop(
-            trainer, cfg.phase2_iterations, desc="phase2", train_seconds=train_seconds, **loop
-        )
-    if interrupted:
-        metrics_log.close()
-        print(
-            f"fit: interrupted at iteration {trainer.iteration}; checkpoint saved to {ckpt}.\n"
-            f"     continue with: python -m sync4d fit {data} --out {run_dir} --resume",
-            file=sys.stderr,
-        )
-        raise FitInterrupted
-    from sync4d.commands.evaluate import evaluate_run
-
-    summary = evaluate_run(
-        run_dir, trainer.model, scene, cfg.phase1.background, n_threads, quiet=quiet
-    )
-    summary.update(
-        {"iterations": trainer.iteration, "train_seconds": train_seconds,
-         "wall_seconds": time.perf_counter() - wall0, "gaussians": trainer.model.num_gaussians}
-    )  # fmt: skip
-    if isinstance(trainer, Phase2Trainer):
-        diag = trainer.diagnostics()
-        export = trainer.motion_export()
-        cent = export["centroids"]
-        diag["trajectories"] = {
-            "times": export["times"].tolist(),
-            "centroids": {str(k): cent[k].tolist() for k in range(len(cent))},
-        }
-        (run_dir / PHASE2_FILE).write_text(json.dumps(diag, indent=2) + "\n")
-        plot = plot_object_trajectories(
-            export, trainer.assignment.names, run_dir / TRAJECTORY_PLOT,
-            f"{scene.name}: object centroids after Phase 2 ({diag['assignment']} assignment)",
-        )  # fmt: skip
-        summary["phase2"] = diag
-        if not quiet:
-            print(format_diagnostics(diag))
-            print(f"fit: wrote {run_dir / PHASE2_FILE} and {plot}")
-    log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
-    metrics_log.close()
-    return summary
-
-
-def format_diagnostics(diag: dict) -> str:
-    """Phase 2 diagnostics (Appendix C) as a table plus a summary line."""
-    rows = [
-        [str(o["label"]), o["name"], f"{o['gaussians']:,}", "yes" if o["static"] else "",
-         f"{o['rigid_share']:.3f}", f"{o['residual_mean']:.4f}", f"{o['motion_variance']:.2e}"]
-        for o in diag["objects"]
-    ]  # fmt: skip
-    table = align_table(
-        ["k", "object", "Gaussians", "static", "rigid share", "residual", "motion var"], rows,
-        left=(1,),
-    )  # fmt: skip
-    return (
-        f"{table}\nmean rigid share {diag['rigid_share']:.3f}, residual energy "
-        f"{diag['residual_energy']:.2e}, modulated fraction {diag['modulated_fraction']:.3f}, "
-        f"shuffle ratio {diag['shuffle_ratio']:.2f} ({diag['assignment']} assignment)"
-        + (
-            f"\nagreement with mask voting: adjusted Rand index {diag['mask_agreement_ari']:.3f} "
-            f"({diag['num_objects'] - 1} clusters vs {diag['mask_objects']} mask objects)"
-            if "mask_agreement_ari" in diag
-            else ""
-        )
-    )
-
-
 def main(args: argparse.Namespace) -> int:
+    """Run `fit` with parsed `args`; the exit status."""
     try:
         data, cfg = _load(args)
         run_dir = Path(args.out) if args.out else Path("runs") / data.name
@@ -412,7 +67,7 @@ def main(args: argparse.Namespace) -> int:
             )
             return 2
         if phase2_only and not args.resume:
-            _restart_phase2(run_dir)
+            restart_phase2(run_dir)
         elif args.force and not args.resume:
             for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE,
                          TRAJECTORY_PLOT):  # fmt: skip
@@ -421,7 +76,7 @@ def main(args: argparse.Namespace) -> int:
         print(
             f"fit: {scene.name}: {len(scene.train)} train / {len(scene.test)} test frames at "
             f"{scene.train[0].camera.width}x{scene.train[0].camera.height}, "
-            f"{cfg.iterations} iterations -> {run_dir}",
+            f"{cfg.phase1.iterations} iterations -> {run_dir}",
             file=sys.stderr,
         )
         summary = run_fit(scene, cfg, run_dir, data, args.resume, args.threads)
@@ -443,16 +98,3 @@ def main(args: argparse.Namespace) -> int:
             f"{d['shuffle_ratio']:.2f}, {len(d['objects'])} labels ({d['assignment']})"
         )
     return 0
-
-
-def _restart_phase2(run_dir: Path) -> None:
-    """Put the run's Phase 1 checkpoint back in place so Phase 2 starts over from it."""
-    ckpt = run_dir / CHECKPOINT_NAME
-    kept = run_dir / PHASE1_CHECKPOINT_NAME
-    if kept.exists():
-        shutil.copyfile(kept, ckpt)
-    elif checkpoint_kind(ckpt) != "sync4d.phase1":
-        raise ConfigError(
-            f"{run_dir}: --phases 2 needs a Phase 1 checkpoint ({CHECKPOINT_NAME} or "
-            f"{PHASE1_CHECKPOINT_NAME}); fit Phase 1 first"
-        )

@@ -13,16 +13,16 @@ import numpy as np
 import torch
 from PIL import Image
 
-from sync4d.checkpoint import CheckpointError, load_model
 from sync4d.data.scene import Camera
-from sync4d.gaussians import DeformableGaussians
+from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.progress import Progress
+from sync4d.runs import RENDERS_DIR, CheckpointError, RunError, load_run
 
 __all__ = ["main", "camera_from_record", "pick_camera", "render_times", "save_gif"]
 
 
 def camera_from_record(rec: dict) -> Camera:
-    """A `Camera` from a checkpoint camera record (see `sync4d.checkpoint.camera_records`)."""
+    """A `Camera` from a checkpoint camera record (see `sync4d.runs.checkpoint.camera_records`)."""
     vm = np.asarray(rec["viewmat"], dtype=np.float64).reshape(4, 4)
     return Camera(
         vm, float(rec["fx"]), float(rec["fy"]), float(rec["cx"]), float(rec["cy"]),
@@ -83,14 +83,11 @@ def save_gif(frames: list[np.ndarray], path: Path, fps: float = 15.0) -> Path:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sync4d.commands.fit import CHECKPOINT_NAME
-
-    run = Path(args.run)
-    ckpt = run / CHECKPOINT_NAME if run.is_dir() else run
+    """Run `render` with parsed `args`; the exit status."""
     try:
-        model, meta = load_model(ckpt)
-        rec = pick_camera(meta.get("run", {}).get("cameras", []), args.camera)
-    except (CheckpointError, ValueError) as e:
+        run = load_run(args.run)
+        rec = pick_camera(run.cameras, args.camera)
+    except (RunError, CheckpointError, ValueError) as e:
         print(f"render: {e}", file=sys.stderr)
         return 2
     if args.times:
@@ -101,13 +98,12 @@ def main(args: argparse.Namespace) -> int:
     if bad:
         print(f"render: --times must lie in [0, 1], got {bad}", file=sys.stderr)
         return 2
-    out_dir = Path(args.out) if args.out else (run if run.is_dir() else run.parent) / "renders"
+    out_dir = Path(args.out) if args.out else run.path / RENDERS_DIR
     out_dir.mkdir(parents=True, exist_ok=True)
     if args.threads:
         torch.set_num_threads(args.threads)
     cam = camera_from_record(rec)
-    frames = render_times(model, cam, times, meta.get("background", [1.0, 1.0, 1.0]),
-                          args.threads)  # fmt: skip
+    frames = render_times(run.model, cam, times, run.background, args.threads)
     stem = Path(rec["name"]).stem
     for t, f in zip(times, frames, strict=True):
         Image.fromarray(f).save(out_dir / f"{stem}_t{t:.3f}.png")

@@ -19,15 +19,18 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from sync4d.data.scene import Frame
+from sync4d.data.scene import Frame, Scene
+from sync4d.phase1.gaussians import DeformableGaussians
 
 __all__ = [
     "ASSIGN_SOURCES",
     "Assignment",
     "adjusted_rand_index",
+    "assign_objects",
     "AssignConfig",
     "assign_from_masks",
     "cluster_trajectories",
+    "displacement_curves",
     "count_votes",
     "labels_from_votes",
 ]
@@ -254,3 +257,41 @@ def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
     if best == expected:  # both labelings put everything in one class (or all singletons)
         return 1.0
     return (index - expected) / (best - expected)
+
+
+@torch.no_grad()
+def _positions_fn(model: DeformableGaussians):
+    def positions_at(t: float) -> np.ndarray:
+        return model.at_time(float(t))[0].double().numpy()
+
+    return positions_at
+
+
+@torch.no_grad()
+def displacement_curves(model: DeformableGaussians, times: np.ndarray) -> np.ndarray:
+    """[N, S, 3] float64 displacements x_i(t_s) - x_i(t_0) at the given sample times."""
+    pos = np.stack([model.at_time(float(t))[0].double().numpy() for t in times], axis=1)
+    return pos - pos[:, :1]
+
+
+def assign_objects(
+    model: DeformableGaussians, scene: Scene, extent: float, config: AssignConfig | None = None
+) -> Assignment:
+    """Object labels for `model`'s Gaussians: mask voting when the training frames have masks,
+    otherwise trajectory clustering."""
+    config = config or AssignConfig()
+    if config.source not in ASSIGN_SOURCES:
+        raise ValueError(
+            f"phase2.assign.source: expected one of {', '.join(ASSIGN_SOURCES)}, "
+            f"got {config.source!r}"
+        )
+    use_masks = config.source == "masks" or (config.source == "auto" and scene.has_masks)
+    if use_masks:
+        if not scene.has_masks:
+            raise ValueError(
+                f"phase2.assign.source=masks: scene '{scene.name}' has training frames without "
+                "instance masks; use source=trajectories (unsupervised) or auto"
+            )
+        return assign_from_masks(_positions_fn(model), scene.train, scene.labels, config)
+    times = np.linspace(0.0, 1.0, config.trajectory_samples)
+    return cluster_trajectories(displacement_curves(model, times), extent, config)

@@ -16,13 +16,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from sync4d.geometry import axis_angle_to_quat, quat_multiply
+
 __all__ = [
     "DeformConfig",
     "DeformationMLP",
-    "axis_angle_to_quat",
     "deform_gaussians",
-    "quat_multiply",
-    "quat_to_matrix",
     "time_encoding",
 ]
 
@@ -53,43 +52,6 @@ def time_encoding(t: Tensor, bands: int = 6) -> Tensor:
     ang = t * freqs
     enc = torch.stack([torch.sin(ang), torch.cos(ang)], dim=-1).flatten(-2)
     return torch.cat([t, enc], dim=-1)
-
-
-def axis_angle_to_quat(w: Tensor, eps: float = 1e-8) -> Tensor:
-    """Unit quaternion (w, x, y, z) of rotation vectors `w` [..., 3] (Appendix A's aa2q)."""
-    theta = w.norm(dim=-1, keepdim=True)
-    axis = w / (theta + eps)
-    q = torch.cat([torch.cos(0.5 * theta), axis * torch.sin(0.5 * theta)], dim=-1)
-    return q / q.norm(dim=-1, keepdim=True)
-
-
-def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product a (x) b of quaternions (w, x, y, z), [..., 4]: rotating by b, then a."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        dim=-1,
-    )
-
-
-def quat_to_matrix(q: Tensor) -> Tensor:
-    """Rotation matrices [..., 3, 3] of quaternions (w, x, y, z) [..., 4] (normalised first)."""
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(*q.shape[:-1], 3, 3)  # fmt: skip
 
 
 @torch.no_grad()

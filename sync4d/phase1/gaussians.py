@@ -8,6 +8,7 @@ and a 32-d embedding per Gaussian.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -15,12 +16,15 @@ from torch import Tensor, nn
 
 from sync4d import raster
 from sync4d.data.scene import Camera
-from sync4d.deform import DeformationMLP, DeformConfig, deform_gaussians
+from sync4d.phase1.deform import DeformationMLP, DeformConfig, deform_gaussians
 
-__all__ = ["DeformableGaussians", "rgb_to_sh_dc", "SH_C0"]
+__all__ = ["DeformableGaussians", "PER_GAUSSIAN", "rgb_to_sh_dc", "SH_C0"]
 
 #: Constant of the degree-0 real SH basis function.
 SH_C0 = 0.28209479177387814
+
+#: Per-Gaussian parameters of `DeformableGaussians` (dimension 0 is N).
+PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "embeddings")
 
 
 def rgb_to_sh_dc(rgb: Tensor) -> Tensor:
@@ -42,6 +46,7 @@ class DeformableGaussians(nn.Module):
         init_opacity: float = 0.1,
         embed_std: float = 0.01,
         generator: torch.Generator | None = None,
+        near: float = 0.01,
     ) -> None:
         super().__init__()
         if points.dim() != 2 or points.shape[1] != 3:
@@ -55,9 +60,11 @@ class DeformableGaussians(nn.Module):
             raise ValueError(f"colors: expected shape [{n}, 3], got {list(colors.shape)}")
         self.config = config or DeformConfig()
         self.sh_degree = sh_degree
+        if not (math.isfinite(near) and near > 0):
+            raise ValueError(f"near: must be a finite distance > 0 (world units), got {near}")
         #: Near clipping plane of every render, world units: Gaussians whose centre is closer
-        #: to the camera are not drawn (see `RunConfig.near`).
-        self.near = 0.01
+        #: to the camera are not drawn (see `Phase1Config.near`).
+        self.near = float(near)
         k = (sh_degree + 1) ** 2
         f32 = torch.float32
         self.means = nn.Parameter(points.to(f32).clone())
@@ -81,6 +88,43 @@ class DeformableGaussians(nn.Module):
         u = torch.rand(n, 3, generator=generator)
         colors = torch.rand(n, 3, generator=generator)
         return cls(lo + u * (hi - lo), colors, generator=generator, **kw)
+
+    def state(self) -> tuple[dict[str, Tensor], dict]:
+        """The model as tensors (``gaussians.<name>`` [N, ...] for `PER_GAUSSIAN`,
+        ``deform.<key>`` D_theta's weights) and JSON-ready settings (SH degree, near plane,
+        D_theta's config), for checkpoints; `from_state` rebuilds it."""
+        tensors = {f"gaussians.{n}": getattr(self, n).detach() for n in PER_GAUSSIAN}
+        tensors.update({f"deform.{k}": v.detach() for k, v in self.deform.state_dict().items()})
+        meta = {"sh_degree": self.sh_degree, "near": self.near,
+                "deform_config": dataclasses.asdict(self.config)}  # fmt: skip
+        return tensors, meta
+
+    @classmethod
+    def from_state(
+        cls, tensors: dict[str, Tensor], meta: dict, near: float | None = None
+    ) -> DeformableGaussians:
+        """The model `state` returned (`near` replaces the stored near plane). Raises KeyError
+        for a missing tensor or setting, ValueError for a shape or weight that does not fit."""
+        model = cls(
+            tensors["gaussians.means"], None, sh_degree=int(meta["sh_degree"]),
+            config=DeformConfig(**meta["deform_config"]),
+            near=float(meta.get("near", 0.01) if near is None else near),
+        )  # fmt: skip
+        with torch.no_grad():
+            for n in PER_GAUSSIAN:
+                src = tensors[f"gaussians.{n}"]
+                if src.shape != getattr(model, n).shape:
+                    want = list(getattr(model, n).shape)
+                    got = list(src.shape)
+                    raise ValueError(f"'gaussians.{n}' has shape {got}, expected {want}")
+                getattr(model, n).copy_(src)
+        deform = {k.removeprefix("deform."): v for k, v in tensors.items()
+                  if k.startswith("deform.")}  # fmt: skip
+        try:
+            model.deform.load_state_dict(deform)
+        except RuntimeError as e:
+            raise ValueError(f"inconsistent deformation weights ({e})") from None
+        return model
 
     @property
     def num_gaussians(self) -> int:

@@ -13,14 +13,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from sync4d.deform import quat_to_matrix
-from sync4d.gaussians import DeformableGaussians
+from sync4d.geometry import quat_to_matrix
+from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
 
 __all__ = ["DensifyConfig", "Densifier", "PER_GAUSSIAN"]
-
-#: Per-Gaussian parameters of `DeformableGaussians` (dimension 0 is N).
-PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "embeddings")
-
 
 @dataclass(frozen=True)
 class DensifyConfig:
@@ -214,5 +210,3 @@ class Densifier:
             return torch.zeros_like(t) if is_state else t.clamp_max(cap)
 
         _replace_rows(optimizer, model, reset)
-
-

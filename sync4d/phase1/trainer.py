@@ -12,23 +12,44 @@ import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
 from sync4d.data.scene import Frame, Scene
-from sync4d.deform import DeformConfig
-from sync4d.densify import Densifier, DensifyConfig
-from sync4d.gaussians import DeformableGaussians
-from sync4d.losses import photometric_loss, psnr
+from sync4d.metrics import psnr
+from sync4d.phase1.deform import DeformConfig
+from sync4d.phase1.densify import Densifier, DensifyConfig
+from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.init import scene_extent
+from sync4d.phase1.losses import photometric_loss
 
-__all__ = ["Phase1Config", "Phase1Trainer", "initial_model", "scene_extent", "scene_focus"]
+__all__ = ["Phase1Config", "Phase1Trainer"]
 
 
 @dataclass(frozen=True)
 class Phase1Config:
-    """Learning rates (3DGS values for Gaussian attributes; 5e-4 for D_theta and embeddings,
-    Appendix A), schedules and loss weights."""
+    """Phase 1: the model (SH degree, D_theta, initial Gaussians, near plane), the length of
+    training, learning rates (3DGS values for Gaussian attributes; 5e-4 for D_theta and
+    embeddings, Appendix A), schedules and loss weights."""
 
+    #: Training iterations (Appendix A: 30k).
+    iterations: int = 30_000
+    sh_degree: int = 3
+    deform: DeformConfig = field(default_factory=DeformConfig)
+    #: Near clipping plane of every render (training, evaluation, `render`), world units;
+    #: Gaussians whose centre is closer to the camera are not drawn. Capture domes need more
+    #: than the default: each camera's own housing, reconstructed from the cameras facing it,
+    #: sits a few centimetres in front of its lens and would cover its whole view.
+    near: float = 0.01
+    #: Where the initial Gaussians come from: "points" (the dataset's point cloud, e.g.
+    #: COLMAP's), "triangulate" (SIFT matches of the training cameras at one instant,
+    #: triangulated with the dataset's poses; multi-view captures), "random" (`init_points`
+    #: uniform in a cube), or "auto": points if the dataset has them, else triangulate when
+    #: several cameras see one instant, else random.
+    init_from: str = "auto"
+    #: Random initial Gaussians when the dataset has no point cloud (3DGS uses 100k on a GPU).
+    init_points: int = 20_000
+    #: Half-size of the random-init cube as a fraction of the mean camera distance.
+    init_box_fraction: float = 0.33
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6
     lr_quats: float = 1e-3
@@ -52,75 +73,25 @@ class Phase1Config:
     densify: DensifyConfig = field(default_factory=DensifyConfig)
 
 
-def scene_extent(scene: Scene) -> float:
-    """Radius of the training cameras around their centroid, times 1.1 (3DGS's extent)."""
-    centres = np.stack([f.camera.center for f in scene.train])
-    return float(1.1 * np.linalg.norm(centres - centres.mean(0), axis=1).max() + 1e-6)
-
-
-def scene_focus(scene: Scene) -> tuple[np.ndarray, float]:
-    """Point [3] closest (least squares) to every training camera's optical axis, and the mean
-    camera distance to it: where an object-centric capture looks, and from how far."""
-    a = np.zeros((3, 3))
-    b = np.zeros(3)
-    centres = []
-    for f in scene.train:
-        c = f.camera.center
-        d = f.camera.viewmat[2, :3]  # optical axis (camera +z) in world coordinates
-        p = np.eye(3) - np.outer(d, d)
-        a += p
-        b += p @ c
-        centres.append(c)
-    centres_arr = np.stack(centres)
-    if np.linalg.cond(a) > 1e8:  # parallel axes (e.g. a forward-facing rig): use the centroid
-        focus = centres_arr.mean(0)
-    else:
-        focus = np.linalg.solve(a, b)
-    dist = float(np.linalg.norm(centres_arr - focus, axis=1).mean())
-    return focus, max(dist, 1e-6)
-
-
-def initial_model(
-    scene: Scene,
-    num_random: int = 20_000,
-    sh_degree: int = 3,
-    deform: DeformConfig | None = None,
-    box_fraction: float = 0.33,
-    seed: int = 42,
-) -> DeformableGaussians:
-    """Canonical Gaussians for `scene`: its points (and colours) when it has a point cloud
-    (COLMAP), otherwise `num_random` points uniform in a cube of half-size `box_fraction` times
-    the camera distance around the point the cameras look at (D-NeRF: about [-1.3, 1.3]^3)."""
-    g = torch.Generator().manual_seed(seed)
-    if scene.points is not None and len(scene.points) > 0:
-        pts = torch.as_tensor(np.asarray(scene.points), dtype=torch.float32)
-        cols = scene.point_colors
-        colors = None if cols is None else torch.as_tensor(np.asarray(cols), dtype=torch.float32)
-        return DeformableGaussians(pts, colors, sh_degree=sh_degree, config=deform, generator=g)
-    focus, dist = scene_focus(scene)
-    half = box_fraction * dist
-    lo = torch.as_tensor(focus - half, dtype=torch.float32)
-    hi = torch.as_tensor(focus + half, dtype=torch.float32)
-    return DeformableGaussians.random_in_box(
-        num_random, lo, hi, generator=g, sh_degree=sh_degree, config=deform
-    )
-
-
 class Phase1Trainer:
     """Owns the optimizer, densifier and image cache for one `DeformableGaussians` model."""
+
+    #: The `kind` its checkpoints record.
+    KIND = "sync4d.phase1"
 
     def __init__(
         self,
         model: DeformableGaussians,
         scene: Scene,
         config: Phase1Config | None = None,
-        total_iterations: int = 30_000,
+        total_iterations: int | None = None,
         threads: int | None = None,
     ) -> None:
         self.model = model
         self.scene = scene
         self.config = config or Phase1Config()
-        self.total = max(1, total_iterations)
+        total = self.config.iterations if total_iterations is None else total_iterations
+        self.total = max(1, total)
         self.threads = threads
         self.extent = scene_extent(scene)
         self.iteration = 0
@@ -235,3 +206,85 @@ class Phase1Trainer:
             if callback is not None:
                 callback(self.iteration, stats)
         return stats
+
+    # -- checkpoint state -------------------------------------------------------------------
+    def state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """Everything needed to continue training, as tensors (the model's, Adam's moments
+        ``optim.<group>.<param>.*``, the densification statistics and generator) and JSON-ready
+        settings (`KIND`, iteration, learning rates, Adam step counts, the frame sampler's
+        state); `from_state` rebuilds the trainer from them."""
+        tensors, meta = self.model.state()
+        steps: dict[str, float] = {}
+        for gi, group in enumerate(self.optimizer.param_groups):
+            for pi, p in enumerate(group["params"]):
+                st = self.optimizer.state.get(p)
+                if st:
+                    for k in ("exp_avg", "exp_avg_sq"):
+                        tensors[f"optim.{gi}.{pi}.{k}"] = st[k]
+                    steps[f"{gi}.{pi}"] = float(st["step"])
+        tensors["densify.grad_accum"] = self.densifier.grad_accum
+        tensors["densify.count"] = self.densifier.count
+        tensors["densify.max_radius"] = self.densifier.max_radius
+        tensors["densify.rng"] = self.densifier.generator.get_state()
+        version, internal, gauss = self._rng.getstate()
+        meta.update({
+            "kind": self.KIND,
+            "iteration": self.iteration,
+            "total_iterations": self.total,
+            "lrs": [g["lr"] for g in self.optimizer.param_groups],
+            "adam_steps": steps,
+            "python_rng": [version, list(internal), gauss],
+            "background": list(self.config.background),
+        })  # fmt: skip
+        return tensors, meta
+
+    @classmethod
+    def from_state(
+        cls,
+        tensors: dict[str, torch.Tensor],
+        meta: dict,
+        scene: Scene,
+        *,
+        config: Phase1Config | None = None,
+        total_iterations: int | None = None,
+        threads: int | None = None,
+        near: float | None = None,
+    ) -> Phase1Trainer:
+        """The trainer `state` described, exactly as it was (`total_iterations` extends or
+        shortens the run, default the stored length; the learning-rate schedules follow it).
+        Raises KeyError for a missing tensor or setting, ValueError for one that does not fit."""
+        model = DeformableGaussians.from_state(tensors, meta, near)
+        total = total_iterations or meta["total_iterations"]
+        trainer = cls(model, scene, config, total_iterations=total, threads=threads)
+        trainer.restore(tensors, meta)
+        return trainer
+
+    def restore(self, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+        """Load the loop state of `state` (iteration, optimizer, densifier, frame sampler) into
+        this trainer, whose model already holds the stored Gaussians."""
+        self.iteration = int(meta["iteration"])
+        for gi, group in enumerate(self.optimizer.param_groups):
+            group["lr"] = meta["lrs"][gi]
+            for pi, p in enumerate(group["params"]):
+                key = f"{gi}.{pi}"
+                if key in meta["adam_steps"]:
+                    self.optimizer.state[p] = {
+                        "step": torch.tensor(meta["adam_steps"][key]),
+                        "exp_avg": tensors[f"optim.{key}.exp_avg"].clone(),
+                        "exp_avg_sq": tensors[f"optim.{key}.exp_avg_sq"].clone(),
+                    }
+        self.densifier.grad_accum = tensors["densify.grad_accum"].clone()
+        self.densifier.count = tensors["densify.count"].clone()
+        if "densify.max_radius" in tensors:  # absent in checkpoints before sync4d 0.2
+            self.densifier.max_radius = tensors["densify.max_radius"].clone()
+        if "densify.rng" in tensors:  # absent in older checkpoints: the seed's generator
+            try:
+                self.densifier.generator.set_state(tensors["densify.rng"].clone())
+            except (RuntimeError, TypeError) as e:
+                raise ValueError(f"bad 'densify.rng' generator state ({e})") from None
+        try:
+            version, internal, gauss = meta["python_rng"]
+            self._rng = random.Random()
+            self._rng.setstate((version, tuple(internal), gauss))
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"bad frame-sampler state ({e})") from None

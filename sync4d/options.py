@@ -1,0 +1,176 @@
+"""Argument types and option groups of the command line, kept light (argparse only) so that
+`cli` and the benchmarks' programmatic entry points build the same options without importing
+each other."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = [
+    "add_bench_fit_options",
+    "add_bench_raster_options",
+    "add_threads",
+    "add_training_options",
+    "positive_float",
+    "positive_int",
+    "resolution",
+]
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (argparse type)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A number > 0 (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+    return value
+
+
+def resolution(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` (e.g. ``800x800``, ``960x536``) as ``(width, height)``."""
+    parts = text.lower().split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected WIDTHxHEIGHT such as 800x800, got {text!r}"
+        ) from None
+    if not (1 <= width <= 16384 and 1 <= height <= 16384):
+        raise argparse.ArgumentTypeError(f"width and height must lie in 1..16384, got {text!r}")
+    return width, height
+
+
+def add_threads(p: argparse.ArgumentParser) -> None:
+    """--threads and --backend: every command that renders or trains."""
+    p.add_argument(
+        "--threads",
+        type=positive_int,
+        default=None,
+        metavar="T",
+        help="CPU threads for torch and the rasterizer (default: all cores)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=("cpu", "wgpu", "auto"),
+        default="cpu",
+        help="compositing backend: the Rust CPU path (default), wgpu (a GPU, else a CPU "
+        "Vulkan driver such as lavapipe) or auto (wgpu on a GPU, else cpu)",
+    )
+
+
+def add_training_options(p: argparse.ArgumentParser, config_help: str) -> None:
+    """Options shared by every command that trains: config file, overrides, threads."""
+    p.add_argument("--config", metavar="FILE.toml", default=None, help=config_help)
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", default=[],
+                   help="override a config value, e.g. --set phase1.densify.stop=10000 "
+                   "(repeatable)")  # fmt: skip
+    add_threads(p)
+
+
+def add_bench_raster_options(p: argparse.ArgumentParser) -> None:
+    """The options of `bench raster`."""
+    p.add_argument(
+        "--out",
+        metavar="FILE.json",
+        default=None,
+        help="where to write the results as JSON (default: bench-raster.json in the cwd)",
+    )
+    p.add_argument(
+        "--sizes",
+        nargs="+",
+        type=positive_int,
+        metavar="N",
+        default=None,
+        help="scene sizes as Gaussian counts, e.g. --sizes 1000 10000 "
+        "(default: 10000 100000 1000000)",
+    )
+    p.add_argument(
+        "--resolutions",
+        nargs="+",
+        type=resolution,
+        metavar="WxH",
+        default=None,
+        help="image sizes, e.g. --resolutions 800x800 960x536 (default: 256x256 800x800 960x536)",
+    )
+    p.add_argument(
+        "--thread-counts",
+        dest="threads",
+        nargs="+",
+        type=positive_int,
+        metavar="T",
+        default=None,
+        help="thread counts to time (rayon on the op, torch.set_num_threads for torch), "
+        "e.g. --thread-counts 1 2 (default: 1 2)",
+    )
+    p.add_argument(  # the spelling before --thread-counts
+        "--threads", dest="threads", nargs="+", type=positive_int, help=argparse.SUPPRESS
+    )
+    p.add_argument(
+        "--repeats",
+        type=positive_int,
+        metavar="K",
+        default=None,
+        help="timed sync4d calls per measurement, median reported "
+        "(default: 5, 3 for N >= 1M, 3 with --quick)",
+    )
+    p.add_argument(
+        "--reference-max-gb",
+        type=positive_float,
+        metavar="GB",
+        default=None,
+        help="kill a reference run whose RSS passes this many GiB (default: 18, and never more "
+        "than the memory available minus 1.5 GiB)",
+    )
+    p.add_argument(
+        "--memory-method",
+        choices=("auto", "clear_refs", "subprocess"),
+        default="auto",
+        help="peak-memory method: reset VmHWM via /proc/self/clear_refs, or run each "
+        "measurement in a child process and read its ru_maxrss (default: auto)",
+    )
+    p.add_argument(
+        "--no-reference",
+        action="store_true",
+        help="skip the gsplat torch reference timings",
+    )
+    p.add_argument(
+        "--no-wgpu",
+        action="store_true",
+        help="skip the wgpu backend timings (default: timed when a wgpu adapter opens, "
+        "e.g. lavapipe)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="N=10000 at 256x256 only, fewer repeats (smoke run); --sizes/--resolutions win",
+    )
+
+
+def add_bench_fit_options(p: argparse.ArgumentParser) -> None:
+    """The options of `bench fit`."""
+    p.add_argument("data", nargs="?", default=None, metavar="DATA",
+                      help="dataset folder (default: the embedded synthetic scene)")
+    add_training_options(p, "hyperparameters of every budget (default as for 'fit')")
+    p.add_argument("--iters", nargs="+", type=positive_int, metavar="N", default=None,
+                      help="iteration budgets (default: 1/8, 1/4, 1/2 and all of the config's)")
+    p.add_argument("--scales", nargs="+", type=positive_float, metavar="S", default=None,
+                      help="resolution scales (default: the config's)")
+    p.add_argument("--caps", nargs="+", type=positive_int, metavar="N", default=None,
+                      help="Gaussian caps (default: the config's max_gaussians)")
+    p.add_argument("--out", metavar="FILE.json", default=None,
+                      help="results JSON (default bench-fit-NAME.json; the plot goes beside it)")
+    p.add_argument("--keep-runs", metavar="DIR", default=None,
+                      help="keep each budget's run folder under DIR")

@@ -1,0 +1,296 @@
+"""Photometric refinement of Phase 2's SE(3) table (not in the paper; `MotionConfig.refine_*`).
+
+After the closed-form start (`MotionConfig.init = "fit"`), a rigid template of each moving
+object's first-frame Gaussians (`_RigidTemplate`) is tracked through the stored frames against
+the training views, optionally with rounds of fitting the template's own colours to every view
+and tracking again (`refine_texture_rounds`): D_theta's colours are a texture averaged over its
+morph, which pulls the poses toward the blur (docs/results/phase2-robustness.md). The model is
+unchanged; only the SE(3) table's entries of the moving objects are rewritten.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from sync4d.geometry import axis_angle_to_quat, matrix_to_rotvec, quat_multiply, rotvec_to_matrix
+from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.losses import photometric_loss
+from sync4d.phase2.motion import MotionConfig, SE3Table, cosine_lr
+from sync4d.progress import Progress
+
+if TYPE_CHECKING:
+    from sync4d.phase2.trainer import Phase2Trainer
+
+__all__ = ["refine_motion"]
+
+
+def _centroids(x: Tensor, owner: Tensor, k: int) -> Tensor:
+    """Mean [k, 3] of the points `x` [M, 3] of each owner index in `owner` [M] (0 if none)."""
+    count = torch.bincount(owner, minlength=k).clamp_min(1)
+    return torch.zeros(k, 3).index_add_(0, owner, x) / count[:, None]
+
+
+@dataclass
+class _RigidTemplate:
+    """The refinement's rigid template: the moving objects' Gaussians of the first frame.
+    `sel` [N] marks them, `owner` [M] their index in `moving`, `offsets` [M, 3, 1] their
+    positions about their object's centroid `centre` [K', 3], `quats` [M, 4] and `scales`
+    [M, 3] their shape there; `views` the training frame indices per stored frame; `sh_dc`
+    [N, 1, 3] the base colours rendered (a copy of the model's that the texture fit changes)."""
+
+    moving: list[int]
+    sel: Tensor
+    owner: Tensor
+    offsets: Tensor
+    centre: Tensor
+    quats: Tensor
+    scales: Tensor
+    views: list[list[int]]
+    sh_dc: Tensor
+
+    @property
+    def rows(self) -> Tensor:
+        """Indices [M] of the template's Gaussians in the model."""
+        return torch.nonzero(self.sel).squeeze(-1)
+
+    @classmethod
+    @torch.no_grad()
+    def build(cls, trainer: Phase2Trainer, moving: list[int]) -> _RigidTemplate:
+        """The template of `moving` objects from `trainer`'s model and labels."""
+        views: list[list[int]] = [[] for _ in trainer.times]
+        for index, f in enumerate(trainer.scene.train):
+            views[trainer.motion.frame_index(f.time)].append(index)
+        slot = torch.full_like(trainer.labels, -1)  # index into `moving`, -1 elsewhere
+        for i, k in enumerate(moving):
+            slot[trainer.labels == k] = i
+        sel = slot >= 0
+        owner = slot[sel]
+        x_ref, q_ref, s_ref = (v[sel] for v in trainer.model.at_time(float(trainer.times[0])))
+        centre = _centroids(x_ref, owner, len(moving))
+        offsets = (x_ref - centre[owner]).unsqueeze(-1)
+        return cls(moving, sel, owner, offsets, centre, q_ref, s_ref, views,
+                   trainer.model.sh_dc.detach().clone())  # fmt: skip
+
+    def centroids(self, x: Tensor) -> Tensor:
+        """Each moving object's centroid [K', 3] of the template's points `x` [M, 3]."""
+        return _centroids(x, self.owner, len(self.moving))
+
+    @torch.no_grad()
+    def deformed(self, model: DeformableGaussians, t: float) -> tuple[Tensor, Tensor, Tensor]:
+        """D_theta's Gaussians at `t` with the template's scales (fixed while it is posed)."""
+        x_t, q_t, scales = model.at_time(t)
+        scales[self.sel] = self.scales
+        return x_t, q_t, scales
+
+    def pose(
+        self, w: Tensor, d: Tensor, deformed: tuple[Tensor, Tensor, Tensor]
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """`deformed` with the template's Gaussians turned by rotation vectors `w` [K', 3] about
+        their centroids and shifted by `d` [K', 3] (differentiable in both)."""
+        x_t, q_t, scales = deformed
+        means, quats = x_t.clone(), q_t.clone()
+        moved = (rotvec_to_matrix(w)[self.owner] @ self.offsets).squeeze(-1)
+        means[self.sel] = moved + self.centre[self.owner] + d[self.owner]
+        quats[self.sel] = quat_multiply(axis_angle_to_quat(w)[self.owner], self.quats)
+        return means, quats, scales
+
+
+def refine_motion(
+    trainer: Phase2Trainer, config: MotionConfig | None = None, progress: bool = True
+) -> None:
+    """Photometric refinement of `trainer`'s SE(3) table with the `refine_*` settings of
+    `config` (default: the trainer's `phase2.motion`; `steps` below is `refine_steps`, `lr`
+    `refine_lr`, and so on): every moving
+    object's Gaussians of the first frame, moved rigidly as R_k (x - c_k) + c_k + d_k (c_k:
+    their centroid), are rendered beside D_theta's other Gaussians and compared with each
+    stored frame's training views in time order: `steps` Adam steps per frame on every
+    R_k and d_k (learning rate cosine-annealed from `lr` to `lr_final`, at most and by
+    default `lr`; each step renders `views_per_step` of the frame's views in turn, 0: all),
+    starting from the previous frame's rotation and from D_theta's centroid offset. The
+    first frame is refined too (4 x `steps`, from the identity): D_theta's Gaussians there
+    may carry their texture turned away from the images (a time-averaged orientation when
+    D_theta morphs instead of rotating), and the motion is relative to that frame.
+
+    Then `texture_rounds` times: the template's base colours (SH DC of the moving
+    Gaussians, a copy: the model keeps its own) are fitted to every training view with the
+    poses fixed (`colour_epochs` passes in a seeded random order, Adam at `colour_lr`), and
+    every frame is tracked again from its last pose with `retrack_steps` steps (default
+    `steps`) from rate `retrack_lr` (default `lr`). D_theta's colours are a texture
+    averaged over a morph; seen through the rigid motion it is blurred where the object
+    turned most, which pulls the poses there toward the blur. Table entries become the
+    result composed with the first frame's fitted transform; static objects and the model
+    are unchanged."""
+    mc = config or trainer.phase2.motion
+    steps, lr, views_per_step = mc.refine_steps, mc.refine_lr, mc.refine_views
+    lr_final = min(mc.refine_lr_final, lr)
+    texture_rounds, colour_epochs = mc.refine_texture_rounds, mc.refine_colour_epochs
+    retrack_steps = mc.refine_retrack_steps or steps
+    retrack_lr = mc.refine_retrack_lr or lr
+    motion = trainer.motion
+    if not isinstance(motion, SE3Table):
+        raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
+    moving = [k for k in range(trainer.assignment.num_objects) if not bool(trainer.static[k])]
+    times = trainer.times
+    if not moving or len(times) < 2 or steps <= 0:
+        return
+    template = _RigidTemplate.build(trainer, moving)
+    with torch.no_grad():
+        r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
+        b0 = motion.translations[moving, 0].detach().float()
+    # The bar counts Adam steps (tracking and texture fit), so its ETA holds across passes.
+    first = [(4 * steps if j == 0 else steps) if v else 0 for j, v in enumerate(template.views)]
+    n_views = sum(len(v) for v in template.views)
+    per_round = colour_epochs * n_views + retrack_steps * sum(1 for v in template.views if v)
+    bar = Progress(sum(first) + texture_rounds * per_round, desc="refine M_phi", log_every=10)
+    done = 0
+
+    def advance(n: int, loss: float) -> None:
+        nonlocal done
+        done += n
+        if progress:
+            bar.update(done, {"loss": f"{loss:.4f}"})
+
+    poses: list[tuple[Tensor, Tensor]] = []
+    w = torch.zeros(len(moving), 3)
+    for j in range(len(times)):
+        # The first frame starts from the fitted pose, which holds whatever orientation
+        # D_theta's texture has there: it gets more steps than the warm-started rest.
+        deformed = template.deformed(trainer.model, float(times[j]))
+        d = template.centroids(deformed[0][template.sel]) - template.centre
+        pose, loss = _track_frame(
+            trainer, template, j, w, d, 4 * steps if j == 0 else steps, lr, lr_final,
+            views_per_step, deformed,
+        )  # fmt: skip
+        poses.append(pose)
+        w = pose[0]
+        advance(first[j], loss)
+    for r in range(texture_rounds):
+        loss = _fit_template_colours(
+            trainer, template, poses, mc.refine_colour_lr, colour_epochs, seed=r
+        )
+        advance(colour_epochs * n_views, loss)
+        for j in range(len(times)):
+            poses[j], loss = _track_frame(
+                trainer, template, j, *poses[j], retrack_steps, retrack_lr,
+                min(lr_final, retrack_lr), views_per_step,
+            )  # fmt: skip
+            advance(retrack_steps if template.views[j] else 0, loss)
+    if progress:
+        bar.close()
+    trainer.template_colours = template.sh_dc
+    with torch.no_grad():
+        centre = template.centre
+        for j, (w, d) in enumerate(poses):
+            r = rotvec_to_matrix(w)
+            a_j = r @ r0
+            b_j = (r @ (b0 - centre).unsqueeze(-1)).squeeze(-1) + centre + d
+            for i, k in enumerate(moving):
+                motion.rotvecs[k, j] = torch.as_tensor(
+                    matrix_to_rotvec(a_j[i].double().numpy()), dtype=motion.rotvecs.dtype
+                )
+                motion.translations[k, j] = b_j[i].to(motion.translations.dtype)
+
+
+def _track_frame(
+    trainer: Phase2Trainer,
+    template: _RigidTemplate,
+    j: int,
+    w: Tensor,
+    d: Tensor,
+    n_steps: int,
+    lr: float,
+    lr_final: float,
+    views_per_step: int,
+    deformed: tuple[Tensor, Tensor, Tensor] | None = None,
+) -> tuple[tuple[Tensor, Tensor], float]:
+    """`n_steps` Adam steps on the moving objects' rotation vectors `w` [K', 3] and shifts
+    `d` [K', 3] at stored frame `j` (`refine_motion`; `deformed`: the template's
+    `deformed` at that frame when the caller has it); the new pose and the last loss."""
+    views = template.views[j]
+    if not views or n_steps <= 0:
+        return (w.clone(), d.clone()), float("nan")
+    t = float(trainer.times[j])
+    if deformed is None:
+        deformed = template.deformed(trainer.model, t)
+    w_j = w.clone().requires_grad_(True)
+    d_j = d.clone().requires_grad_(True)
+    opt = torch.optim.Adam([w_j, d_j], lr=lr)
+    per_step = len(views) if views_per_step <= 0 else views_per_step
+    drawn = 0
+    loss_value = float("nan")
+    for s in range(n_steps):
+        for g in opt.param_groups:
+            g["lr"] = cosine_lr(lr, lr_final, s / max(1, n_steps - 1))
+        opt.zero_grad(set_to_none=True)
+        loss_value = 0.0
+        for _ in range(per_step):
+            index = views[drawn % len(views)]
+            drawn += 1
+            pose = template.pose(w_j, d_j, deformed)
+            loss = _template_loss(trainer, index, t, pose, template.sh_dc)
+            loss.backward()
+            loss_value += float(loss.detach()) / per_step
+        opt.step()
+    return (w_j.detach().clone(), d_j.detach().clone()), loss_value
+
+
+def _fit_template_colours(
+    trainer: Phase2Trainer,
+    template: _RigidTemplate,
+    poses: list[tuple[Tensor, Tensor]],
+    lr: float,
+    epochs: int,
+    seed: int,
+) -> float:
+    """Fit the template's base colours (the moving Gaussians' rows of `template.sh_dc`) to
+    every training view, each frame's objects at its pose in `poses`: `epochs` passes in an
+    order drawn from `seed`, one view per Adam step. Returns the mean loss of the last pass."""
+    frames = [(j, index) for j, views in enumerate(template.views) for index in views]
+    if not frames or epochs <= 0:
+        return float("nan")
+    with torch.no_grad():
+        posed = [
+            template.pose(w, d, template.deformed(trainer.model, float(trainer.times[j])))
+            for j, (w, d) in enumerate(poses)
+        ]
+    rows = template.rows
+    colours = template.sh_dc[rows].clone().requires_grad_(True)
+    opt = torch.optim.Adam([colours], lr=lr)
+    generator = torch.Generator().manual_seed(trainer.config.seed * 1000 + seed)
+    total = 0.0
+    for _ in range(epochs):
+        total = 0.0
+        for k in torch.randperm(len(frames), generator=generator).tolist():
+            j, index = frames[k]
+            opt.zero_grad(set_to_none=True)
+            sh_dc = template.sh_dc.index_put((rows,), colours)
+            loss = _template_loss(trainer, index, float(trainer.times[j]), posed[j], sh_dc)
+            loss.backward()
+            opt.step()
+            total += float(loss.detach())
+    template.sh_dc[rows] = colours.detach()
+    return total / len(frames)
+
+
+def _template_loss(
+    trainer: Phase2Trainer,
+    index: int,
+    t: float,
+    deformed: tuple[Tensor, Tensor, Tensor],
+    sh_dc: Tensor,
+) -> Tensor:
+    """Photometric loss of training frame `index` rendered at time `t` with `deformed`
+    means, quaternions and scales and base colours `sh_dc` [N, 1, 3]."""
+    frame = trainer.scene.train[index]
+    out = trainer.model.render(
+        frame.camera, t, sh_degree=trainer.model.sh_degree, background=trainer._background,
+        deformed=deformed, sh_dc=sh_dc, threads=trainer.threads,
+    )  # fmt: skip
+    return photometric_loss(
+        out.features, trainer._image(index, frame), trainer.config.lambda_l1,
+        trainer.config.lambda_dssim, threads=trainer.threads,
+    )  # fmt: skip

@@ -1,0 +1,383 @@
+"""Phase 2: in-loop motion decomposition (paper Sec. 3.2-3.4, Appendix A "Phase 2", App. C).
+
+Training continues from a Phase 1 model. Every Gaussian i has an object label o(i) (from
+`sync4d.phase2.assign`); M_phi predicts where each object carries its Gaussians,
+x~_i(t) = M_phi(o(i), t)(x0_i) (Eq. 5), and the residual r_i(t) = x_i(t) - x~_i(t) (Eq. 6)
+enters five regularisers plus the identity prior on static objects. Rendering is untouched: it
+always uses D_theta's x_i(t).
+
+Staged activation (Appendix A): M_phi and the smoothness, rigid-share and identity terms from
+iteration `motion_start` (200), velocity coherence from `velocity_start` (300), the modulated
+residual energy from `residual_start` (600), and a linear warm-up of all auxiliary terms over
+[`warmup_start`, `warmup_end`] (500-1000). The paper's "400-iteration head start lets shared
+transforms capture the dominant rigid component first" needs M_phi to learn before the warm-up
+ends, so the warm-up scales only the gradient the auxiliary terms send into the scene (D_theta,
+Gaussians); M_phi always sees them at full weight from their start iteration. `simultaneous`
+switches every term on at iteration 0 without warm-up (the paper's failing ablation).
+
+Before the loop, `MotionConfig.init = "fit"` starts the SE(3) table at the closed-form fit of
+D_theta's motion, and `refine_steps` > 0 refines it photometrically (not in the paper;
+`sync4d.phase2.refine`). The room: `assign` (object labels), `motion` (M_phi), `refine`,
+`diagnostics` (Appendix C and the motion export) and this trainer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sync4d.data.scene import Frame, Scene
+from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase2.assign import AssignConfig, Assignment, assign_objects, displacement_curves
+from sync4d.phase2.diagnostics import diagnostics, motion_export, rigid_share
+from sync4d.phase2.motion import MotionConfig, ObjectMotion, cosine_lr, make_motion
+from sync4d.phase2.refine import refine_motion
+
+__all__ = ["Phase2Config", "Phase2Trainer", "frame_times"]
+
+
+@dataclass(frozen=True)
+class Phase2Config:
+    """Phase 2 hyperparameters (Appendix A; the paper's values as defaults) and ablations."""
+
+    #: Phase 2 iterations after Phase 1 (Appendix A: 20k).
+    iterations: int = 20_000
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    assign: AssignConfig = field(default_factory=AssignConfig)
+    lambda_res: float = 0.02
+    lambda_share: float = 0.01
+    tau: float = 0.35
+    lambda_vel: float = 0.01
+    lambda_smooth: float = 0.01
+    lambda_id: float = 0.001
+    #: EMA factor of the per-Gaussian residual magnitude (Appendix A's modulation).
+    eta: float = 0.95
+    #: Epsilon in the rigid share's denominator (metres).
+    share_eps: float = 1e-6
+    motion_start: int = 200
+    velocity_start: int = 300
+    warmup_start: int = 500
+    warmup_end: int = 1000
+    residual_start: int = 600
+    #: Keep densifying (clone/split/prune, opacity reset) on Phase 1's schedule, counted from
+    #: Phase 2's first iteration; every change re-runs the assignment. Off by default: Phase 1's
+    #: densification window is over when Phase 2 starts.
+    densify: bool = False
+    #: An object whose Gaussians' mean Phase 1 displacement stays below this fraction of the
+    #: scene extent is static (it gets the identity prior); background always is.
+    static_fraction: float = 0.005
+    # Ablation switches.
+    use_motion: bool = True
+    modulation: bool = True
+    hinge: bool = True
+    simultaneous: bool = False
+
+
+def frame_times(scene: Scene) -> np.ndarray:
+    """Sorted distinct training times [T] of `scene` (M_phi's stored frames)."""
+    return np.unique(np.asarray([f.time for f in scene.train], dtype=np.float64))
+
+
+def _scale_grad(x: Tensor, scale: float) -> Tensor:
+    """`x` in the forward pass, with its gradient multiplied by `scale`."""
+    if scale >= 1.0:
+        return x
+    return x.detach() + scale * (x - x.detach())
+
+
+class Phase2Trainer(Phase1Trainer):
+    """Phase 1's loop plus M_phi and the Phase 2 regularisers, on a Phase 1 model."""
+
+    KIND = "sync4d.phase2"
+
+    def __init__(
+        self,
+        model: DeformableGaussians,
+        scene: Scene,
+        config: Phase1Config | None = None,
+        phase2: Phase2Config | None = None,
+        total_iterations: int | None = None,
+        threads: int | None = None,
+        assignment: Assignment | None = None,
+        start_motion: bool = True,
+    ) -> None:
+        """`assignment`: the object labels (default: `assign_objects`); `start_motion`: fit
+        (and refine) M_phi's start when `MotionConfig.init` is "fit" (off when a checkpoint's
+        state replaces it)."""
+        phase2 = phase2 or Phase2Config()
+        total = phase2.iterations if total_iterations is None else total_iterations
+        super().__init__(model, scene, config, total, threads)
+        self.phase2 = phase2
+        if not self.phase2.densify:
+            never = 2**62
+            self.densifier.config = dataclasses.replace(
+                self.densifier.config, start=never, opacity_reset_interval=never
+            )
+        self.times = frame_times(scene)
+        self.assignment = assignment or assign_objects(
+            model, scene, self.extent, self.phase2.assign
+        )
+        k = self.assignment.num_objects
+        mc = self.phase2.motion
+        if mc.init not in ("identity", "fit"):
+            raise ValueError(f"phase2.motion.init: expected 'identity' or 'fit', got {mc.init!r}")
+        self.motion: ObjectMotion = make_motion(mc, k, self.times, self.config.seed)
+        #: Base colours [N, 1, 3] the refinement's template was last rendered with (its texture
+        #: fit's result; None before a refinement).
+        self.template_colours: Tensor | None = None
+        if mc.init == "fit" and not self.motion.fits_closed_form:
+            raise ValueError(
+                f"phase2.motion.init=fit: the {mc.kind} M_phi has no closed-form start; "
+                "use phase2.motion.init=identity"
+            )
+        self.motion_optimizer = torch.optim.Adam(
+            self.motion.parameters(), lr=self.phase2.motion.lr, eps=1e-15, fused=True
+        )
+        self._set_labels(self.assignment.labels)
+        self.static = self._static_objects()
+        if mc.refine_steps < 0:
+            raise ValueError(f"phase2.motion.refine_steps: expected >= 0, got {mc.refine_steps}")
+        if mc.refine_lr <= 0:
+            raise ValueError(f"phase2.motion.refine_lr: expected > 0, got {mc.refine_lr}")
+        if mc.refine_lr_final <= 0:
+            raise ValueError(
+                f"phase2.motion.refine_lr_final: expected > 0, got {mc.refine_lr_final}"
+            )
+        for name in ("refine_texture_rounds", "refine_colour_epochs", "refine_retrack_steps",
+                     "refine_retrack_lr"):  # fmt: skip
+            if getattr(mc, name) < 0:
+                raise ValueError(f"phase2.motion.{name}: expected >= 0, got {getattr(mc, name)}")
+        if mc.refine_colour_lr <= 0:
+            raise ValueError(
+                f"phase2.motion.refine_colour_lr: expected > 0, got {mc.refine_colour_lr}"
+            )
+        if mc.refine_views < 0:
+            raise ValueError(f"phase2.motion.refine_views: expected >= 0, got {mc.refine_views}")
+        if mc.refine_steps > 0 and (mc.init != "fit" or mc.kind != "se3"):
+            raise ValueError(
+                "phase2.motion.refine_steps refines the fitted SE(3) table: it needs "
+                f"phase2.motion.init=fit and kind=se3 (got init={mc.init!r}, kind={mc.kind!r})"
+            )
+        if mc.init == "fit" and start_motion:
+            self.fit_motion()
+            if mc.refine_steps > 0:
+                self.refine_motion()
+
+    def refine_motion(self, config: MotionConfig | None = None, progress: bool = True) -> None:
+        """Photometric refinement of the SE(3) table (`sync4d.phase2.refine.refine_motion`)."""
+        refine_motion(self, config, progress)
+
+    @torch.no_grad()
+    def fit_motion(self) -> None:
+        """Set M_phi to the closed-form fit of every object's canonical Gaussians onto their
+        D_theta positions at each stored frame (MotionConfig.init = "fit")."""
+        x0 = self.model.means.double().numpy()
+        pos = [self.model.at_time(float(t))[0].double().numpy() for t in self.times]
+        self.motion.fit_to(x0, pos, self.labels.numpy())
+
+    # -- assignment state ----------------------------------------------------------------
+    def _set_labels(self, labels: np.ndarray) -> None:
+        self.labels = torch.as_tensor(labels, dtype=torch.long)
+        self.residual_ema = torch.zeros(len(labels))
+        self._ema_started = False
+
+    @torch.no_grad()
+    def _static_objects(self) -> Tensor:
+        """[K] bool: background and objects that barely move in D_theta."""
+        k = self.assignment.num_objects
+        static = torch.zeros(k, dtype=torch.bool)
+        static[0] = True
+        samples = np.linspace(0.0, 1.0, 9)
+        disp = np.linalg.norm(displacement_curves(self.model, samples), axis=-1).mean(1)
+        labels = self.labels.numpy()
+        for j in range(1, k):
+            sel = labels == j
+            if not sel.any() or disp[sel].mean() < self.phase2.static_fraction * self.extent:
+                static[j] = True
+        return static
+
+    def on_gaussians_changed(self) -> None:
+        """Densification changed N: re-run the assignment and restart the modulation EMA."""
+        a = assign_objects(self.model, self.scene, self.extent, self.phase2.assign)
+        if a.num_objects != self.assignment.num_objects:
+            a.labels = np.minimum(a.labels, self.assignment.num_objects - 1)
+            a.num_objects = self.assignment.num_objects
+        self.assignment = a
+        self._set_labels(a.labels)
+
+    def sh_degree_now(self) -> int:
+        """Phase 1 has reached the full SH degree: Phase 2 renders with it throughout."""
+        return self.model.sh_degree
+
+    # -- schedule --------------------------------------------------------------------------
+    def _active(self, start: int) -> bool:
+        return self.phase2.simultaneous or self.iteration >= start
+
+    def _warmup(self) -> float:
+        p = self.phase2
+        if p.simultaneous:
+            return 1.0
+        span = max(1, p.warmup_end - p.warmup_start)
+        return min(1.0, max(0.0, (self.iteration - p.warmup_start) / span))
+
+    # -- losses -----------------------------------------------------------------------------
+    def modulation_weights(self, residual_norm: Tensor) -> Tensor:
+        """Update the EMA of ||r_i|| (eta) and return m_i = sigmoid(z-score) [N] (Eq. 8)."""
+        eta = self.phase2.eta
+        r = residual_norm.detach()
+        if not self._ema_started:
+            self.residual_ema = r.clone()
+            self._ema_started = True
+        else:
+            self.residual_ema = eta * self.residual_ema + (1 - eta) * r
+        ema = self.residual_ema
+        return torch.sigmoid((ema - ema.mean()) / (ema.std(unbiased=False) + 1e-6))
+
+    def auxiliary_loss(self, frame: Frame, means: Tensor) -> tuple[Tensor | None, dict[str, float]]:
+        p = self.phase2
+        if not p.use_motion or not self._active(p.motion_start):
+            return None, {}
+        j = self.motion.frame_index(frame.time)
+        x0 = self.model.means
+        # The scene side (D_theta, canonical means) gets the warm-up-scaled gradient.
+        w = self._warmup()
+        x = _scale_grad(means, w)
+        x0s = _scale_grad(x0, w)
+        x_obj = self.motion(x0s, self.labels, float(self.times[j]))
+        r = x - x_obj
+        terms: dict[str, Tensor] = {}
+        terms["smooth"] = p.lambda_smooth * self.motion.smoothness(j)
+        terms["id"] = p.lambda_id * self.motion.identity_prior(j, self.static)
+        rho_i = rigid_share(x0s, x_obj, r, p.share_eps)
+        rho = rho_i.mean()
+        if p.hinge:
+            terms["share"] = p.lambda_share * torch.clamp(p.tau - rho, min=0.0) ** 2
+        if j > 0 and self._active(p.velocity_start):
+            t_prev = float(self.times[j - 1])
+            x_prev = _scale_grad(self.model.at_time(t_prev)[0], w)
+            x_obj_prev = self.motion(x0s, self.labels, t_prev)
+            d = (x - x_prev) - (x_obj - x_obj_prev)
+            terms["vel"] = p.lambda_vel * (d * d).sum(-1).mean()
+        rn = r.norm(dim=-1)
+        m = self.modulation_weights(rn) if p.modulation else torch.zeros_like(rn)
+        if self._active(p.residual_start):
+            terms["res"] = p.lambda_res * ((1.0 - m) * rn * rn).mean()
+        total = sum(terms.values())
+        stats = {f"L_{k}": float(v.detach()) for k, v in terms.items()}
+        stats["rho"] = float(rho.detach())
+        return total, stats
+
+    def _update_learning_rates(self) -> None:
+        super()._update_learning_rates()
+        mc = self.phase2.motion
+        lr = cosine_lr(mc.lr, mc.lr_final, self.iteration / self.total)
+        for g in self.motion_optimizer.param_groups:
+            g["lr"] = lr
+
+    def step(self) -> dict[str, float]:
+        """One Phase 2 iteration: the Phase 1 step with the auxiliary losses, plus an M_phi
+        update once M_phi is active."""
+        stats = super().step()
+        if self.phase2.use_motion and self._active(self.phase2.motion_start):
+            self.motion_optimizer.step()
+        self.motion_optimizer.zero_grad(set_to_none=True)
+        return stats
+
+    # -- checkpoint state -------------------------------------------------------------------
+    def state(self) -> tuple[dict[str, Tensor], dict]:
+        """Phase 1's state plus M_phi (``motion.*``), its Adam moments (``motion_optim.*``),
+        the labels, residual EMA and static flags (``phase2.*``) and the motion export
+        (``export.*``, for readers that build no trainer); settings under ``"phase2"``."""
+        tensors, meta = super().state()
+        for k, v in self.motion.state_dict().items():
+            tensors[f"motion.{k}"] = v.detach().float()
+        steps: dict[str, float] = {}
+        for pi, p in enumerate(self.motion_optimizer.param_groups[0]["params"]):
+            st = self.motion_optimizer.state.get(p)
+            if st:
+                tensors[f"motion_optim.{pi}.exp_avg"] = st["exp_avg"]
+                tensors[f"motion_optim.{pi}.exp_avg_sq"] = st["exp_avg_sq"]
+                steps[str(pi)] = float(st["step"])
+        tensors["phase2.labels"] = self.labels.to(torch.int64)
+        tensors["phase2.residual_ema"] = self.residual_ema
+        tensors["phase2.static"] = self.static.to(torch.uint8)
+        for k, v in self.motion_export().items():
+            v = torch.as_tensor(v)
+            tensors[f"export.{k}"] = v if k == "labels" else v.float()
+        a = self.assignment
+        meta["phase2"] = {
+            "num_objects": a.num_objects,
+            "names": {str(k): v for k, v in a.names.items()},
+            "assignment": a.source,
+            "motion_kind": self.phase2.motion.kind,
+            "motion_config": dataclasses.asdict(self.phase2.motion),
+            "motion_rigid": self.motion.rigid,
+            "times": [float(t) for t in self.times],
+            "ema_started": self._ema_started,
+            "motion_adam_steps": steps,
+        }
+        return tensors, meta
+
+    @classmethod
+    def from_state(
+        cls,
+        tensors: dict[str, Tensor],
+        meta: dict,
+        scene: Scene,
+        *,
+        config: Phase1Config | None = None,
+        phase2: Phase2Config | None = None,
+        total_iterations: int | None = None,
+        threads: int | None = None,
+        near: float | None = None,
+    ) -> Phase2Trainer:
+        """The Phase 2 trainer `state` described, with `phase2`'s settings (M_phi's start is
+        not fitted again: the stored table replaces it)."""
+        model = DeformableGaussians.from_state(tensors, meta, near)
+        info = meta["phase2"]
+        labels = tensors["phase2.labels"].numpy().astype("int64")
+        if len(labels) != model.num_gaussians:
+            raise ValueError("'phase2.labels' does not match the Gaussian count")
+        names = {int(k): v for k, v in info["names"].items()}
+        assignment = Assignment(labels, int(info["num_objects"]), names, info["assignment"])
+        total = total_iterations or meta["total_iterations"]
+        trainer = cls(model, scene, config, phase2, total, threads, assignment, start_motion=False)
+        trainer.restore(tensors, meta)
+        return trainer
+
+    def restore(self, tensors: dict[str, Tensor], meta: dict) -> None:
+        """Phase 1's `restore` plus M_phi, its optimizer and the Phase 2 loop state."""
+        super().restore(tensors, meta)
+        info = meta["phase2"]
+        motion = {k.removeprefix("motion."): v for k, v in tensors.items()
+                  if k.startswith("motion.")}  # fmt: skip
+        motion["times"] = self.motion.times
+        try:
+            self.motion.load_state_dict(motion)
+        except RuntimeError as e:
+            raise ValueError(f"inconsistent Phase 2 state ({e})") from None
+        for pi, p in enumerate(self.motion_optimizer.param_groups[0]["params"]):
+            key = str(pi)
+            if key in info["motion_adam_steps"]:
+                self.motion_optimizer.state[p] = {
+                    "step": torch.tensor(info["motion_adam_steps"][key]),
+                    "exp_avg": tensors[f"motion_optim.{key}.exp_avg"].clone(),
+                    "exp_avg_sq": tensors[f"motion_optim.{key}.exp_avg_sq"].clone(),
+                }
+        self.residual_ema = tensors["phase2.residual_ema"].clone()
+        self._ema_started = bool(info["ema_started"])
+        self.static = tensors["phase2.static"].to(torch.bool).clone()
+
+    # -- diagnostics (Appendix C) and export ---------------------------------------------------
+    def diagnostics(self, shuffles: int = 5, seed: int = 0) -> dict:
+        """Appendix C diagnostics (`sync4d.phase2.diagnostics.diagnostics`)."""
+        return diagnostics(self, shuffles, seed)
+
+    def motion_export(self) -> dict[str, np.ndarray]:
+        """Per-object per-frame motion (`sync4d.phase2.diagnostics.motion_export`)."""
+        return motion_export(self)
