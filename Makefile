@@ -3,7 +3,7 @@
 #   make setup   create .venv, install the Python requirements (only when they changed), build and
 #                install the Rust extension sync4d._core in release mode (only when sources changed)
 #   make test    setup + lavapipe + cargo test (release) + pytest
-#   make lint    cargo fmt --check, clippy -D warnings, ruff
+#   make lint    cargo fmt --check, clippy -D warnings, ruff, the import contract (lint-imports)
 #   make bench   setup + python -m sync4d bench raster $(BENCH_ARGS)
 #   make fit     setup + train the embedded synthetic scene (runs/synthetic) and print test PSNR
 #   make clean   drop build outputs and stamps (keeps .venv and its packages)
@@ -119,6 +119,7 @@ lint: $(DEPS_STAMP)
 	cargo fmt --all --check
 	cargo clippy --workspace --all-targets -- -D warnings
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/lint-imports
 
 BENCH_ARGS ?=
 bench: setup

@@ -4,10 +4,9 @@ and `section.key=value` overrides from the command line replace them."""
 from __future__ import annotations
 
 import dataclasses
+import tomllib
 from pathlib import Path
 from typing import Any
-
-import tomllib
 
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.trainer import Phase2Config

@@ -170,7 +170,7 @@ def main(args: argparse.Namespace) -> int:
     record = {
         "benchmark": "fit",
         "data": str(data),
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
         "threads": args.threads,
         "config": dataclasses.asdict(base),

@@ -1032,7 +1032,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     doc: dict[str, Any] = {
         "schema": SCHEMA,
         "complete": False,
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "command": [sys.executable, *sys.argv],
         "machine": machine_info(),
         "loadavg_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
