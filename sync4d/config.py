@@ -41,6 +41,7 @@ class RunConfig:
     phase2: Phase2Config = dataclasses.field(default_factory=Phase2Config)
     #: Which phases `fit` runs: "1", "2" (from the run's Phase 1 checkpoint) or "1,2".
     phases: str = "1,2"
+    #: Image downsampling factor of the dataset (0.5: half width and height).
     resolution_scale: float = 1.0
     #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames.
     test_split: str = "test"

@@ -30,12 +30,19 @@ __all__ = [
 class DeformConfig:
     """Hyperparameters of D_theta (Appendix A defaults)."""
 
+    #: Dimension of each Gaussian's learned embedding z_i.
     embed_dim: int = 32
+    #: Frequencies L of the time encoding gamma(t) = [t, sin(2^k pi t), cos(2^k pi t)], k < L.
     bands: int = 6
+    #: Width of D_theta's hidden layers.
     hidden: int = 128
+    #: Hidden layers of D_theta (ReLU after each).
     layers: int = 4
+    #: Output scale of the position offset dx (world units).
     scale_position: float = 0.10
+    #: Output scale of the rotation vector dw (radians).
     scale_rotation: float = 0.10
+    #: Output scale of the log-scale offset dl.
     scale_log_scale: float = 0.05
 
     @property

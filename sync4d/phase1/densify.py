@@ -22,14 +22,23 @@ __all__ = ["DensifyConfig", "Densifier", "PER_GAUSSIAN"]
 class DensifyConfig:
     """3DGS densification settings (paper Appendix A values where given)."""
 
+    #: Mean screen-space gradient norm of a Gaussian's centre above which it is cloned or split.
     grad_threshold: float = 2e-4
+    #: First iteration of densification.
     start: int = 500
+    #: Last iteration of densification.
     stop: int = 15_000
+    #: Iterations between densification steps.
     interval: int = 100
+    #: Iterations between opacity resets (every opacity set to at most 0.01).
     opacity_reset_interval: int = 3_000
+    #: Gaussians with opacity below this are pruned at each densification step.
     prune_opacity: float = 0.005
+    #: Gaussians larger than this fraction of the scene extent are split, smaller ones cloned.
     percent_dense: float = 0.01
+    #: Gaussians a split Gaussian becomes.
     split_count: int = 2
+    #: Densification stops adding Gaussians at this count.
     max_gaussians: int = 1_000_000
     #: After the first opacity reset, also prune Gaussians whose largest world-space scale
     #: exceeds this fraction of the scene extent (3DGS / gsplat use 0.1; 0 disables, the

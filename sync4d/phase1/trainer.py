@@ -33,6 +33,7 @@ class Phase1Config:
 
     #: Training iterations (Appendix A: 30k).
     iterations: int = 30_000
+    #: Spherical-harmonics degree of the Gaussians' colours (0-3).
     sh_degree: int = 3
     deform: DeformConfig = field(default_factory=DeformConfig)
     #: Near clipping plane of every render (training, evaluation, `render`), world units;
@@ -50,25 +51,39 @@ class Phase1Config:
     init_points: int = 20_000
     #: Half-size of the random-init cube as a fraction of the mean camera distance.
     init_box_fraction: float = 0.33
+    #: Adam rate of the canonical means, times the scene extent (3DGS).
     lr_means: float = 1.6e-4
+    #: The means' rate at the end of training (log-linear decay, times the extent).
     lr_means_final: float = 1.6e-6
+    #: Adam rate of the canonical rotations.
     lr_quats: float = 1e-3
+    #: Adam rate of the log-scales.
     lr_scales: float = 5e-3
+    #: Adam rate of the opacity logits.
     lr_opacity: float = 5e-2
+    #: Adam rate of the SH DC colours (the higher bands get 1/20 of it).
     lr_sh: float = 2.5e-3
+    #: Adam rate of D_theta (Appendix A).
     lr_deform: float = 5e-4
+    #: Adam rate of the per-Gaussian embeddings (Appendix A).
     lr_embed: float = 5e-4
-    #: D_theta and embedding learning rates decay log-linearly to these (the position-lr rule).
+    #: D_theta's rate at the end of training: it decays log-linearly (the position-lr rule).
     lr_deform_final: float = 5e-6
+    #: The embeddings' rate at the end of training (log-linear decay).
     lr_embed_final: float = 5e-6
+    #: Iterations between steps of the SH degree (one band more each time).
     sh_degree_interval: int = 1_000
     #: Iterations at the start that train the canonical Gaussians alone, D_theta off (the
     #: static warm-up of Deformable-3DGS): the static scene settles first, so its gradients do
     #: not drown D_theta's time signal. 0 disables it.
     static_warmup: int = 0
+    #: Weight of the L1 term of the photometric loss.
     lambda_l1: float = 0.8
+    #: Weight of the D-SSIM term of the photometric loss.
     lambda_dssim: float = 0.2
+    #: RGB in [0, 1] composited behind the Gaussians and into RGBA training images.
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    #: Seed of the initial Gaussians, D_theta's weights, the frame order and densification.
     seed: int = 42
     densify: DensifyConfig = field(default_factory=DensifyConfig)
 

@@ -47,7 +47,9 @@ class AssignConfig:
     #: "masks" (mask voting), "trajectories" (unsupervised clustering of Phase 1 motion), or
     #: "auto": masks when every training frame has one, else trajectories.
     source: str = "auto"
+    #: Mask voting: a Gaussian needs at least this many object votes to join an object.
     min_votes: int = 3
+    #: Mask voting: and its majority label's share of its votes at least this.
     min_consistency: float = 0.6
     #: Objects assigned fewer Gaussians than this merge into background.
     min_gaussians: int = 10
@@ -59,8 +61,11 @@ class AssignConfig:
     #: Unsupervised assignment: Gaussians whose displacement never exceeds this fraction of the
     #: scene extent are background; K is searched in [1, max_clusters].
     static_fraction: float = 0.01
+    #: Unsupervised assignment: most objects (clusters) K searched.
     max_clusters: int = 8
+    #: Unsupervised assignment: times sampled in [0, 1] for the displacement curves.
     trajectory_samples: int = 16
+    #: Seed of the k-means initialisation.
     seed: int = 42
 
 

@@ -54,6 +54,8 @@ class MotionConfig:
     """M_phi's parameterisation and optimisation (Appendix A: per-frame SE(3), init sigma 1e-4,
     learning rate cosine-annealed 1e-3 -> 1e-5)."""
 
+    #: M_phi's parameterisation: "se3" (per-frame table of rotations and translations), "affine"
+    #: (per-frame affine table) or "mlp".
     kind: str = "se3"
     #: "identity" (the paper: near-identity start, sigma `init_std`) or "fit": start the tables
     #: at the closed-form minimiser of the residual energy given Phase 1's D_theta (weighted
@@ -98,11 +100,17 @@ class MotionConfig:
     refine_retrack_lr: float = 0.0
     #: For ``mlp``: whether it outputs an affine transform (12) instead of SE(3) (6).
     mlp_affine: bool = False
+    #: Standard deviation of the identity start's random perturbation (Appendix A: 1e-4).
     init_std: float = 1e-4
+    #: Adam rate of M_phi at the start of Phase 2 (cosine-annealed to `lr_final`).
     lr: float = 1e-3
+    #: M_phi's Adam rate at the end of Phase 2.
     lr_final: float = 1e-5
+    #: kind "mlp": dimension of each object's learned embedding.
     mlp_embed_dim: int = 16
+    #: kind "mlp": width of its two hidden layers.
     mlp_hidden: int = 64
+    #: kind "mlp": frequencies of its time encoding.
     mlp_bands: int = 6
 
 

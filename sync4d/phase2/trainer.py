@@ -49,20 +49,31 @@ class Phase2Config:
     iterations: int = 20_000
     motion: MotionConfig = field(default_factory=MotionConfig)
     assign: AssignConfig = field(default_factory=AssignConfig)
+    #: Weight of the modulated residual energy (Eq. 8).
     lambda_res: float = 0.02
+    #: Weight of the rigid-share hinge (Eq. 9).
     lambda_share: float = 0.01
+    #: Target rigid share of the hinge: mean rho below tau is penalised (Eq. 9).
     tau: float = 0.35
+    #: Weight of the velocity coherence term (Eq. 10).
     lambda_vel: float = 0.01
+    #: Weight of M_phi's temporal smoothness (Eq. 11).
     lambda_smooth: float = 0.01
+    #: Weight of the identity prior on static objects (Eq. 12).
     lambda_id: float = 0.001
     #: EMA factor of the per-Gaussian residual magnitude (Appendix A's modulation).
     eta: float = 0.95
     #: Epsilon in the rigid share's denominator (metres).
     share_eps: float = 1e-6
+    #: Iteration from which M_phi trains and the smoothness, rigid-share and identity terms act.
     motion_start: int = 200
+    #: Iteration from which the velocity coherence term acts.
     velocity_start: int = 300
+    #: Start of the linear warm-up of the auxiliary terms' gradient into the scene.
     warmup_start: int = 500
+    #: End of that warm-up (full weight from here).
     warmup_end: int = 1000
+    #: Iteration from which the modulated residual energy acts.
     residual_start: int = 600
     #: Keep densifying (clone/split/prune, opacity reset) on Phase 1's schedule, counted from
     #: Phase 2's first iteration; every change re-runs the assignment. Off by default: Phase 1's
@@ -72,9 +83,13 @@ class Phase2Config:
     #: scene extent is static (it gets the identity prior); background always is.
     static_fraction: float = 0.005
     # Ablation switches.
+    #: Ablation: false trains Phase 2 without M_phi and its terms.
     use_motion: bool = True
+    #: Ablation: false drops the residual modulation m_i (every residual penalised).
     modulation: bool = True
+    #: Ablation: false drops the rigid-share hinge.
     hinge: bool = True
+    #: Ablation: every term from iteration 0, no warm-up (the paper's failing variant).
     simultaneous: bool = False
 
 
