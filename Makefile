@@ -2,7 +2,8 @@
 #
 #   make setup   create .venv, install the Python requirements (only when they changed), build and
 #                install the Rust extension sync4d._core in release mode (only when sources changed)
-#   make test    setup + lavapipe + cargo test (release) + pytest
+#   make test    setup + lavapipe + cargo test (release) + pytest (what CI runs)
+#   make test-quick  the same without the slow and reference tests (the inner loop)
 #   make lint    cargo fmt --check, clippy -D warnings, ruff, the import contract (lint-imports)
 #   make bench   setup + python -m sync4d bench raster $(BENCH_ARGS)
 #   make fit     setup + train the embedded synthetic scene (runs/synthetic) and print test PSNR
@@ -50,7 +51,7 @@ endif
 
 PIP_FLAGS := --disable-pip-version-check $(if $(CI),--progress-bar off --no-input)
 
-.PHONY: setup lavapipe test lint bench fit clean distclean FORCE
+.PHONY: setup lavapipe test test-quick lint bench fit clean distclean FORCE
 
 setup: $(EXT_STAMP)
 
@@ -105,15 +106,21 @@ lavapipe:
 
 # Deterministic thread counts for the test suite (2-core CI machines); exported to every recipe
 # this target runs, including its prerequisites.
-test: export OMP_NUM_THREADS := 2
-test: export MKL_NUM_THREADS := 2
-test: export RAYON_NUM_THREADS := 2
+test test-quick: export OMP_NUM_THREADS := 2
+test test-quick: export MKL_NUM_THREADS := 2
+test test-quick: export RAYON_NUM_THREADS := 2
 # In CI the wgpu tests must find an adapter (lavapipe); Mesa wants a runtime dir.
-test: export SYNC4D_REQUIRE_GPU := $(if $(CI),1,0)
-test: export XDG_RUNTIME_DIR := $(or $(XDG_RUNTIME_DIR),/tmp)
+test test-quick: export SYNC4D_REQUIRE_GPU := $(if $(CI),1,0)
+test test-quick: export XDG_RUNTIME_DIR := $(or $(XDG_RUNTIME_DIR),/tmp)
 test: setup lavapipe
 	cargo test --workspace --release
 	$(VPY) -m pytest -q
+
+# The inner loop: everything but the tests marked slow (each over 30 s) and the gsplat
+# reference comparisons.
+test-quick: setup lavapipe
+	cargo test --workspace --release
+	$(VPY) -m pytest -q -m "not slow and not reference"
 
 lint: $(DEPS_STAMP)
 	cargo fmt --all --check

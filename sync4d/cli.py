@@ -1,10 +1,11 @@
 """Command-line interface: ``python -m sync4d <command> ...``.
 
-Commands:
-  fit [DATA]     Phase 1 training (the embedded synthetic scene when DATA is omitted)
+Commands (every option: docs/cli.md):
+  fit [DATA]     Phase 1 then Phase 2 into a run folder (the embedded scene without DATA)
   eval RUN       PSNR / SSIM / LPIPS of a run on its test split
-  render RUN     render a run's checkpoint at chosen times to PNGs and a GIF
+  render RUN     render a run at chosen times (--time, --sweep) to PNGs and a GIF
   bench raster   time the rasterizer (forward/backward), optionally against the gsplat reference
+  bench fit      Phase 1 test PSNR against training time over several budgets
 
 The command implementations are imported lazily, so ``--help`` stays fast and a missing optional
 module only affects the command that needs it.
