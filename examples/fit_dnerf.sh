@@ -6,4 +6,4 @@ set -eu
 DATA="${1:?usage: fit_dnerf.sh DNERF_SCENE_DIR [fit options]}"
 shift
 PY="${PYTHON:-.venv/bin/python}"
-"$PY" -m sync4d fit "$DATA" --out "runs/$(basename "$DATA")" --config configs/dnerf.toml "$@"
+"$PY" -m sync4d fit "$DATA" --out "runs/$(basename "$DATA")" --config dnerf "$@"

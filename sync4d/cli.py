@@ -48,8 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("data", nargs="?", default=None, metavar="DATA", help="dataset folder")
     fit.add_argument("--out", metavar="RUN", default=None, help="run folder (default runs/NAME)")
     add_training_options(
-        fit, "hyperparameters (default: the paper's values; configs/synthetic.toml for the "
-        "embedded scene)",
+        fit, "hyperparameters: a TOML file or a shipped config's name (dnerf, panoptic, "
+        "synthetic; default: the paper's values, synthetic for the embedded scene)",
     )  # fmt: skip
     fit.add_argument("--iters", type=positive_int, default=None, metavar="N",
                      help="training iterations; the config's densification, opacity-reset and "

@@ -1,5 +1,6 @@
-"""Hyperparameters: dataclass defaults hold the paper's values; a TOML file in `configs/`
-and `section.key=value` overrides from the command line replace them."""
+"""Hyperparameters: dataclass defaults hold the paper's values; a TOML file (the shipped ones
+are in `sync4d/configs/`) and `section.key=value` overrides from the command line replace them.
+Sections mirror the phases (`phase1`, `phase2`); the run's own settings stand at the top."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from sync4d.phase2.trainer import Phase2Config
 __all__ = [
     "ConfigError",
     "ALIASES",
+    "config_path",
     "RunConfig",
     "apply_overrides",
     "load_config",
@@ -24,8 +26,18 @@ __all__ = [
 
 
 def repo_configs() -> Path:
-    """The repository's `configs/` folder (next to the package in a source checkout)."""
-    return Path(__file__).resolve().parents[1] / "configs"
+    """The folder of the shipped config files (`sync4d/configs/`, installed with the package)."""
+    return Path(__file__).resolve().parent / "configs"
+
+
+def config_path(name: str | Path) -> Path:
+    """The config file `name` names: a path, or the name of a shipped config ("dnerf" or
+    "dnerf.toml" for sync4d/configs/dnerf.toml) when no such path exists."""
+    path = Path(name)
+    if path.exists() or path.parent != Path("."):
+        return path
+    shipped = repo_configs() / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
+    return shipped if shipped.exists() else path
 
 
 class ConfigError(ValueError):
@@ -175,10 +187,11 @@ def apply_overrides(cfg: RunConfig, overrides: list[str]) -> RunConfig:
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
-    """Defaults, then the TOML file at `path` (if any), then `section.key=value` overrides."""
+    """Defaults, then the TOML file at `path` (if any; a shipped config's name such as "dnerf"
+    works too, `config_path`), then `section.key=value` overrides."""
     cfg = RunConfig()
     if path is not None:
-        path = Path(path)
+        path = config_path(path)
         try:
             data = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:

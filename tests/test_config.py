@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from sync4d.config import ConfigError, RunConfig, load_config
+from sync4d.config import ConfigError, RunConfig, load_config, repo_configs
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = repo_configs()
 
 
 def test_file_matches_the_paper_defaults() -> None:

@@ -1,5 +1,5 @@
 """Phase 2 end to end on the embedded synthetic scene: `fit` (Phase 1 from random points, the
-photometric refinement of M_phi, Phase 2) with `configs/synthetic.toml`, then every object's
+photometric refinement of M_phi, Phase 2) with `sync4d/configs/synthetic.toml`, then every object's
 exported motion against the scene's known SE(3) trajectories (issue 4's acceptance), with
 torch's default CPU kernels, whatever the machine has.
 

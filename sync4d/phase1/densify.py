@@ -44,7 +44,7 @@ class DensifyConfig:
     #: exceeds this fraction of the scene extent (3DGS / gsplat use 0.1; 0 disables, the
     #: default here: on the embedded scene and bouncingballs it cost 0.6-1 dB in our short
     #: CPU schedules). Wide captures need it: metre-sized blobs otherwise fill empty space as
-    #: fog and cover novel views (configs/panoptic.toml sets 0.1).
+    #: fog and cover novel views (the panoptic config sets 0.1).
     prune_world_scale: float = 0.0
     #: ...and, when > 0, those whose projected radius exceeded this fraction of the image's
     #: larger side in some view since the last densification (gsplat's optional 0.15; off by

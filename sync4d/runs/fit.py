@@ -141,7 +141,7 @@ def _train_loop(
 
 def resolve_data(data: str | Path | None) -> tuple[Path, Path | None]:
     """Dataset folder and its default config: `data` (no default config), or with None the
-    embedded synthetic scene (generated once into the cache) and configs/synthetic.toml."""
+    embedded synthetic scene (generated once into the cache) and the shipped synthetic config."""
     if data is not None:
         return Path(data), None
     from sync4d.data.synthetic import ensure_default_scene
