@@ -12,13 +12,10 @@
 //! SYNC4D_SCALE=s multiplies the scene's Gaussian scales (0.15: small splats, few saturated
 //! pixels, like `python -m sync4d bench raster`'s scene).
 
-#[path = "../../raster/tests/common/mod.rs"]
-mod common;
-
-use common::*;
 use std::time::Instant;
 use sync4d_gpu::{AdapterChoice, ColumnHalves, GpuDevice, GpuRasterState, GpuRasterizer};
 use sync4d_raster::*;
+use sync4d_testing::*;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);

@@ -3,16 +3,13 @@
 //! CI). Without any adapter the tests print why and pass, unless `SYNC4D_REQUIRE_GPU=1`
 //! (set by `make test`), which turns a missing adapter into a failure.
 
-#[path = "../../raster/tests/common/mod.rs"]
-mod common;
-
-use common::*;
 use std::sync::{Mutex, OnceLock};
 use sync4d_gpu::{
     AdapterChoice, BlendLayout, ColumnHalves, CompositingWindow, GpuDevice, GpuRasterState,
     GpuRasterizer,
 };
 use sync4d_raster::*;
+use sync4d_testing::*;
 
 /// A device on the adapter `AdapterChoice::Auto` picks; None (the caller skips) when there is
 /// none, unless `SYNC4D_REQUIRE_GPU=1`, which makes that a failure.

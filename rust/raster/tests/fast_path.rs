@@ -1,9 +1,8 @@
 //! The tiled f32 fast path against the f64 reference: forward outputs, gradients, determinism
 //! across runs and thread counts, and work counters.
 
-mod common;
-use common::*;
 use sync4d_raster::*;
+use sync4d_testing::*;
 
 fn max_abs(a: &[f32], b: &[f64]) -> f64 {
     a.iter()

@@ -1,9 +1,8 @@
 //! Finite-difference checks (f64) of every backward: projection, the reference compositor, the
 //! whole pipeline, and spherical harmonics.
 
-mod common;
-use common::*;
 use sync4d_raster::*;
+use sync4d_testing::*;
 
 /// Analytic gradients of `weighted(render(scene), w)` w.r.t. (means, quats, scales, opacities,
 /// features) through projection + reference compositing.

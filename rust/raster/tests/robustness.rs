@@ -6,12 +6,11 @@
 //!
 //! Run: `cargo test -p sync4d-raster --release --test robustness`.
 
-mod common;
-use common::Rng;
-use common::*;
 use proptest::prelude::*;
 use proptest::sample::{select, Index};
 use sync4d_raster::*;
+use sync4d_testing::Rng;
+use sync4d_testing::*;
 
 /// `near` as an f32 value, so a Gaussian at z == near is exactly on the plane for f32 inputs too.
 const NEAR: f64 = 0.01f32 as f64;

@@ -40,7 +40,7 @@ struct BinParams {
 const TILE: f32 = 16.0;
 
 // The flat invocation index of a 2D grid of workgroups of `size` invocations (see `grid` in
-// raster.rs: beyond 65,535 workgroups the grid wraps into y).
+// raster/kernels.rs: beyond 65,535 workgroups the grid wraps into y).
 fn flat_id(gid: vec3<u32>, nwg: vec3<u32>, size: u32) -> u32 {
     return gid.x + gid.y * nwg.x * size;
 }

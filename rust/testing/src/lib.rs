@@ -1,5 +1,8 @@
 //! Shared helpers for the rasterizer tests: a seeded RNG and random scenes in front of a camera.
-#![allow(dead_code)]
+//!
+//! A crate of its own (dev-dependency of sync4d-raster and sync4d-gpu, not published) so that
+//! the CPU tests, the wgpu parity tests and the cpu_vs_wgpu example share one copy instead of
+//! including a test module by path.
 
 use sync4d_raster::*;
 

@@ -1,0 +1,338 @@
+//! The kernels: the WGSL sources, the compositing shader assembled for a layout (template
+//! values substituted, sections stripped, loops unrolled), the compiled pipelines (the
+//! compositing ones built on first use), and binding and dispatching them. Apart from the
+//! rasterizer's stages so that the text processing of the shaders reads, and is tested, on its
+//! own.
+
+use std::collections::HashMap;
+
+use super::layout::BlendLayout;
+use super::rasterizer::GpuRasterizer;
+
+const PROJECT_WGSL: &str = include_str!("../shaders/project.wgsl");
+const SORT_WGSL: &str = include_str!("../shaders/sort.wgsl");
+const SCAN_WGSL: &str = include_str!("../shaders/scan.wgsl");
+const BIN_WGSL: &str = include_str!("../shaders/bin.wgsl");
+const BLEND_WGSL: &str = include_str!("../shaders/blend.wgsl");
+/// The loop check of the kernels llvmpipe may cut short, appended to the modules that use it.
+const LOOP_CHECK_WGSL: &str = include_str!("../shaders/loop_check.wgsl");
+
+/// Compiled kernels.
+pub(super) struct Kernels {
+    pub(super) project: wgpu::ComputePipeline,
+    pub(super) project_backward: wgpu::ComputePipeline,
+    pub(super) depth_keys: wgpu::ComputePipeline,
+    pub(super) radix_count: wgpu::ComputePipeline,
+    pub(super) radix_scatter: wgpu::ComputePipeline,
+    pub(super) scan_blocks: wgpu::ComputePipeline,
+    pub(super) scan_sums: wgpu::ComputePipeline,
+    pub(super) scan_add: wgpu::ComputePipeline,
+    pub(super) count_corners: wgpu::ComputePipeline,
+    pub(super) sum_lines: wgpu::ComputePipeline,
+    pub(super) tile_ranges: wgpu::ComputePipeline,
+    pub(super) scatter: wgpu::ComputePipeline,
+    pub(super) scatter_chunks: wgpu::ComputePipeline,
+    /// Compositing kernels by (channel count, column halves, forward), each built on first use
+    /// (lavapipe compiles for seconds, and a scene may use halves in one direction only).
+    pub(super) blend: HashMap<(usize, bool, bool), wgpu::ComputePipeline>,
+}
+
+fn module(dev: &wgpu::Device, label: &str, src: &str) -> wgpu::ShaderModule {
+    dev.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(src.into()),
+    })
+}
+
+fn pipeline(dev: &wgpu::Device, m: &wgpu::ShaderModule, entry: &str) -> wgpu::ComputePipeline {
+    dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry),
+        layout: None,
+        module: m,
+        entry_point: Some(entry),
+        compilation_options: Default::default(),
+        cache: None,
+    })
+}
+
+impl Kernels {
+    pub(super) fn new(dev: &wgpu::Device) -> Self {
+        let project = module(dev, "project", PROJECT_WGSL);
+        let sort = module(dev, "sort", SORT_WGSL);
+        let scan = module(dev, "scan", SCAN_WGSL);
+        let bin = module(dev, "bin", &format!("{BIN_WGSL}\n{LOOP_CHECK_WGSL}"));
+        Kernels {
+            project: pipeline(dev, &project, "project_forward"),
+            project_backward: pipeline(dev, &project, "project_backward"),
+            depth_keys: pipeline(dev, &sort, "depth_keys"),
+            radix_count: pipeline(dev, &sort, "radix_count"),
+            radix_scatter: pipeline(dev, &sort, "radix_scatter"),
+            scan_blocks: pipeline(dev, &scan, "scan_blocks"),
+            scan_sums: pipeline(dev, &scan, "scan_sums"),
+            scan_add: pipeline(dev, &scan, "scan_add"),
+            count_corners: pipeline(dev, &bin, "count_corners"),
+            sum_lines: pipeline(dev, &bin, "sum_lines"),
+            tile_ranges: pipeline(dev, &bin, "tile_ranges"),
+            scatter: pipeline(dev, &bin, "scatter"),
+            scatter_chunks: pipeline(dev, &bin, "scatter_chunks"),
+            blend: HashMap::new(),
+        }
+    }
+
+    /// The forward (else backward) compositing pipeline for `channels` feature channels, the
+    /// row blocks split into column halves or not.
+    pub(super) fn blend(
+        &mut self,
+        dev: &wgpu::Device,
+        layout: BlendLayout,
+        channels: usize,
+        halves: bool,
+        forward: bool,
+    ) -> wgpu::ComputePipeline {
+        let key = (channels, halves, forward);
+        self.blend
+            .entry(key)
+            .or_insert_with(|| {
+                let m = module(dev, "blend", &layout.shader(channels, halves));
+                let rows = layout.block_rows > 0;
+                let entry = match (forward, rows, rows && layout.partials) {
+                    (true, true, _) => "blend_forward_rows",
+                    (true, false, _) => "blend_forward",
+                    (false, _, true) => "blend_backward_rows",
+                    (false, _, false) => "blend_backward",
+                };
+                pipeline(dev, &m, entry)
+            })
+            .clone()
+    }
+}
+
+impl BlendLayout {
+    /// The compositing shader for `channels` channels: template values substituted and the
+    /// per-pixel loops (marked `// unroll: pixels`) unrolled, so that every per-pixel array
+    /// index is a constant and the arrays live in registers.
+    fn shader(&self, channels: usize, halves: bool) -> String {
+        let p = self.pixels_per_invocation as usize;
+        let stride = channels + 7;
+        let invocations = 256 / p;
+        let rows = self.block_rows.max(1);
+        let halves = if halves { 2 } else { 1 };
+        let blocks = halves * 16 / rows as usize;
+        // Workgroup memory: 16 KiB guaranteed; the accumulators get up to ~12 KiB.
+        let (batch, acc, partial) = if self.subgroup_sums {
+            (32, 1, 1)
+        } else if self.partials && self.block_rows > 0 {
+            // Row blocks: at most 32 splats (one bit each in the block masks).
+            let batch = (3072 / (stride * invocations)).clamp(1, 32);
+            (batch, 1, batch * stride * invocations)
+        } else if self.partials {
+            let batch = (3072 / (stride * invocations)).clamp(1, 64);
+            (batch, 1, batch * stride * invocations)
+        } else {
+            let batch = (2048 / stride).clamp(4, 64);
+            (batch, batch * stride, 1)
+        };
+        let mut src = format!("{BLEND_WGSL}\n{LOOP_CHECK_WGSL}");
+        if self.block_rows == 0 {
+            strip_sections(&mut src, "rows");
+        }
+        // Subgroup built-ins only compile on devices with the feature: one of the two sections
+        // defining the workgroup sums stays.
+        strip_sections(
+            &mut src,
+            if self.subgroup_sums {
+                "no-subgroups"
+            } else {
+                "subgroups"
+            },
+        );
+        strip_sections(
+            &mut src,
+            if self.float_atomics {
+                "no-float-atomics"
+            } else {
+                "float-atomics"
+            },
+        );
+        let src = src
+            .replace(
+                "{{GRAD_ATOMIC}}",
+                if self.float_atomics { "f32" } else { "u32" },
+            )
+            .replace(
+                "{{SUBGROUP_SUMS}}",
+                if self.subgroup_sums { "true" } else { "false" },
+            )
+            .replace("{{ROWS}}", &rows.to_string())
+            .replace("{{HALVES}}", &halves.to_string())
+            .replace("{{WALKS}}", &(blocks + usize::from(blocks > 1)).to_string())
+            .replace("{{SPANS}}", &stride.div_ceil(invocations).to_string())
+            .replace("{{CHANNELS}}", &channels.to_string())
+            .replace("{{PIXELS}}", &p.to_string())
+            .replace("{{PARTIALS}}", if self.partials { "true" } else { "false" })
+            .replace("{{BATCH}}", &batch.to_string())
+            .replace("{{ACC}}", &acc.to_string())
+            .replace("{{PARTIAL_LEN}}", &partial.to_string());
+        let src = unroll_loops(&src, "l", "WG", "lanes", invocations);
+        let src = unroll_loops(&src, "c", "C", "channels", channels);
+        let src = unroll_loops(&src, "s", "STRIDE", "stride", stride);
+        let src = unroll_loops(&src, "h", "SPANS", "spans", stride.div_ceil(invocations));
+        let src = unroll_loops(&src, "v", "CV", "feature vectors", channels.div_ceil(4));
+        let src = unroll_loops(&src, "w", "NW", "walks", blocks + usize::from(blocks > 1));
+        let src = unroll_loops(&src, "b", "NB", "blocks", blocks);
+        unroll_loops(&src, "j", "P", "pixels", p)
+    }
+}
+
+/// Remove every `// <NAME>` ... `// </NAME>` section of `src`.
+fn strip_sections(src: &mut String, name: &str) {
+    let (open, close) = (format!("// <{name}>\n"), format!("// </{name}>"));
+    while let Some(a) = src.find(&open) {
+        let b = src[a..].find(&close).expect("blend.wgsl: unclosed section") + a;
+        src.replace_range(a..b + close.len(), "");
+    }
+}
+
+/// Replace every loop `for (var V = 0u; V < N; V++) { // unroll: NAME` ... `}` of `src` by
+/// `count` copies of its body, each inside a one-trip loop (so that `continue` keeps its
+/// meaning) with `V` a `const` (which subgroup broadcasts need as their lane). Naga and some
+/// drivers (llvmpipe) leave such loops rolled; unrolled, every per-pixel and per-channel array
+/// index is a constant and the arrays live in registers instead of scratch memory.
+fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> String {
+    let head = format!("for (var {var} = 0u; {var} < {bound}; {var}++) {{ // unroll: {name}");
+    let mut out = String::with_capacity(src.len() * 2);
+    let mut rest = src;
+    while let Some(at) = rest.find(&head) {
+        out.push_str(&rest[..at]);
+        let body_start = at + head.len();
+        let open = at + head.rfind('{').expect("the head opens the loop body");
+        let end =
+            closing_brace(rest, open).expect("blend.wgsl: unbalanced braces in an unrolled loop");
+        let body = &rest[body_start..end];
+        // A body that jumps (`continue`) stays a loop of one trip; any other is a plain block,
+        // which matters on llvmpipe: it caps every shader at 65,535 loop iterations in all
+        // (loops end early beyond), and values written in a block need no loop masks.
+        let jumps = jumps_out(body);
+        for k in 0..count {
+            if jumps {
+                out.push_str(&format!(
+                    "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ const {var} = {k}u;{body}}}\n"
+                ));
+            } else {
+                out.push_str(&format!("{{ const {var} = {k}u;{body}}}\n"));
+            }
+        }
+        rest = &rest[end + 1..];
+    }
+    out.push_str(rest);
+    out
+}
+
+/// Whether a loop body holds a `continue` or `break` of its own loop: one outside the loops
+/// nested in it (`loop`, `for`, `while` statements, skipped with their bodies).
+fn jumps_out(body: &str) -> bool {
+    let code: Vec<&str> = body
+        .lines()
+        .map(|l| l.split("//").next().unwrap_or(""))
+        .collect();
+    let code = code.join("\n");
+    let mut rest = code.as_str();
+    loop {
+        let nested = ["loop {", "for (", "while "]
+            .iter()
+            .filter_map(|k| rest.find(k))
+            .min();
+        let scan_to = nested.unwrap_or(rest.len());
+        if rest[..scan_to].contains("continue") || rest[..scan_to].contains("break") {
+            return true;
+        }
+        let Some(at) = nested else { return false };
+        // Skip the nested statement: up to its opening brace, then past the matching one.
+        let Some(open) = rest[at..].find('{') else {
+            return false;
+        };
+        rest = match closing_brace(rest, at + open) {
+            Some(close) => &rest[close + 1..],
+            None => "",
+        };
+    }
+}
+
+/// The byte index of the `}` that closes the `{` at byte `open` of `src` (None when unbalanced).
+fn closing_brace(src: &str, open: usize) -> Option<usize> {
+    let mut depth = 0usize;
+    for (i, ch) in src[open..].char_indices() {
+        match ch {
+            '{' => depth += 1,
+            '}' => {
+                depth -= 1;
+                if depth == 0 {
+                    return Some(open + i);
+                }
+            }
+            _ => {}
+        }
+    }
+    None
+}
+
+/// Workgroup grid for `groups` workgroups of a 1D kernel (2D when beyond the per-dimension
+/// limit; the kernels flatten the id).
+pub(super) fn grid(groups: u32) -> (u32, u32) {
+    let x = groups.clamp(1, 65_535);
+    (x, groups.div_ceil(x).max(1))
+}
+
+impl GpuRasterizer {
+    pub(super) fn bind(
+        &self,
+        pipe: &wgpu::ComputePipeline,
+        buffers: &[(u32, &wgpu::Buffer)],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .map(|(b, buf)| wgpu::BindGroupEntry {
+                binding: *b,
+                resource: buf.as_entire_binding(),
+            })
+            .collect();
+        self.gpu
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &pipe.get_bind_group_layout(0),
+                entries: &entries,
+            })
+    }
+
+    pub(super) fn dispatch(
+        enc: &mut wgpu::CommandEncoder,
+        pipe: &wgpu::ComputePipeline,
+        group: &wgpu::BindGroup,
+        groups: (u32, u32),
+    ) {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        pass.set_pipeline(pipe);
+        pass.set_bind_group(0, group, &[]);
+        pass.dispatch_workgroups(groups.0, groups.1, 1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::jumps_out;
+
+    #[test]
+    fn jumps_out_sees_only_the_bodys_own_jumps() {
+        assert!(jumps_out("if a { continue; }"));
+        assert!(jumps_out("x = 1; break;"));
+        assert!(!jumps_out("loop { if a { break; } }"));
+        assert!(!jumps_out(
+            "for (var i = 0u; i < 3u; i++) { continue; } y = 2;"
+        ));
+        assert!(jumps_out("loop { break; } if b { continue; }"));
+        // Comments are not code.
+        assert!(!jumps_out("// break while we can\nx = 1;"));
+        assert!(jumps_out("// loop { over\nbreak;"));
+    }
+}

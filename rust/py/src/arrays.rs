@@ -1,0 +1,191 @@
+//! Arrays and arguments between NumPy and the core: the float32/float64 dispatch, flat borrows
+//! of C-contiguous arrays (failing with the argument's name), freshly allocated outputs and
+//! their mutable views, the splat, image and gradient tuples, and the counters dict. Shared by
+//! every binding, so apart from all of them.
+
+use numpy::{Element, PyArray1, PyArrayMethods, PyReadonlyArrayDyn};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use pyo3::BoundObject;
+use sync4d_raster as core;
+
+/// Call `$body` with the type alias `$T` bound to the element type of array `$probe`
+/// (float32 or float64), so one generic implementation serves both dtypes.
+macro_rules! with_float_type {
+    ($probe:expr, $arg:literal, |$T:ident| $body:expr) => {{
+        if $probe.downcast::<numpy::PyArrayDyn<f32>>().is_ok() {
+            #[allow(dead_code)]
+            type $T = f32;
+            $body
+        } else if $probe.downcast::<numpy::PyArrayDyn<f64>>().is_ok() {
+            #[allow(dead_code)]
+            type $T = f64;
+            $body
+        } else {
+            Err(pyo3::exceptions::PyValueError::new_err(concat!(
+                $arg,
+                ": expected a float32 or float64 array"
+            )))
+        }
+    }};
+}
+pub(crate) use with_float_type;
+
+/// Any Python object holding a NumPy array.
+pub(crate) type AnyArr<'py> = Bound<'py, PyAny>;
+
+/// Convert a Rust result into a Python object.
+pub(crate) fn to_object<'py, V: IntoPyObject<'py>>(py: Python<'py>, v: V) -> PyResult<PyObject>
+where
+    PyErr: From<V::Error>,
+{
+    Ok(v.into_pyobject(py)?.into_any().unbind())
+}
+
+/// Borrow a contiguous array as a flat slice, or fail naming `arg`.
+pub(crate) fn flat<'a, T: Element>(
+    arr: &'a PyReadonlyArrayDyn<'_, T>,
+    arg: &str,
+) -> PyResult<&'a [T]> {
+    arr.as_slice()
+        .map_err(|_| PyValueError::new_err(format!("{arg}: must be C-contiguous")))
+}
+
+/// A new 1-D array of `len` zeros.
+pub(crate) fn zeros<'py, T: Element>(py: Python<'py>, len: usize) -> Bound<'py, PyArray1<T>> {
+    PyArray1::zeros(py, len, false)
+}
+
+/// Mutable view of an array this module just allocated and has not handed to Python yet, so no
+/// other reference to its data can exist.
+#[allow(clippy::mut_from_ref)]
+pub(crate) fn slice_mut<'a, T: Element>(a: &'a Bound<'_, PyArray1<T>>) -> &'a mut [T] {
+    // SAFETY: the array was just created by us and is not shared with Python yet.
+    unsafe { a.as_slice_mut().expect("fresh array is contiguous") }
+}
+
+pub(crate) type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
+pub(crate) type Out<'py, T> = Bound<'py, PyArray1<T>>;
+
+/// Splat inputs borrowed from NumPy.
+pub(crate) fn splats_of<'a, T: Element>(
+    a: &'a SplatArrs<'_, T>,
+    channels: usize,
+) -> PyResult<core::Splats<'a, T>> {
+    Ok(core::Splats {
+        means2d: flat(&a.0, "means2d")?,
+        conics: flat(&a.1, "conics")?,
+        depths: flat(&a.2, "depths")?,
+        opacities: flat(&a.3, "opacities")?,
+        radii: flat(&a.4, "radii")?,
+        features: flat(&a.5, "features")?,
+        channels,
+    })
+}
+
+pub(crate) fn counters_dict<'py>(
+    py: Python<'py>,
+    c: core::Counters,
+) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("visible", c.visible)?;
+    d.set_item("intersections", c.intersections)?;
+    d.set_item("evaluated", c.evaluated)?;
+    d.set_item("blended", c.blended)?;
+    Ok(d)
+}
+
+pub(crate) type SplatArrs<'py, T> = (
+    Arr<'py, T>,
+    Arr<'py, T>,
+    Arr<'py, T>,
+    Arr<'py, T>,
+    Arr<'py, i32>,
+    Arr<'py, T>,
+);
+pub(crate) type SplatGradOut<'py, T> = (
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+    Out<'py, T>,
+);
+
+pub(crate) fn alloc_splat_grads<'py, T: Element>(
+    py: Python<'py>,
+    n: usize,
+    ch: usize,
+) -> SplatGradOut<'py, T> {
+    (
+        zeros(py, 2 * n),
+        zeros(py, 3 * n),
+        zeros(py, n),
+        zeros(py, n),
+        zeros(py, n * ch),
+    )
+}
+
+pub(crate) fn splat_grads_mut<'a, T: Element>(
+    o: &'a SplatGradOut<'_, T>,
+) -> core::SplatGradsMut<'a, T> {
+    core::SplatGradsMut {
+        means2d: slice_mut(&o.0),
+        conics: slice_mut(&o.1),
+        depths: slice_mut(&o.2),
+        opacities: slice_mut(&o.3),
+        features: slice_mut(&o.4),
+    }
+}
+
+/// Output images of one forward: features [H*W*C], alpha [H*W], depth [H*W], zeroed.
+pub(crate) type ImageOut<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>);
+
+pub(crate) fn alloc_image<'py, T: Element>(
+    py: Python<'py>,
+    npix: usize,
+    ch: usize,
+) -> ImageOut<'py, T> {
+    (zeros(py, npix * ch), zeros(py, npix), zeros(py, npix))
+}
+
+pub(crate) fn image_mut<'a, T: Element>(o: &'a ImageOut<'_, T>) -> core::ImageMut<'a, T> {
+    core::ImageMut {
+        features: slice_mut(&o.0),
+        alpha: slice_mut(&o.1),
+        depth: slice_mut(&o.2),
+    }
+}
+
+/// Borrow the backward's incoming image gradients (features, alpha, depth).
+pub(crate) fn image_grads<'a, T: Element>(
+    g: &'a (Arr<'_, T>, Arr<'_, T>, Arr<'_, T>),
+) -> PyResult<core::ImageGrads<'a, T>> {
+    Ok(core::ImageGrads {
+        features: flat(&g.0, "grad_features")?,
+        alpha: flat(&g.1, "grad_alpha")?,
+        depth: flat(&g.2, "grad_depth")?,
+    })
+}
+
+/// Splat arrays of unknown dtype: (means2d, conics, depths, opacities, radii, features).
+pub(crate) type SplatAny<'py> = (
+    AnyArr<'py>,
+    AnyArr<'py>,
+    AnyArr<'py>,
+    AnyArr<'py>,
+    AnyArr<'py>,
+    AnyArr<'py>,
+);
+
+/// Borrow splat arrays as element type `T` (radii as int32).
+pub(crate) fn extract_splats<'py, T: Element>(s: &SplatAny<'py>) -> PyResult<SplatArrs<'py, T>> {
+    Ok((
+        s.0.extract()?,
+        s.1.extract()?,
+        s.2.extract()?,
+        s.3.extract()?,
+        s.4.extract()?,
+        s.5.extract()?,
+    ))
+}

@@ -1,0 +1,158 @@
+//! CPU rasterization bindings: `RasterContext`, the compositor (float32 fast path, float64
+//! reference) with the reusable buffers its backward needs.
+
+use numpy::Element;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use std::sync::Mutex;
+use sync4d_raster as core;
+
+use crate::arrays::{
+    alloc_image, alloc_splat_grads, counters_dict, extract_splats, flat, image_grads, image_mut,
+    splat_grads_mut, splats_of, to_object, with_float_type, AnyArr, Arr, Out, SplatAny, SplatArrs,
+    SplatGradOut,
+};
+use crate::runtime::run;
+
+/// (features, alpha, depth_accum, counters).
+type ImageResult<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>, Bound<'py, PyDict>);
+
+/// The fast (float32) compositor with its reusable buffers: one per in-flight render. Keep it
+/// from forward to backward; reuse it across iterations so large buffers are touched once.
+#[pyclass(module = "sync4d._core")]
+pub(crate) struct RasterContext {
+    state: Mutex<core::RasterState>,
+}
+
+#[pymethods]
+impl RasterContext {
+    #[new]
+    fn new() -> Self {
+        RasterContext {
+            state: Mutex::new(core::RasterState::new()),
+        }
+    }
+
+    /// Composite splats: `splats` = (means2d, conics, depths, opacities, radii, features) flat
+    /// arrays, float32 (fast path) or float64 (reference). Returns (features H*W*C, alpha H*W,
+    /// depth_accum H*W, counters).
+    #[allow(clippy::too_many_arguments)]
+    fn forward<'py>(
+        &self,
+        py: Python<'py>,
+        splats: SplatAny<'py>,
+        channels: usize,
+        background: AnyArr<'py>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        threads: usize,
+    ) -> PyResult<PyObject> {
+        with_float_type!(splats.0, "means2d", |T| {
+            let arrs = extract_splats::<T>(&splats)?;
+            let out = self.forward_typed::<T>(
+                py,
+                &arrs,
+                channels,
+                background.extract()?,
+                width,
+                height,
+                alpha_max,
+                threads,
+            )?;
+            to_object(py, out)
+        })
+    }
+
+    /// Backward of `forward`: returns dL/d(means2d, conics, depths, opacities, features).
+    /// Inputs must be the forward's.
+    #[allow(clippy::too_many_arguments)]
+    fn backward<'py>(
+        &self,
+        py: Python<'py>,
+        splats: SplatAny<'py>,
+        channels: usize,
+        background: AnyArr<'py>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        grads: (AnyArr<'py>, AnyArr<'py>, AnyArr<'py>),
+        threads: usize,
+    ) -> PyResult<PyObject> {
+        with_float_type!(splats.0, "means2d", |T| {
+            let arrs = extract_splats::<T>(&splats)?;
+            let g = (grads.0.extract()?, grads.1.extract()?, grads.2.extract()?);
+            let out = self.backward_typed::<T>(
+                py,
+                &arrs,
+                channels,
+                background.extract()?,
+                width,
+                height,
+                alpha_max,
+                g,
+                threads,
+            )?;
+            to_object(py, out)
+        })
+    }
+
+    /// Bytes held by this context's reusable buffers.
+    fn nbytes(&self) -> usize {
+        self.state.lock().map(|s| s.bytes()).unwrap_or(0)
+    }
+}
+
+impl RasterContext {
+    #[allow(clippy::too_many_arguments)]
+    fn forward_typed<'py, T: core::Composite + Element>(
+        &self,
+        py: Python<'py>,
+        splats: &SplatArrs<'py, T>,
+        channels: usize,
+        background: Arr<'py, T>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        threads: usize,
+    ) -> PyResult<ImageResult<'py, T>> {
+        let sp = splats_of(splats, channels)?;
+        let bg = flat(&background, "background")?;
+        let img = alloc_image::<T>(py, width as usize * height as usize, channels);
+        let out = image_mut(&img);
+        let bs = core::BlendSettings { alpha_max };
+        let state = &self.state;
+        let counters = run(py, threads, || {
+            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            T::composite_forward(&sp, width, height, bg, &bs, &mut st, out)
+        })?;
+        Ok((img.0, img.1, img.2, counters_dict(py, counters)?))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn backward_typed<'py, T: core::Composite + Element>(
+        &self,
+        py: Python<'py>,
+        splats: &SplatArrs<'py, T>,
+        channels: usize,
+        background: Arr<'py, T>,
+        width: u32,
+        height: u32,
+        alpha_max: f64,
+        grads: (Arr<'py, T>, Arr<'py, T>, Arr<'py, T>),
+        threads: usize,
+    ) -> PyResult<SplatGradOut<'py, T>> {
+        let sp = splats_of(splats, channels)?;
+        let bg = flat(&background, "background")?;
+        let v = image_grads(&grads)?;
+        let out = alloc_splat_grads::<T>(py, sp.len(), channels);
+        let g = splat_grads_mut(&out);
+        let bs = core::BlendSettings { alpha_max };
+        let state = &self.state;
+        run(py, threads, || {
+            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            T::composite_backward(&sp, width, height, bg, &bs, &mut st, &v, g)
+        })?;
+        Ok(out)
+    }
+}
