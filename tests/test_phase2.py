@@ -333,18 +333,3 @@ def test_bad_refinement_schedules_are_named(oracle):
     for name in ("refine_colour_epochs", "refine_retrack_steps", "refine_retrack_lr"):
         with pytest.raises(ValueError, match=f"{name}: expected >= 0"):
             _trainer(scene, model, init="fit", refine_steps=5, **{name: -1})
-
-
-def test_predicted_rotation_continues_a_constant_angular_velocity() -> None:
-    from sync4d.geometry import matrix_to_rotvec, rotvec_to_matrix
-    from sync4d.phase2.refine import _predicted_rotation
-
-    omega = torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64)
-    r0 = rotvec_to_matrix(torch.tensor([0.5, 0.4, -0.2], dtype=torch.float64))
-
-    def w(k: float) -> torch.Tensor:
-        return torch.as_tensor(matrix_to_rotvec((rotvec_to_matrix(k * omega) @ r0).numpy()))
-
-    for ratio in (1.0, 0.5, 2.0):
-        got = _predicted_rotation(w(1)[None], w(2)[None], ratio)[0]
-        torch.testing.assert_close(got, w(2 + ratio), atol=1e-9, rtol=0)

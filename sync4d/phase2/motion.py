@@ -98,11 +98,6 @@ class MotionConfig:
     #: Adam learning rate at the first re-tracking step of each frame (annealed to
     #: `refine_lr_final` like the first pass); 0: `refine_lr`.
     refine_retrack_lr: float = 0.0
-    #: Start each frame's tracking from the previous pose turned on at the last frame's angular
-    #: velocity (constant-velocity prediction) instead of the previous pose itself. Not in the
-    #: paper; off by default until measured (docs/results/phase2-robustness.md section 5: a
-    #: ball that turns far between two frames can lock onto a neighbouring texture minimum).
-    refine_predict: bool = False
     #: For ``mlp``: whether it outputs an affine transform (12) instead of SE(3) (6).
     mlp_affine: bool = False
     #: Standard deviation of the identity start's random perturbation (Appendix A: 1e-4).

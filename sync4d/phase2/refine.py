@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -158,9 +157,6 @@ def refine_motion(
     poses: list[tuple[Tensor, Tensor]] = []
     w = torch.zeros(len(moving), 3)
     for j in range(len(times)):
-        if mc.refine_predict and j >= 2:
-            ratio = (times[j] - times[j - 1]) / (times[j - 1] - times[j - 2])
-            w = _predicted_rotation(poses[j - 2][0], poses[j - 1][0], ratio)
         # The first frame starts from the fitted pose, which holds whatever orientation
         # D_theta's texture has there: it gets more steps than the warm-started rest.
         deformed = template.deformed(trainer.model, float(times[j]))
@@ -197,19 +193,6 @@ def refine_motion(
                     matrix_to_rotvec(a_j[i].double().numpy()), dtype=motion.rotvecs.dtype
                 )
                 motion.translations[k, j] = b_j[i].to(motion.translations.dtype)
-
-
-def _predicted_rotation(w_prev: Tensor, w_last: Tensor, ratio: float) -> Tensor:
-    """Rotation vectors [K', 3] one step on from `w_last` at the angular velocity that took
-    `w_prev` to it, the step `ratio` times the last one: (R_last R_prev^T)^ratio R_last."""
-    out = []
-    for a, b in zip(w_prev.double().numpy(), w_last.double().numpy(), strict=True):
-        r_prev = rotvec_to_matrix(torch.as_tensor(a)).numpy()
-        r_last = rotvec_to_matrix(torch.as_tensor(b)).numpy()
-        step = matrix_to_rotvec(r_last @ r_prev.T) * float(ratio)
-        r = rotvec_to_matrix(torch.as_tensor(step)).numpy() @ r_last
-        out.append(matrix_to_rotvec(r))
-    return torch.as_tensor(np.stack(out), dtype=w_last.dtype)
 
 
 def _track_frame(
