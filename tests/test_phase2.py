@@ -330,6 +330,40 @@ def test_bad_refinement_schedules_are_named(oracle):
         _trainer(scene, model, init="fit", refine_steps=5, refine_texture_rounds=-1)
     with pytest.raises(ValueError, match="refine_colour_lr: expected > 0"):
         _trainer(scene, model, init="fit", refine_steps=5, refine_colour_lr=0.0)
-    for name in ("refine_colour_epochs", "refine_retrack_steps", "refine_retrack_lr"):
+    for name in ("refine_colour_epochs", "refine_retrack_steps", "refine_retrack_lr",
+                 "refine_restart_jump"):
         with pytest.raises(ValueError, match=f"{name}: expected >= 0"):
             _trainer(scene, model, init="fit", refine_steps=5, **{name: -1})
+
+
+def test_restart_keeps_the_lowest_loss_start_after_a_jump(monkeypatch):
+    """`_restart_if_jumped` with tracking that stays where it starts and a score that is the
+    angle to a hidden true rotation: a frame flipped by 30 degrees about the ball's axis of
+    turn comes back to the truth; a frame whose score did not jump is left alone."""
+    from types import SimpleNamespace
+
+    from sync4d.geometry import matrix_to_rotvec, rotvec_to_matrix
+    from sync4d.phase2 import refine
+
+    axis = torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64)
+    def rv(angle_deg: float) -> torch.Tensor:
+        return (axis * math.radians(angle_deg)).float()
+
+    truth = rv(35.0)  # frames at 10 and 20 degrees, then 35: one restart angle (+15) hits it
+    before = [(torch.stack([rv(10.0), torch.zeros(3)]), torch.zeros(2, 3)),
+              (torch.stack([rv(20.0), torch.zeros(3)]), torch.zeros(2, 3))]  # fmt: skip
+
+    def angle_to_truth(_tr, _tp, _j, pose) -> float:
+        r = rotvec_to_matrix(pose[0][0].double()) @ rotvec_to_matrix(truth.double()).T
+        return float(np.linalg.norm(matrix_to_rotvec(r.numpy())))
+
+    monkeypatch.setattr(refine, "_frame_score", angle_to_truth)
+    monkeypatch.setattr(refine, "_track_frame", lambda _tr, _tp, _j, w, d, *a: ((w, d), 0.0))
+    template = SimpleNamespace(views=[[0], [1], [2]], moving=[1, 2])
+    mc = MotionConfig(refine_restart_jump=0.1)
+    flipped = (torch.stack([rv(65.0), torch.zeros(3)]), torch.zeros(2, 3))  # 30 degrees off
+    pose, scores = refine._restart_if_jumped(None, template, 2, flipped, before, [0.01], mc, ())
+    assert scores[-1] < 1e-5 and angle_to_truth(None, None, 2, pose) < 1e-5
+    # No jump (the score is within 10 % of the previous one): the pose stays as tracked.
+    pose, scores = refine._restart_if_jumped(None, template, 2, flipped, before, [0.6], mc, ())
+    assert pose is flipped and scores == [0.6, pytest.approx(math.radians(30.0), abs=1e-5)]

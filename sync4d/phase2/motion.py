@@ -98,6 +98,15 @@ class MotionConfig:
     #: Adam learning rate at the first re-tracking step of each frame (annealed to
     #: `refine_lr_final` like the first pass); 0: `refine_lr`.
     refine_retrack_lr: float = 0.0
+    #: Restart a frame whose tracked pose scores a mean loss over its views more than this
+    #: fraction above the previous frame's (0: never): each moving object is tracked again from
+    #: the previous frame's rotation turned by each of `refine_restart_angles` about the axis of
+    #: its last frame-to-frame turn, and the lowest-loss pose is kept. Not in the paper; off by
+    #: default until the study has measured it (a flip into a neighbouring minimum of the
+    #: ball's texture, docs/results/phase2-robustness.md section 5).
+    refine_restart_jump: float = 0.0
+    #: Degrees about that axis the restarts start from.
+    refine_restart_angles: tuple[float, ...] = (-30.0, -15.0, 15.0, 30.0, 45.0)
     #: For ``mlp``: whether it outputs an affine transform (12) instead of SE(3) (6).
     mlp_affine: bool = False
     #: Standard deviation of the identity start's random perturbation (Appendix A: 1e-4).

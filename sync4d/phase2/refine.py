@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -155,16 +156,18 @@ def refine_motion(
             bar.update(done, {"loss": f"{loss:.4f}"})
 
     poses: list[tuple[Tensor, Tensor]] = []
+    scores: list[float] = []  # each tracked frame's mean loss over its views (restarts only)
     w = torch.zeros(len(moving), 3)
     for j in range(len(times)):
         # The first frame starts from the fitted pose, which holds whatever orientation
         # D_theta's texture has there: it gets more steps than the warm-started rest.
         deformed = template.deformed(trainer.model, float(times[j]))
         d = template.centroids(deformed[0][template.sel]) - template.centre
-        pose, loss = _track_frame(
-            trainer, template, j, w, d, 4 * steps if j == 0 else steps, lr, lr_final,
-            views_per_step, deformed,
-        )  # fmt: skip
+        n = 4 * steps if j == 0 else steps
+        track = (n, lr, lr_final, views_per_step, deformed)
+        pose, loss = _track_frame(trainer, template, j, w, d, *track)
+        if mc.refine_restart_jump > 0:
+            pose, scores = _restart_if_jumped(trainer, template, j, pose, poses, scores, mc, track)
         poses.append(pose)
         w = pose[0]
         advance(first[j], loss)
@@ -173,11 +176,14 @@ def refine_motion(
             trainer, template, poses, mc.refine_colour_lr, colour_epochs, seed=r
         )
         advance(colour_epochs * n_views, loss)
+        scores = []
         for j in range(len(times)):
-            poses[j], loss = _track_frame(
-                trainer, template, j, *poses[j], retrack_steps, retrack_lr,
-                min(lr_final, retrack_lr), views_per_step,
-            )  # fmt: skip
+            track = (retrack_steps, retrack_lr, min(lr_final, retrack_lr), views_per_step, None)
+            poses[j], loss = _track_frame(trainer, template, j, *poses[j], *track)
+            if mc.refine_restart_jump > 0:
+                poses[j], scores = _restart_if_jumped(
+                    trainer, template, j, poses[j], poses[:j], scores, mc, track
+                )
             advance(retrack_steps if template.views[j] else 0, loss)
     if progress:
         bar.close()
@@ -193,6 +199,54 @@ def refine_motion(
                     matrix_to_rotvec(a_j[i].double().numpy()), dtype=motion.rotvecs.dtype
                 )
                 motion.translations[k, j] = b_j[i].to(motion.translations.dtype)
+
+
+def _frame_score(
+    trainer: Phase2Trainer, template: _RigidTemplate, j: int, pose: tuple[Tensor, Tensor]
+) -> float:
+    """Mean loss over stored frame `j`'s training views with the template at `pose`."""
+    t = float(trainer.times[j])
+    with torch.no_grad():
+        posed = template.pose(*pose, template.deformed(trainer.model, t))
+        return float(np.mean([float(_template_loss(trainer, i, t, posed, template.sh_dc))
+                              for i in template.views[j]]))  # fmt: skip
+
+
+def _restart_if_jumped(
+    trainer: Phase2Trainer,
+    template: _RigidTemplate,
+    j: int,
+    pose: tuple[Tensor, Tensor],
+    before: list[tuple[Tensor, Tensor]],
+    scores: list[float],
+    mc: MotionConfig,
+    track: tuple,
+) -> tuple[tuple[Tensor, Tensor], list[float]]:
+    """`pose` of frame `j`, or a better one when its score jumped (`refine_restart_jump`): each
+    moving object tracked again from the previous frame's rotation turned by each restart angle
+    about the axis of its last turn (frames `before` are the poses of 0..j-1); `scores` with
+    frame j's appended."""
+    if not template.views[j]:
+        return pose, [*scores, scores[-1] if scores else float("nan")]
+    score = _frame_score(trainer, template, j, pose)
+    if j >= 2 and scores and score > (1.0 + mc.refine_restart_jump) * scores[-1]:
+        w_prev, w_last = before[j - 2][0], before[j - 1][0]
+        for i in range(len(template.moving)):
+            r_prev = rotvec_to_matrix(w_prev[i].double())
+            r_last = rotvec_to_matrix(w_last[i].double())
+            turn = torch.as_tensor(matrix_to_rotvec((r_last @ r_prev.T).numpy()))
+            if float(turn.norm()) < 1e-4:
+                continue
+            axis = turn / turn.norm()
+            for angle in mc.refine_restart_angles:
+                start = pose[0].clone()
+                kick = rotvec_to_matrix(axis * np.radians(angle)) @ r_last
+                start[i] = torch.as_tensor(matrix_to_rotvec(kick.numpy()), dtype=start.dtype)
+                cand, _ = _track_frame(trainer, template, j, start, pose[1], *track)
+                cand_score = _frame_score(trainer, template, j, cand)
+                if cand_score < score:
+                    pose, score = cand, cand_score
+    return pose, [*scores, score]
 
 
 def _track_frame(

@@ -164,7 +164,7 @@ class Phase2Trainer(Phase1Trainer):
                 f"phase2.motion.refine_lr_final: expected > 0, got {mc.refine_lr_final}"
             )
         for name in ("refine_texture_rounds", "refine_colour_epochs", "refine_retrack_steps",
-                     "refine_retrack_lr"):  # fmt: skip
+                     "refine_retrack_lr", "refine_restart_jump"):  # fmt: skip
             if getattr(mc, name) < 0:
                 raise ValueError(f"phase2.motion.{name}: expected >= 0, got {getattr(mc, name)}")
         if mc.refine_colour_lr <= 0:
