@@ -208,6 +208,17 @@ class ObjectMotion(nn.Module, ABC):
             "phase2.motion.init=identity with phase2.motion.kind=mlp"
         )
 
+    def load_state(self, tensors: dict[str, Tensor]) -> None:
+        """Load the ``motion.*`` entries of a checkpoint's tensors (the stored frame times stay
+        this module's own); ValueError when they do not fit its parameterisation."""
+        state = {k.removeprefix("motion."): v for k, v in tensors.items()
+                 if k.startswith("motion.")}  # fmt: skip
+        state["times"] = self.times
+        try:
+            self.load_state_dict(state)
+        except RuntimeError as e:
+            raise ValueError(f"inconsistent M_phi state ({e})") from None
+
     @torch.no_grad()
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(A [K, T, 3, 3], b [K, T, 3]) float64 at every stored frame, for export."""

@@ -369,13 +369,7 @@ class Phase2Trainer(Phase1Trainer):
         """Phase 1's `restore` plus M_phi, its optimizer and the Phase 2 loop state."""
         super().restore(tensors, meta)
         info = meta["phase2"]
-        motion = {k.removeprefix("motion."): v for k, v in tensors.items()
-                  if k.startswith("motion.")}  # fmt: skip
-        motion["times"] = self.motion.times
-        try:
-            self.motion.load_state_dict(motion)
-        except RuntimeError as e:
-            raise ValueError(f"inconsistent Phase 2 state ({e})") from None
+        self.motion.load_state(tensors)
         for pi, p in enumerate(self.motion_optimizer.param_groups[0]["params"]):
             key = str(pi)
             if key in info["motion_adam_steps"]:

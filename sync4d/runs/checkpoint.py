@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Protocol
 
@@ -32,6 +34,7 @@ __all__ = [
     "load_model",
     "read_checkpoint",
     "save_checkpoint",
+    "state_errors",
     "write_checkpoint",
 ]
 
@@ -129,14 +132,24 @@ def checkpoint_kind(path: Path) -> str | None:
     return read_checkpoint(path)[1].get("kind", "sync4d.phase1")
 
 
+@contextmanager
+def state_errors(path: Path) -> Iterator[None]:
+    """Turn the KeyError (a missing tensor or field) and ValueError (one that does not fit) of
+    rebuilding something from the checkpoint at `path` into a `CheckpointError` naming it."""
+    try:
+        yield
+    except CheckpointError:
+        raise
+    except KeyError as e:
+        raise CheckpointError(path, f"missing tensor or field {e}") from None
+    except ValueError as e:
+        raise CheckpointError(path, str(e)) from None
+
+
 def load_model(path: str | Path, near: float | None = None) -> tuple[DeformableGaussians, dict]:
     """The Phase 1 model stored in a checkpoint (`near` replaces its near plane), and the
     checkpoint's header."""
     path = Path(path)
     tensors, meta = read_checkpoint(path)
-    try:
+    with state_errors(path):
         return DeformableGaussians.from_state(tensors, meta, near), meta
-    except KeyError as e:
-        raise CheckpointError(path, f"missing tensor or field {e}") from None
-    except ValueError as e:
-        raise CheckpointError(path, str(e)) from None

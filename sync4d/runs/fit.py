@@ -26,12 +26,12 @@ from sync4d.phase2.trainer import Phase2Trainer
 from sync4d.progress import Progress, format_duration
 from sync4d.report import plot_object_trajectories
 from sync4d.runs.checkpoint import (
-    CheckpointError,
     camera_records,
     checkpoint_kind,
     load_model,
     read_checkpoint,
     save_checkpoint,
+    state_errors,
 )
 from sync4d.runs.evaluate import evaluate_frames, evaluate_run, summarize
 from sync4d.runs.folder import (
@@ -168,14 +168,10 @@ def resume_trainer(
     path = Path(path)
     tensors, meta = read_checkpoint(path)
     kw = dict(config=config, total_iterations=total_iterations, threads=threads, near=near)
-    try:
+    with state_errors(path):
         if meta.get("kind") == "sync4d.phase2":
             return Phase2Trainer.from_state(tensors, meta, scene, phase2=phase2, **kw)
         return Phase1Trainer.from_state(tensors, meta, scene, **kw)
-    except KeyError as e:
-        raise CheckpointError(path, f"missing tensor or field {e}") from None
-    except ValueError as e:
-        raise CheckpointError(path, str(e)) from None
 
 
 INIT_SOURCES = ("auto", "points", "triangulate", "random")

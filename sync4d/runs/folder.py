@@ -15,7 +15,7 @@ import torch
 from sync4d.data import Scene, load_scene
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase2.motion import MotionConfig, ObjectMotion, make_motion
-from sync4d.runs.checkpoint import CheckpointError, read_checkpoint
+from sync4d.runs.checkpoint import CheckpointError, read_checkpoint, state_errors
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -93,7 +93,7 @@ class Run:
         )
 
 
-def _motion(meta: dict, tensors: dict[str, torch.Tensor], path: Path) -> ObjectMotion:
+def _motion(meta: dict, tensors: dict[str, torch.Tensor]) -> ObjectMotion:
     """M_phi rebuilt from a Phase 2 checkpoint's tensors and header."""
     info = meta["phase2"]
     stored = info.get("motion_config")
@@ -103,12 +103,7 @@ def _motion(meta: dict, tensors: dict[str, torch.Tensor], path: Path) -> ObjectM
     mc = MotionConfig(**{k: v for k, v in stored.items() if k in names})
     mc = dataclasses.replace(mc, kind=info["motion_kind"])
     motion = make_motion(mc, int(info["num_objects"]), np.asarray(info["times"]))
-    state = {k.removeprefix("motion."): v for k, v in tensors.items() if k.startswith("motion.")}
-    state["times"] = motion.times
-    try:
-        motion.load_state_dict(state)
-    except RuntimeError as e:
-        raise CheckpointError(path, f"inconsistent M_phi state ({e})") from None
+    motion.load_state(tensors)
     return motion.requires_grad_(False)
 
 
@@ -122,12 +117,8 @@ def load_run(run_dir: str | Path) -> Run:
             raise RunError(f"{run_dir}: no such run folder or checkpoint (it is missing)")
         ckpt = run_dir / CHECKPOINT_NAME
     tensors, meta = read_checkpoint(ckpt)
-    try:
+    with state_errors(ckpt):
         model = DeformableGaussians.from_state(tensors, meta).requires_grad_(False)
-    except KeyError as e:
-        raise CheckpointError(ckpt, f"missing tensor or field {e}") from None
-    except ValueError as e:
-        raise CheckpointError(ckpt, str(e)) from None
     settings = meta.get("run", {})
     run = Run(
         path=run_dir, checkpoint=ckpt, kind=meta.get("kind", "sync4d.phase1"), model=model,
@@ -136,16 +127,14 @@ def load_run(run_dir: str | Path) -> Run:
     )  # fmt: skip
     if run.kind != "sync4d.phase2":
         return run
-    try:
+    with state_errors(ckpt):
         info = meta["phase2"]
-        run.motion = _motion(meta, tensors, ckpt)
+        run.motion = _motion(meta, tensors)
         run.labels = tensors["phase2.labels"].numpy().astype(np.int64)
         run.names = {int(k): v for k, v in info["names"].items()}
         run.times = np.asarray(info["times"], dtype=np.float64)
         run.export = {k.removeprefix("export."): v.numpy() for k, v in tensors.items()
                       if k.startswith("export.")}  # fmt: skip
-    except KeyError as e:
-        raise CheckpointError(ckpt, f"missing Phase 2 tensor or field {e}") from None
     if len(run.labels) != model.num_gaussians:
         raise CheckpointError(ckpt, "'phase2.labels' does not match the Gaussian count")
     return run
