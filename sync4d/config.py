@@ -18,9 +18,11 @@ __all__ = [
     "config_path",
     "RunConfig",
     "apply_overrides",
+    "config_from_dict",
     "load_config",
     "parse_phases",
     "repo_configs",
+    "phase2_budget",
     "with_budget",
 ]
 
@@ -100,11 +102,12 @@ def parse_phases(text: str) -> tuple[int, ...]:
 
 
 def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
-    """`cfg` trained for `iterations` instead of `cfg.iterations`, with the iteration-based
-    schedules (densification start/stop/interval, opacity reset, SH degree steps, static
-    warm-up, periodic evaluation and checkpoints) scaled by the same ratio, so a shorter run
-    still densifies, resets opacities and reaches full SH degree at the same fractions of
-    training."""
+    """`cfg` bounded to `iterations` per phase (`fit --iters N`). Phase 1 trains `iterations`
+    instead of `cfg.phase1.iterations`, with its iteration-based schedules (densification
+    start/stop/interval, opacity reset, SH degree steps, static warm-up, periodic evaluation and
+    checkpoints) scaled by the same ratio, so a shorter run still densifies, resets opacities
+    and reaches full SH degree at the same fractions of training. Phase 2 trains at most
+    `iterations` (`phase2_budget`)."""
     if iterations < 1:
         raise ConfigError(f"iterations: expected a positive integer, got {iterations}")
     r = iterations / cfg.phase1.iterations
@@ -130,8 +133,40 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     return dataclasses.replace(
         cfg,
         phase1=phase1,
+        phase2=phase2_budget(cfg.phase2, iterations),
         eval_every=scaled(cfg.eval_every) if cfg.eval_every else 0,
         checkpoint_every=scaled(cfg.checkpoint_every) if cfg.checkpoint_every else 0,
+    )
+
+
+def phase2_budget(p2: Phase2Config, iterations: int) -> Phase2Config:
+    """`p2` with at most `iterations` iterations. When that shortens it, its start and warm-up
+    iterations and the photometric refinement's work (steps per frame, re-tracking steps and
+    texture rounds) shrink by the same ratio, so Phase 2's whole cost is bounded, not only its
+    loop (before 2026-12-02, `fit --iters 30` still refined for over 5 minutes)."""
+    if iterations >= p2.iterations:
+        return p2
+    r = iterations / p2.iterations
+
+    def scaled(v: int, floor: int = 1) -> int:
+        return max(floor, int(round(v * r))) if v > 0 else v
+
+    mc = p2.motion
+    motion = dataclasses.replace(
+        mc,
+        refine_steps=scaled(mc.refine_steps),
+        refine_retrack_steps=scaled(mc.refine_retrack_steps),
+        refine_texture_rounds=scaled(mc.refine_texture_rounds, 0),
+    )
+    return dataclasses.replace(
+        p2,
+        iterations=iterations,
+        motion=motion,
+        motion_start=scaled(p2.motion_start, 0),
+        velocity_start=scaled(p2.velocity_start, 0),
+        warmup_start=scaled(p2.warmup_start, 0),
+        warmup_end=scaled(p2.warmup_end, 0),
+        residual_start=scaled(p2.residual_start, 0),
     )
 
 
@@ -186,6 +221,15 @@ def apply_overrides(cfg: RunConfig, overrides: list[str]) -> RunConfig:
     return cfg
 
 
+def config_from_dict(data: dict, source: str) -> RunConfig:
+    """The config a dict of sections and keys describes (a parsed TOML file, or the `config`
+    entry of a run record), on top of the defaults; `source` names it in errors."""
+    cfg = RunConfig()
+    for k, v in data.items():
+        cfg = _replace(cfg, [k], v, f"{source}: {k}")
+    return cfg
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
     """Defaults, then the TOML file at `path` (if any; a shipped config's name such as "dnerf"
     works too, `config_path`), then `section.key=value` overrides."""
@@ -198,6 +242,5 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             raise ConfigError(f"{path}: config file is missing") from None
         except tomllib.TOMLDecodeError as e:
             raise ConfigError(f"{path}: invalid TOML ({e})") from None
-        for k, v in data.items():
-            cfg = _replace(cfg, [k], v, f"{path}: {k}")
+        cfg = config_from_dict(data, str(path))
     return apply_overrides(cfg, overrides or [])

@@ -174,9 +174,9 @@ def test_fit_runs_phase2_after_phase1_and_restarts_it(data: Path, tmp_path: Path
     assert _iteration(run) == 10
     assert main(base + ["--phases", "2", "--set", "phase2_iterations=4"]) == 0
     assert _iteration(run) == 4
-    # Phase 1 cannot continue a Phase 2 checkpoint.
+    # --resume keeps the run's phases (here "2"): Phase 1 cannot continue it.
     assert main(base + ["--resume", "--phases", "1"]) == 2
-    assert "Phase 2 checkpoint" in capsys.readouterr().err
+    assert "phases: the run has '2', this command gives '1'" in capsys.readouterr().err
     assert main(base + ["--phases", "3"]) == 2
     assert "phases" in capsys.readouterr().err
     bad = ["--phases", "2", "--set", "phase2.motion.kind=mlp", "--set", "phase2.motion.init=fit"]

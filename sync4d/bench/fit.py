@@ -149,6 +149,7 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
 
 def main(args: argparse.Namespace) -> int:
     from sync4d.runs import FitInterrupted, resolve_data
+    from sync4d.runs.files import WriteFailed, check_writable, write_text_atomic
 
     try:
         data, default_cfg = resolve_data(args.data)
@@ -158,10 +159,13 @@ def main(args: argparse.Namespace) -> int:
         n = base.phase1.iterations
         iterations = args.iters or [max(100, n // 8), n // 4, n // 2, n]
         out = Path(args.out or f"bench-fit-{data.name}.json")
+        check_writable(out.parent)  # before any budget trains, not after all of them
+        if args.keep_runs:
+            check_writable(args.keep_runs)
         with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
             work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
             rows = run_grid(data, base, iterations, scales, caps, args.threads, work)
-    except (ConfigError, DatasetError) as e:
+    except (ConfigError, DatasetError, WriteFailed) as e:
         print(f"bench fit: {e}", file=sys.stderr)
         return 2
     except FitInterrupted:
@@ -176,7 +180,7 @@ def main(args: argparse.Namespace) -> int:
         "config": dataclasses.asdict(base),
         "results": rows,
     }
-    out.write_text(json.dumps(record, indent=2) + "\n")
+    write_text_atomic(out, json.dumps(record, indent=2) + "\n")
     png = plot_pareto(rows, out.with_suffix(".png"), f"sync4d fit: {data.name}")
     print(format_rows(rows))
     print(f"bench fit: wrote {out} and {png}")

@@ -1,5 +1,7 @@
 """``python -m sync4d eval RUN``: PSNR, SSIM and LPIPS-Alex of a run's checkpoint on the test
-split, per frame and mean, written to ``RUN/eval.json`` and printed as a table."""
+split, per frame and mean, written to ``RUN/eval.json`` and printed as a table. Another split
+(``--split train``) or another dataset (``--data`` whose frames differ from the run's) writes
+``RUN/eval-<split>.json`` or ``RUN/eval-<dataset>-<split>.json`` instead."""
 
 from __future__ import annotations
 
@@ -11,6 +13,8 @@ import torch
 
 from sync4d.data import DatasetError
 from sync4d.runs import CheckpointError, RunError, evaluate_run, load_run
+from sync4d.runs.files import RunBusy, RunLock, WriteFailed
+from sync4d.runs.record import dataset_differences
 
 __all__ = ["main"]
 
@@ -20,17 +24,26 @@ def main(args: argparse.Namespace) -> int:
     run_dir = Path(args.run)
     try:
         run = load_run(run_dir)
-        scene = run.scene(args.data)
-        if scene is None:
-            raise RunError(
-                f"{run_dir}: the run's dataset ({run.settings.get('data')}) is not "
-                "there any more; pass --data PATH"
-            )
-        threads = args.threads or None
-        if threads:
-            torch.set_num_threads(threads)
-        evaluate_run(run.path, run.model, scene, run.background, threads, args.split)
-    except (RunError, CheckpointError, DatasetError) as e:
+        with RunLock(run.path, "eval"):
+            scene = run.scene(args.data)
+            if scene is None:
+                raise RunError(
+                    f"{run_dir}: the run's dataset ({run.settings.get('data')}) is not "
+                    "there any more; pass --data PATH"
+                )
+            other = bool(dataset_differences(run.settings.get("dataset", {}), scene))
+            tag = f"{scene.name}-{args.split}" if other else None
+            if tag is None and args.split != "test":
+                tag = args.split
+            threads = args.threads or None
+            if threads:
+                torch.set_num_threads(threads)
+            evaluate_run(run.path, run.model, scene, run.background, threads, args.split,
+                         tag=tag)  # fmt: skip
+    except (RunError, CheckpointError, DatasetError, RunBusy, WriteFailed) as e:
         print(f"eval: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("eval: interrupted; nothing written", file=sys.stderr)
+        return 130
     return 0

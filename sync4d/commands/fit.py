@@ -7,6 +7,9 @@ Without DATA it trains on the embedded synthetic scene (generated once into a ca
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -16,9 +19,12 @@ from sync4d.config import (
     apply_overrides,
     load_config,
     parse_phases,
+    phase2_budget,
+    repo_configs,
     with_budget,
 )
 from sync4d.data import DatasetError, load_scene
+from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
 from sync4d.progress import format_duration
 from sync4d.runs import (
     CHECKPOINT_NAME,
@@ -28,63 +34,186 @@ from sync4d.runs import (
     TRAJECTORY_PLOT,
     CheckpointError,
     FitInterrupted,
-    resolve_data,
+    RunError,
+    checkpoint_kind,
     restart_phase2,
     run_fit,
+)
+from sync4d.runs.files import LOCK_FILE, RunBusy, RunLock, WriteFailed
+from sync4d.runs.record import (
+    CADENCE_KEYS,
+    config_differences,
+    dataset_differences,
+    read_record,
+    recorded_config,
 )
 
 __all__ = ["main"]
 
 
-def _load(args: argparse.Namespace) -> tuple[Path, RunConfig]:
-    data, default_cfg = resolve_data(args.data)
+def _overrides(args: argparse.Namespace) -> list[str]:
+    """The command line's settings as `key=value` overrides, in the order they apply."""
     overrides = list(args.set or [])
     if args.resolution_scale is not None:
         overrides.append(f"resolution_scale={args.resolution_scale}")
     if getattr(args, "phases", None) is not None:
         overrides.append(f"phases={args.phases}")
-    cfg = load_config(args.config or default_cfg)
+    return overrides
+
+
+def _fresh_config(args: argparse.Namespace) -> RunConfig:
+    """The config of a new run: --config (default: the shipped synthetic config without DATA,
+    the paper's values with it), scaled by --iters, then --set, --resolution-scale, --phases."""
+    default = None if args.data else repo_configs() / "synthetic.toml"
+    cfg = load_config(args.config or default)
     if args.iters is not None:  # scale the file's schedule; explicit overrides still win
         cfg = with_budget(cfg, args.iters)
-    return data, apply_overrides(cfg, overrides)
+    return apply_overrides(cfg, _overrides(args))
+
+
+def _continued_config(
+    args: argparse.Namespace, stored: RunConfig, kind: str | None, restart: bool, source: Path
+) -> RunConfig:
+    """The run's stored config with the command line's settings applied. On --resume only the
+    phases' lengths (`--iters N` continues the checkpoint's phase to N) and the cadence keys may
+    change; `--phases 2` (`restart`) may also change Phase 2's settings. Anything else the
+    command line changes is refused, naming each difference."""
+    cfg = load_config(args.config) if args.config else stored
+    if args.iters is not None:
+        if restart:
+            cfg = dataclasses.replace(cfg, phase2=phase2_budget(cfg.phase2, args.iters))
+        elif args.config:
+            cfg = with_budget(cfg, args.iters)
+        elif kind == "sync4d.phase2":
+            cfg = dataclasses.replace(
+                cfg, phase2=dataclasses.replace(cfg.phase2, iterations=args.iters)
+            )
+        else:
+            cfg = dataclasses.replace(
+                cfg, phase1=dataclasses.replace(cfg.phase1, iterations=args.iters)
+            )
+    cfg = apply_overrides(cfg, _overrides(args))
+    free = {*CADENCE_KEYS, "phase1.iterations", "phase2.iterations"}
+
+    def allowed(key: str) -> bool:
+        return key in free or (restart and (key == "phases" or key.startswith("phase2.")))
+
+    diffs = config_differences(stored, cfg)
+    bad = {k: v for k, v in diffs.items() if not allowed(k)}
+    if bad:
+        listed = "; ".join(f"{k}: the run has {a!r}, this command gives {b!r}"
+                           for k, (a, b) in list(bad.items())[:6])  # fmt: skip
+        more = f" and {len(bad) - 6} more" if len(bad) > 6 else ""
+        what = "--phases 2 keeps" if restart else "--resume continues"
+        raise ConfigError(
+            f"{source}: {what} the run with its recorded settings, and this command contradicts "
+            f"them: {listed}{more}. Drop those settings, or start a new run (--force, or "
+            "another --out)"
+        )
+    for k, (a, b) in diffs.items():
+        if k in free:
+            print(f"fit: {k}: {a} -> {b}", file=sys.stderr)
+    return cfg
+
+
+def _continued_data(args: argparse.Namespace, record: dict, run_dir: Path) -> tuple[Path, bool]:
+    """The dataset of a continued run (DATA if given, else the recorded one) and whether it is
+    the embedded synthetic scene."""
+    recorded = record.get("data")
+    embedded = bool(record.get("embedded", recorded == str(default_scene_dir().resolve())))
+    if args.data is not None:
+        return Path(args.data), embedded and Path(args.data).resolve() == Path(recorded).resolve()
+    if embedded:
+        return ensure_default_scene(), True
+    if recorded is None or not Path(recorded).exists():
+        raise RunError(
+            f"{run_dir}: the run's dataset ({recorded}) is not there any more; pass its new "
+            "path as DATA"
+        )
+    return Path(recorded), False
+
+
+def _clear(run_dir: Path) -> None:
+    """Remove a run's results (--force)."""
+    for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE,
+                 TRAJECTORY_PLOT, "eval.json", "run.json"):  # fmt: skip
+        (run_dir / name).unlink(missing_ok=True)
+    for extra in run_dir.glob("eval-*.json"):
+        extra.unlink()
+    shutil.rmtree(run_dir / "renders", ignore_errors=True)
 
 
 def main(args: argparse.Namespace) -> int:
     """Run `fit` with parsed `args`; the exit status."""
+    if args.resume and args.force:
+        print("fit: --resume continues RUN and --force deletes it; pass one of them",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    name = Path(args.data).name if args.data else default_scene_dir().name
+    run_dir = Path(args.out) if args.out else Path("runs") / name
+    created = not run_dir.exists()
     try:
-        data, cfg = _load(args)
-        run_dir = Path(args.out) if args.out else Path("runs") / data.name
-        ckpt = run_dir / CHECKPOINT_NAME
-        if args.resume and not ckpt.exists():
-            print(f"fit: {ckpt}: no checkpoint to resume from", file=sys.stderr)
-            return 2
-        phase2_only = parse_phases(cfg.phases) == (2,)
-        if ckpt.exists() and not (args.resume or args.force or phase2_only):
-            print(
-                f"fit: {run_dir} already holds a run; pass --resume to continue it, --force "
-                "to start over or --phases 2 to redo Phase 2 from its Phase 1 checkpoint",
-                file=sys.stderr,
-            )
-            return 2
-        if phase2_only and not args.resume:
-            restart_phase2(run_dir)
-        elif args.force and not args.resume:
-            for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE,
-                         TRAJECTORY_PLOT):  # fmt: skip
-                (run_dir / name).unlink(missing_ok=True)
-        scene = load_scene(data, cfg.resolution_scale, cfg.test_split)
-        print(
-            f"fit: {scene.name}: {len(scene.train)} train / {len(scene.test)} test frames at "
-            f"{scene.train[0].camera.width}x{scene.train[0].camera.height}, "
-            f"{cfg.phase1.iterations} iterations -> {run_dir}",
-            file=sys.stderr,
-        )
-        summary = run_fit(scene, cfg, run_dir, data, args.resume, args.threads)
-    except (ConfigError, DatasetError, CheckpointError) as e:
+        fresh = _fresh_config(args)
+        with RunLock(run_dir, "fit"):
+            return _fit(args, run_dir, fresh)
+    except (ConfigError, DatasetError, CheckpointError, RunError, RunBusy, WriteFailed) as e:
         print(f"fit: {e}", file=sys.stderr)
         return 2
     except FitInterrupted:
         return 130
+    finally:
+        if created and run_dir.is_dir() and {p.name for p in run_dir.iterdir()} <= {LOCK_FILE}:
+            (run_dir / LOCK_FILE).unlink(missing_ok=True)
+            os.rmdir(run_dir)  # a command that failed before writing anything leaves nothing
+
+
+def _fit(args: argparse.Namespace, run_dir: Path, fresh: RunConfig) -> int:
+    ckpt = run_dir / CHECKPOINT_NAME
+    kind = checkpoint_kind(ckpt)
+    if args.resume and kind is None:
+        raise RunError(f"{ckpt}: no checkpoint to resume from")
+    restart = parse_phases(fresh.phases) == (2,) and not args.resume
+    if kind is not None and not (args.resume or args.force or restart):
+        raise RunError(
+            f"{run_dir} already holds a run; pass --resume to continue it, --force to start "
+            "over or --phases 2 to redo Phase 2 from its Phase 1 checkpoint"
+        )
+    invocation = {"data": args.data, "config": args.config, "set": list(args.set or []),
+                  "iters": args.iters, "resolution_scale": args.resolution_scale,
+                  "phases": args.phases, "resume": args.resume, "force": args.force}  # fmt: skip
+    if kind is not None and not args.force:  # continue the recorded run
+        record = read_record(run_dir)
+        source = run_dir / "run.json"
+        data, embedded = _continued_data(args, record, run_dir)
+        cfg = _continued_config(args, recorded_config(record, run_dir), kind, restart, source)
+        scene = load_scene(data, cfg.resolution_scale, cfg.test_split)
+        differs = dataset_differences(record.get("dataset", {}), scene)
+        if differs:
+            raise RunError(
+                f"{data} is not the dataset of the run in {run_dir} "
+                f"({record.get('data')}): {'; '.join(differs)}. Pass the run's dataset, or "
+                "start a new run (--force, or another --out)"
+            )
+        history = list(record.get("command", {}).get("invocations", []))
+        if restart:
+            restart_phase2(run_dir)
+    else:
+        if args.force:
+            _clear(run_dir)
+        cfg = fresh
+        if args.data is None:
+            print("fit: no dataset given; using the embedded synthetic scene", file=sys.stderr)
+        data, embedded = (Path(args.data), False) if args.data else (ensure_default_scene(), True)
+        scene = load_scene(data, cfg.resolution_scale, cfg.test_split)
+        history = []
+    command = {"embedded": embedded, "invocations": [*history, invocation]}
+    print(
+        f"fit: {scene.name}: {len(scene.train)} train / {len(scene.test)} test frames at "
+        f"{scene.train[0].camera.width}x{scene.train[0].camera.height}, "
+        f"{cfg.phase1.iterations} iterations -> {run_dir}",
+        file=sys.stderr,
+    )
+    summary = run_fit(scene, cfg, run_dir, data, args.resume, args.threads, command=command)
     print(
         f"fit: done in {format_duration(summary['train_seconds'])} of training: test PSNR "
         f"{summary['psnr']:.2f} dB, SSIM {summary['ssim']:.4f}, LPIPS "

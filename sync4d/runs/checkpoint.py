@@ -6,14 +6,14 @@ the run's settings and cameras under "run"). The file format is all this module 
 phase gives its own state and rebuilds from it (`Phase1Trainer.from_state`,
 `DeformableGaussians.from_state`).
 
-Written atomically (temporary file, then rename), so an interrupted write never replaces the
-last good checkpoint. The standalone Rust renderer reads the same file (docs/run-folder.md).
+Written atomically (a unique temporary file, fsync, rename, fsync of the folder), so an
+interrupted or failed write never replaces the last good checkpoint. The standalone Rust
+renderer reads the same file (docs/run-folder.md).
 """
 
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -25,6 +25,7 @@ from safetensors.torch import load_file, save_file
 
 from sync4d.data.scene import Scene
 from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.runs.files import write_atomic
 
 __all__ = [
     "CheckpointError",
@@ -79,19 +80,15 @@ def write_checkpoint(
     path: str | Path, tensors: dict[str, torch.Tensor], meta: dict, extra: dict | None = None
 ) -> Path:
     """Write `tensors` and the JSON header `meta` (with the format version, and `extra` under
-    "run") to `path` atomically."""
+    "run") to `path` atomically (`sync4d.runs.files.write_atomic`: a failed write raises
+    `WriteFailed` and leaves the previous checkpoint in place)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     header = {"format_version": FORMAT_VERSION, **meta}
     if extra:
         header["run"] = extra
-    tmp = path.with_name(path.name + ".tmp")
-    save_file(
-        {k: v.contiguous() for k, v in tensors.items()},
-        str(tmp),
-        metadata={"sync4d": json.dumps(header)},
-    )
-    os.replace(tmp, path)
+    tensors = {k: v.contiguous() for k, v in tensors.items()}
+    metadata = {"sync4d": json.dumps(header)}
+    write_atomic(path, lambda tmp: save_file(tensors, str(tmp), metadata=metadata))
     return path
 
 
@@ -116,13 +113,42 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
         raise CheckpointError(path, f"not a readable safetensors checkpoint ({e})") from None
     if "sync4d" not in header:
         raise CheckpointError(path, "no sync4d metadata in the header (not a sync4d checkpoint)")
-    meta = json.loads(header["sync4d"])
+    try:
+        meta = json.loads(header["sync4d"])
+    except ValueError as e:
+        raise CheckpointError(path, f"the header's sync4d metadata is not JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise CheckpointError(path, "the header's sync4d metadata is not a JSON object")
     if meta.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(path, f"unsupported format version {meta.get('format_version')}")
+    _check_header(path, meta)
     for name, t in tensors.items():
         if t.is_floating_point() and not torch.isfinite(t).all():
             raise CheckpointError(path, f"tensor '{name}' contains NaN or inf")
     return tensors, meta
+
+
+#: The trainers whose checkpoints this format holds.
+KINDS = ("sync4d.phase1", "sync4d.phase2")
+
+
+def _check_header(path: Path, meta: dict) -> None:
+    """The header's kind and iteration counters are what a trainer can continue from."""
+    kind = meta.get("kind", "sync4d.phase1")
+    if kind not in KINDS:
+        raise CheckpointError(path, f"unknown checkpoint kind {kind!r} (expected {KINDS})")
+    for key, low in (("iteration", 0), ("total_iterations", 1)):
+        v = meta.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
+            raise CheckpointError(path, f"header field '{key}' must be an integer >= {low}, "
+                                  f"got {v!r}")  # fmt: skip
+    run = meta.get("run", {})
+    if not isinstance(run, dict):
+        raise CheckpointError(path, "header field 'run' must be a JSON object")
+    seconds = run.get("train_seconds", 0.0)
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not seconds >= 0:
+        raise CheckpointError(path, f"header field 'run.train_seconds' must be a number >= 0, "
+                              f"got {seconds!r}")  # fmt: skip
 
 
 def checkpoint_kind(path: Path) -> str | None:

@@ -19,6 +19,7 @@ from sync4d.metrics.lpips import MIN_SIZE, LPIPSAlex, load_lpips
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.progress import Progress
 from sync4d.report import align_table
+from sync4d.runs.files import write_text_atomic
 from sync4d.runs.folder import EVAL_FILE, RENDERS_DIR, RunError
 
 __all__ = [
@@ -152,10 +153,13 @@ def evaluate_run(
     split: str = "test",
     quiet: bool = False,
     renders: bool = True,
+    tag: str | None = None,
 ) -> dict:
     """Evaluate `model` on `scene`'s split, write ``run_dir/eval.json`` (and, with `renders`,
     ``run_dir/renders/<split>/<frame>.png``: render beside ground truth), print the table;
-    returns the summary (mean PSNR, SSIM, LPIPS)."""
+    returns the summary (mean PSNR, SSIM, LPIPS). With `tag` (another split or dataset than
+    the run's test split) the files are ``eval-<tag>.json`` and ``renders/<tag>/`` instead, so
+    the run's own results are never overwritten."""
     frames = scene.test if split == "test" else scene.train
     if not frames:
         raise RunError(f"{run_dir}: the dataset has no {split} frames to evaluate")
@@ -169,7 +173,7 @@ def evaluate_run(
     metrics = evaluate_frames(
         model, frames, tuple(background), threads, lpips=lpips,
         on_frame=lambda i, m: bar.update(i + 1, {"PSNR": f"{m.psnr:.2f}"}),
-        save_dir=run_dir / RENDERS_DIR / split if renders else None,
+        save_dir=run_dir / RENDERS_DIR / (tag or split) if renders else None,
     )  # fmt: skip
     bar.close()
     summary = summarize(metrics)
@@ -179,12 +183,10 @@ def evaluate_run(
         "frames": [asdict(m) for m in metrics],
         "gaussians": model.num_gaussians,
     }
-    path = run_dir / EVAL_FILE
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(out, indent=2) + "\n")
-    tmp.replace(path)
+    path = run_dir / (EVAL_FILE if tag is None else f"eval-{tag}.json")
+    write_text_atomic(path, json.dumps(out, indent=2) + "\n")
     if not quiet:
         print(format_metrics(metrics, summary))
-        where = f" and {run_dir / RENDERS_DIR / split}/" if renders else ""
+        where = f" and {run_dir / RENDERS_DIR / (tag or split)}/" if renders else ""
         print(f"eval: wrote {path}{where}")
     return dict(summary)

@@ -34,6 +34,7 @@ from sync4d.runs.checkpoint import (
     state_errors,
 )
 from sync4d.runs.evaluate import evaluate_frames, evaluate_run, summarize
+from sync4d.runs.files import RunLock, write_atomic, write_text_atomic
 from sync4d.runs.folder import (
     CHECKPOINT_NAME,
     METRICS_FILE,
@@ -42,6 +43,8 @@ from sync4d.runs.folder import (
     RUN_FILE,
     TRAJECTORY_PLOT,
 )
+from sync4d.runs.record import continue_command, dataset_fingerprint
+from sync4d.runs.stop import StopSignals
 
 __all__ = [
     "FitInterrupted",
@@ -68,11 +71,7 @@ def set_threads(threads: int | None) -> int:
 
 
 class FitInterrupted(Exception):
-    """Training stopped by Ctrl-C or SIGTERM after saving its checkpoint."""
-
-
-def _raise_interrupt(signum, frame) -> None:  # noqa: ARG001
-    raise KeyboardInterrupt
+    """Training stopped by Ctrl-C, SIGTERM or SIGHUP after saving its checkpoint."""
 
 
 def _train_loop(
@@ -88,55 +87,62 @@ def _train_loop(
     desc: str,
     log_every: int,
     train_seconds: float,
+    stop: StopSignals,
 ) -> tuple[float, bool]:
     """Step `trainer` up to `total` iterations with a progress bar, periodic evaluation and
-    checkpoints; returns (training seconds, whether Ctrl-C / SIGTERM stopped it). The last
-    state is always checkpointed."""
+    checkpoints; returns (training seconds, whether a stop signal ended it). A signal ends the
+    loop after the iteration under way; the last state is always checkpointed."""
     bar = Progress(total, start=trainer.iteration, desc=desc, log_every=log_every)
     ema: dict[str, float] = {}
-    previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
-    interrupted = False
-    try:
-        while trainer.iteration < total:
-            t0 = time.perf_counter()
-            stats = trainer.step()
-            train_seconds += time.perf_counter() - t0
-            for k in ("loss", "psnr", "rho"):
-                v = stats.get(k)
-                if v is not None and math.isfinite(v):
-                    ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
-            it = trainer.iteration
-            shown = {
-                "loss": f"{ema.get('loss', float('nan')):.4f}",
-                "PSNR": f"{ema.get('psnr', float('nan')):.2f}",
-                "#G": f"{trainer.model.num_gaussians}",
-            }
-            if "rho" in ema:
-                shown["rho"] = f"{ema['rho']:.3f}"
-            bar.update(it, shown)
-            if it % log_every == 0:
-                log({"phase": desc, "iteration": it, "train_seconds": train_seconds, **stats})
-            if cfg.eval_every and it % cfg.eval_every == 0 and it < total:
-                res = summarize(
-                    evaluate_frames(
-                        trainer.model, periodic, cfg.phase1.background, n_threads, images=target
+
+    def save() -> None:
+        save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
+
+    with stop.deferred():
+        try:
+            while trainer.iteration < total and stop.requested is None:
+                t0 = time.perf_counter()
+                stats = trainer.step()
+                train_seconds += time.perf_counter() - t0
+                for k in ("loss", "psnr", "rho"):
+                    v = stats.get(k)
+                    if v is not None and math.isfinite(v):
+                        ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
+                it = trainer.iteration
+                shown = {
+                    "loss": f"{ema.get('loss', float('nan')):.4f}",
+                    "PSNR": f"{ema.get('psnr', float('nan')):.2f}",
+                    "#G": f"{trainer.model.num_gaussians}",
+                }
+                if "rho" in ema:
+                    shown["rho"] = f"{ema['rho']:.3f}"
+                bar.update(it, shown)
+                if it % log_every == 0:
+                    log({"phase": desc, "iteration": it, "train_seconds": train_seconds,
+                         **stats})  # fmt: skip
+                if cfg.eval_every and it % cfg.eval_every == 0 and it < total:
+                    res = summarize(
+                        evaluate_frames(
+                            trainer.model, periodic, cfg.phase1.background, n_threads,
+                            images=target,
+                        )  # fmt: skip
                     )
-                )
-                log({"phase": desc, "iteration": it, "train_seconds": train_seconds, "test": res})
-                bar.message(
-                    f"[eval @ {it}] test PSNR {res['psnr']:.2f} dB, SSIM {res['ssim']:.4f} "
-                    f"({res['frames']} frames, {trainer.model.num_gaussians} Gaussians, "
-                    f"{format_duration(train_seconds)} training)"
-                )
-            if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
-                save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        signal.signal(signal.SIGTERM, previous_sigterm)
-        bar.close()
-    save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
-    return train_seconds, interrupted
+                    log({"phase": desc, "iteration": it, "train_seconds": train_seconds,
+                         "test": res})  # fmt: skip
+                    bar.message(
+                        f"[eval @ {it}] test PSNR {res['psnr']:.2f} dB, SSIM "
+                        f"{res['ssim']:.4f} ({res['frames']} frames, "
+                        f"{trainer.model.num_gaussians} Gaussians, "
+                        f"{format_duration(train_seconds)} training)"
+                    )
+                if cfg.checkpoint_every and it % cfg.checkpoint_every == 0 and it < total:
+                    save()
+        except KeyboardInterrupt:  # raised by a step itself, not by our handler
+            stop.requested = stop.requested or int(signal.SIGINT)
+        finally:
+            bar.close()
+        save()
+    return train_seconds, stop.requested is not None
 
 
 def resolve_data(data: str | Path | None) -> tuple[Path, Path | None]:
@@ -223,27 +229,64 @@ def run_fit(
     threads: int | None = None,
     log_every: int = 100,
     quiet: bool = False,
+    command: dict | None = None,
 ) -> dict:
     """Train (or resume) the phases `cfg.phases` on `scene` into `run_dir`: Phase 1, then Phase 2
     from its model (the Phase 1 checkpoint is kept as ``phase1.safetensors``); returns the final
-    summary (test metrics, and Phase 2's diagnostics when it ran)."""
+    summary (test metrics, and Phase 2's diagnostics when it ran). Holds the run folder's lock
+    throughout; `command` (the command-line settings behind `cfg`, see `sync4d.runs.record`)
+    goes into the run record. Raises `FitInterrupted` after Ctrl-C, SIGTERM or SIGHUP, with
+    the last state saved."""
     phases = parse_phases(cfg.phases)
     p1 = cfg.phase1
     if not (math.isfinite(p1.near) and p1.near > 0):
         raise ConfigError(f"near: must be a finite distance > 0 (world units), got {p1.near}")
+    with RunLock(run_dir, "fit"), StopSignals() as stop:
+        try:
+            return _run_fit(scene, cfg, phases, run_dir, data, resume, threads, log_every,
+                            quiet, command or {}, stop)  # fmt: skip
+        except KeyboardInterrupt:  # between the loops: the last checkpoint is on disk
+            record = {"data": str(Path(data).resolve()), **(command or {})}
+            print(
+                f"fit: interrupted; the last checkpoint is {run_dir / CHECKPOINT_NAME}.\n"
+                f"     continue with: {continue_command(run_dir, record)}",
+                file=sys.stderr,
+            )
+            raise FitInterrupted from None
+
+
+def _run_fit(
+    scene: Scene,
+    cfg: RunConfig,
+    phases: tuple[int, ...],
+    run_dir: Path,
+    data: Path,
+    resume: bool,
+    threads: int | None,
+    log_every: int,
+    quiet: bool,
+    command: dict,
+    stop: StopSignals,
+) -> dict:
+    p1 = cfg.phase1
     n_threads = set_threads(threads)
-    run_dir.mkdir(parents=True, exist_ok=True)
     ckpt = run_dir / CHECKPOINT_NAME
     run_info = {
         "data": str(data.resolve()),
+        "embedded": bool(command.get("embedded", False)),
         "scene": scene.name,
+        "dataset": dataset_fingerprint(scene),
         "resolution_scale": cfg.resolution_scale,
         "test_split": cfg.test_split,
         "config": dataclasses.asdict(cfg),
+        "command": {k: v for k, v in command.items() if k != "embedded"},
         "threads": n_threads,
     }
     kind = checkpoint_kind(ckpt)
     trainer: Phase1Trainer | None = None
+    train_seconds = 0.0
+    if kind is not None and (resume or 1 not in phases):  # continuing the stored run
+        train_seconds = float(read_checkpoint(ckpt)[1].get("run", {}).get("train_seconds", 0.0))
     if kind == "sync4d.phase2" and 2 not in phases:
         raise ConfigError(f"{ckpt} is a Phase 2 checkpoint; Phase 1 cannot continue it")
     if resume and kind is not None:
@@ -262,7 +305,7 @@ def run_fit(
             f"{run_dir}: Phase 2 alone needs the run's Phase 1 checkpoint ({CHECKPOINT_NAME}); "
             "run with phases=1,2 or fit Phase 1 first"
         )
-    (run_dir / RUN_FILE).write_text(json.dumps(run_info, indent=2) + "\n")
+    write_text_atomic(run_dir / RUN_FILE, json.dumps(run_info, indent=2) + "\n")
     extra = {**run_info, "cameras": camera_records(scene)}
     metrics_log = (run_dir / METRICS_FILE).open("a")
     test_frames = scene.test or scene.train
@@ -283,55 +326,79 @@ def run_fit(
         metrics_log.flush()
 
     wall0 = time.perf_counter()
-    train_seconds = 0.0
     loop = dict(cfg=cfg, ckpt=ckpt, extra=extra, log=log, periodic=periodic, target=target,
-                n_threads=n_threads, log_every=log_every)  # fmt: skip
+                n_threads=n_threads, log_every=log_every, stop=stop)  # fmt: skip
     interrupted = False
-    if trainer is not None and not isinstance(trainer, Phase2Trainer) and 1 in phases:
-        train_seconds, interrupted = _train_loop(
-            trainer, p1.iterations, desc="fit", train_seconds=train_seconds, **loop
-        )
-    if not interrupted and 2 in phases:
-        if not isinstance(trainer, Phase2Trainer):
-            shutil.copyfile(ckpt, run_dir / PHASE1_CHECKPOINT_NAME)
-            model = trainer.model if trainer is not None else load_model(ckpt, p1.near)[0]
+    try:
+        if trainer is not None and not isinstance(trainer, Phase2Trainer) and 1 in phases:
+            train_seconds, interrupted = _train_loop(
+                trainer, p1.iterations, desc="fit", train_seconds=train_seconds, **loop
+            )
+        if not interrupted and 2 in phases:
+            if not isinstance(trainer, Phase2Trainer):
+                t0 = time.perf_counter()
+                trainer = _start_phase2(trainer, scene, cfg, run_dir, n_threads)
+                train_seconds += time.perf_counter() - t0  # the assignment and refinement
+            train_seconds, interrupted = _train_loop(
+                trainer, cfg.phase2.iterations, desc="phase2", train_seconds=train_seconds,
+                **loop,
+            )  # fmt: skip
+        if interrupted:
             print(
-                f"fit: Phase 2 ({cfg.phase2.iterations} iterations) from "
-                f"{run_dir / PHASE1_CHECKPOINT_NAME}: assigning Gaussians to objects ...",
+                f"fit: interrupted at iteration {trainer.iteration}; checkpoint saved to "
+                f"{ckpt}.\n     continue with: {continue_command(run_dir, run_info)}",
                 file=sys.stderr,
             )
-            try:
-                trainer = Phase2Trainer(
-                    model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads
-                )
-            except ValueError as e:  # bad Phase 2 settings or assignment input
-                raise ConfigError(str(e)) from None
-            counts = trainer.assignment.counts()
-            names = trainer.assignment.names
-            print(
-                f"fit: {trainer.assignment.source} assignment, K = "
-                f"{trainer.assignment.num_objects}: "
-                + ", ".join(f"{names.get(k, k)} {n}" for k, n in counts.items()),
-                file=sys.stderr,
-            )
-        train_seconds, interrupted = _train_loop(
-            trainer, cfg.phase2.iterations, desc="phase2", train_seconds=train_seconds, **loop
-        )
-    if interrupted:
+            raise FitInterrupted
+        summary = _finish(trainer, scene, cfg, run_dir, n_threads, quiet)
+        summary.update(
+            {"iterations": trainer.iteration, "train_seconds": train_seconds,
+             "wall_seconds": time.perf_counter() - wall0,
+             "gaussians": trainer.model.num_gaussians}
+        )  # fmt: skip
+        log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
+    finally:
         metrics_log.close()
-        print(
-            f"fit: interrupted at iteration {trainer.iteration}; checkpoint saved to {ckpt}.\n"
-            f"     continue with: python -m sync4d fit {data} --out {run_dir} --resume",
-            file=sys.stderr,
-        )
-        raise FitInterrupted
+    return summary
+
+
+def _start_phase2(
+    trainer: Phase1Trainer | None, scene: Scene, cfg: RunConfig, run_dir: Path, n_threads: int
+) -> Phase2Trainer:
+    """Keep the Phase 1 checkpoint as ``phase1.safetensors`` and build Phase 2's trainer from
+    its model (the assignment, M_phi's start and the photometric refinement run here)."""
+    p1 = cfg.phase1
+    ckpt = run_dir / CHECKPOINT_NAME
+    kept = run_dir / PHASE1_CHECKPOINT_NAME
+    write_atomic(kept, lambda tmp: shutil.copyfile(ckpt, tmp))
+    model = trainer.model if trainer is not None else load_model(ckpt, p1.near)[0]
+    print(
+        f"fit: Phase 2 ({cfg.phase2.iterations} iterations) from {kept}: assigning Gaussians "
+        "to objects ...",
+        file=sys.stderr,
+    )
+    try:
+        p2 = Phase2Trainer(model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads)
+    except ValueError as e:  # bad Phase 2 settings or assignment input
+        raise ConfigError(str(e)) from None
+    counts = p2.assignment.counts()
+    names = p2.assignment.names
+    print(
+        f"fit: {p2.assignment.source} assignment, K = {p2.assignment.num_objects}: "
+        + ", ".join(f"{names.get(k, k)} {n}" for k, n in counts.items()),
+        file=sys.stderr,
+    )
+    return p2
+
+
+def _finish(
+    trainer: Phase1Trainer, scene: Scene, cfg: RunConfig, run_dir: Path, n_threads: int,
+    quiet: bool,
+) -> dict:  # fmt: skip
+    """The final evaluation, and after Phase 2 its diagnostics and trajectory plot."""
     summary = evaluate_run(
         run_dir, trainer.model, scene, cfg.phase1.background, n_threads, quiet=quiet
     )
-    summary.update(
-        {"iterations": trainer.iteration, "train_seconds": train_seconds,
-         "wall_seconds": time.perf_counter() - wall0, "gaussians": trainer.model.num_gaussians}
-    )  # fmt: skip
     if isinstance(trainer, Phase2Trainer):
         diag = trainer.diagnostics()
         export = trainer.motion_export()
@@ -340,7 +407,7 @@ def run_fit(
             "times": export["times"].tolist(),
             "centroids": {str(k): cent[k].tolist() for k in range(len(cent))},
         }
-        (run_dir / PHASE2_FILE).write_text(json.dumps(diag, indent=2) + "\n")
+        write_text_atomic(run_dir / PHASE2_FILE, json.dumps(diag, indent=2) + "\n")
         plot = plot_object_trajectories(
             export, trainer.assignment.names, run_dir / TRAJECTORY_PLOT,
             f"{scene.name}: object centroids after Phase 2 ({diag['assignment']} assignment)",
@@ -349,8 +416,6 @@ def run_fit(
         if not quiet:
             print(format_diagnostics(diag))
             print(f"fit: wrote {run_dir / PHASE2_FILE} and {plot}")
-    log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
-    metrics_log.close()
     return summary
 
 
@@ -359,7 +424,7 @@ def restart_phase2(run_dir: Path) -> None:
     ckpt = run_dir / CHECKPOINT_NAME
     kept = run_dir / PHASE1_CHECKPOINT_NAME
     if kept.exists():
-        shutil.copyfile(kept, ckpt)
+        write_atomic(ckpt, lambda tmp: shutil.copyfile(kept, tmp))
     elif checkpoint_kind(ckpt) != "sync4d.phase1":
         raise ConfigError(
             f"{run_dir}: --phases 2 needs a Phase 1 checkpoint ({CHECKPOINT_NAME} or "
