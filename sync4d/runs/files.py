@@ -146,6 +146,9 @@ class RunLock:
         os.pwrite(fd, (json.dumps(info) + "\n").encode(), 0)
         RunLock._held[key] = [fd, 1]
         self._key = key
+        for stale in self.run_dir.glob(".*.tmp"):  # left by a killed writer; none can be live
+            with contextlib.suppress(OSError):
+                stale.unlink()
         return self
 
     def release(self) -> None:

@@ -61,11 +61,11 @@ def dataset_fingerprint(scene: Scene) -> dict:
 
 
 def dataset_differences(recorded: dict, scene: Scene) -> list[str]:
-    """How `scene` differs from the recorded fingerprint, in words (empty: the same data)."""
+    """How `scene` differs from the recorded fingerprint, in words (empty: the same data). The
+    name (the folder's) is not compared: a dataset moved or renamed is the same dataset."""
     now = dataset_fingerprint(scene)
     out = []
-    for key, what in (("name", "name"), ("train", "train frames"), ("test", "test frames"),
-                      ("masks", "masks")):  # fmt: skip
+    for key, what in (("train", "train frames"), ("test", "test frames"), ("masks", "masks")):
         if key in recorded and recorded[key] != now[key]:
             out.append(f"{what} {now[key]} against the run's {recorded[key]}")
     if not out and recorded.get("digest") not in (None, now["digest"]):
