@@ -215,7 +215,7 @@ def _bad_text_model(root: Path) -> None:
             lambda r: (r / "times.json").write_text(
                 json.dumps({f"frame_{i:03d}.png": "nan" for i in range(10)})
             ),
-            r"times.json: time of 'frame_000.png' is not finite",
+            r"times.json: the time of 'frame_000.png' must be a number, got a string \('nan'\)",
         ),
         (
             lambda r: (r / "test_images.txt").write_text("frame_001.png\nnope.png\n"),

@@ -152,6 +152,7 @@ def test_default_scene_dir_follows_env(monkeypatch, tmp_path):
         (lambda gt: gt.pop("objects"), "malformed ground truth"),
         (lambda gt: [o["rotations"].pop() for o in gt["objects"]], "expected rotations"),
         (lambda gt: gt["objects"][1]["translations"][0].__setitem__(0, float("nan")), "NaN"),
+        (lambda gt: gt["times"].__setitem__(1, "0.5"), r"'times'\[1\] must be a number"),
     ],
 )
 def test_malformed_ground_truth(small_scene, tmp_path, mutate, message):

@@ -8,9 +8,17 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
-
-from sync4d.data.scene import Camera, DatasetError, Frame, Scene, opengl_c2w_to_opencv_w2c
+from sync4d.data.scene import (
+    Camera,
+    DatasetError,
+    Frame,
+    Scene,
+    as_number,
+    as_number_array,
+    as_string,
+    check_pose,
+    opengl_c2w_to_opencv_w2c,
+)
 
 
 def _read_json(path: Path) -> dict:
@@ -59,7 +67,7 @@ def load_split(
     frames = data.get("frames")
     if not isinstance(frames, list) or not frames:
         raise DatasetError(path, "missing or empty 'frames' list")
-    angle = float(data["camera_angle_x"])
+    angle = as_number(data["camera_angle_x"], path, "'camera_angle_x'")
     if not (0.0 < angle < math.pi):
         raise DatasetError(path, f"'camera_angle_x' must be in (0, pi), got {angle}")
     out: list[Frame] = []
@@ -68,19 +76,22 @@ def load_split(
     for i, fr in enumerate(frames):
         if not isinstance(fr, dict) or "file_path" not in fr:
             raise DatasetError(path, f"frame {i} has no 'file_path'")
+        file_path = as_string(fr["file_path"], path, f"frame {i} 'file_path'")
+        label = f"frame {i} ({Path(file_path).stem})"
         if "time" not in fr:
-            raise DatasetError(path, f"frame {i} ({fr['file_path']}) has no 'time'")
-        t = float(fr["time"])
-        if not (0.0 <= t <= 1.0) or math.isnan(t):
-            raise DatasetError(path, f"frame {i} has time {t}, expected a value in [0, 1]")
-        m = np.asarray(fr.get("transform_matrix"), dtype=np.float64)
+            raise DatasetError(path, f"{label} has no 'time'")
+        t = as_number(fr["time"], path, f"{label} 'time'")
+        if not (0.0 <= t <= 1.0):
+            raise DatasetError(path, f"{label} has time {t}, expected a value in [0, 1]")
+        if "transform_matrix" not in fr:
+            raise DatasetError(path, f"{label} has no 'transform_matrix'")
+        m = as_number_array(fr["transform_matrix"], path, f"{label} 'transform_matrix'")
         if m.shape != (4, 4):
             raise DatasetError(
-                path, f"frame {i} 'transform_matrix' must be 4x4, got shape {list(m.shape)}"
+                path, f"{label} 'transform_matrix' must be 4x4, got shape {list(m.shape)}"
             )
-        if not np.isfinite(m).all():
-            raise DatasetError(path, f"frame {i} 'transform_matrix' contains NaN or inf")
-        img = _resolve_image(root, fr["file_path"], path, i)
+        check_pose(m, path, f"{label} 'transform_matrix'")
+        img = _resolve_image(root, file_path, path, i)
         if native is None:
             native = _image_size(img)
         w, h = native
@@ -111,9 +122,18 @@ def load_blender(
     labels = None
     labels_path = root / "masks" / "labels.json"
     if labels_path.exists():
-        raw = _read_json(labels_path)
-        try:
-            labels = {int(k): str(v) for k, v in raw.items()}
-        except ValueError:
-            raise DatasetError(labels_path, "keys must be integer mask labels") from None
+        labels = read_labels(labels_path)
     return Scene(root.name, train, test, labels)
+
+
+def read_labels(path: Path) -> dict[int, str]:
+    """`labels.json`: an object of integer mask label (as a string key) -> name string."""
+    raw = _read_json(path)
+    labels: dict[int, str] = {}
+    for k, v in raw.items():
+        try:
+            label = int(k)
+        except ValueError:
+            raise DatasetError(path, f"key {k!r} is not an integer mask label") from None
+        labels[label] = as_string(v, path, f"the name of label {k}")
+    return labels

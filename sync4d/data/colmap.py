@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.data.blender import _read_json
-from sync4d.data.scene import Camera, DatasetError, Frame, Scene
+from sync4d.data.blender import _read_json, read_labels
+from sync4d.data.scene import Camera, DatasetError, Frame, Scene, as_number, check_pose
 
 #: COLMAP camera models read as pinholes; the radial / OpenCV ones only with zero distortion.
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
@@ -80,13 +80,34 @@ def _intrinsics(sparse: Path, cam) -> tuple[float, float, float, float]:
     return out
 
 
-def _viewmat(image) -> np.ndarray:
-    """[4, 4] world-to-camera of a pycolmap image (COLMAP poses are OpenCV cam_from_world)."""
+def _viewmat(sparse: Path, image) -> np.ndarray:
+    """[4, 4] world-to-camera of a pycolmap image (COLMAP poses are OpenCV cam_from_world).
+    The rotation is built from the normalised quaternion: pycolmap does not normalise what it
+    reads, and turns an all-zero quaternion into the identity without complaint."""
     pose = image.cam_from_world
     if callable(pose):  # a method in pycolmap >= 3.12 / 4, a property before
         pose = pose()
+    what = f"image '{image.name}' pose"
+    q = np.asarray(pose.rotation.quat, dtype=np.float64)  # x, y, z, w
+    t = np.asarray(pose.translation, dtype=np.float64)
+    if not (np.isfinite(q).all() and np.isfinite(t).all()):
+        raise DatasetError(sparse, f"{what} is not finite")
+    norm = float(np.linalg.norm(q))
+    if norm < 1e-6:
+        raise DatasetError(
+            sparse,
+            f"{what} has a zero rotation quaternion (|q| = {norm:.3g}); "
+            "poses must be unit quaternions plus translations",
+        )
+    x, y, z, w = q / norm
     m = np.eye(4)
-    m[:3, :] = np.asarray(pose.matrix(), dtype=np.float64)
+    m[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    m[:3, 3] = t
+    check_pose(m, sparse, what)
     return m
 
 
@@ -101,13 +122,7 @@ def _read_times(root: Path, names: list[str]) -> list[float]:
     for name in names:
         if name not in data:
             raise DatasetError(path, f"no time for image '{name}'")
-        try:
-            t = float(data[name])
-        except (TypeError, ValueError):
-            raise DatasetError(path, f"time of '{name}' is not a number: {data[name]!r}") from None
-        if not math.isfinite(t):
-            raise DatasetError(path, f"time of '{name}' is not finite ({t})")
-        raw.append(t)
+        raw.append(as_number(data[name], path, f"the time of '{name}'"))
     lo, hi = min(raw), max(raw)
     if lo >= 0.0 and hi <= 1.0:
         return raw
@@ -131,14 +146,6 @@ def _read_test_names(root: Path, names: list[str]) -> set[str]:
             )
         out.add(name)
     return out
-
-
-def _read_labels(path: Path) -> dict[int, str]:
-    raw = _read_json(path)
-    try:
-        return {int(k): str(v) for k, v in raw.items()}
-    except ValueError:
-        raise DatasetError(path, "keys must be integer mask labels") from None
 
 
 def load_colmap(root: str | Path, resolution_scale: float = 1.0) -> Scene:
@@ -171,9 +178,9 @@ def load_colmap(root: str | Path, resolution_scale: float = 1.0) -> Scene:
         col = rec.cameras[im.camera_id]
         fx, fy, cx, cy = _intrinsics(sparse, col)
         w, h = int(col.width), int(col.height)
-        viewmat = _viewmat(im)
-        if not np.isfinite(viewmat).all():
-            raise DatasetError(sparse, f"image '{im.name}' has a non-finite pose")
+        if w <= 0 or h <= 0:
+            raise DatasetError(sparse, f"camera {col.camera_id} has image size {w}x{h}")
+        viewmat = _viewmat(sparse, im)
         cam = Camera(viewmat, fx, fy, cx, cy, w, h)
         if resolution_scale != 1.0:
             cam = cam.scaled(resolution_scale)
@@ -187,7 +194,7 @@ def load_colmap(root: str | Path, resolution_scale: float = 1.0) -> Scene:
     if not train:
         raise DatasetError(root, "the split leaves no training frames")
     labels_path = mask_dir / "labels.json"
-    labels = _read_labels(labels_path) if labels_path.exists() else None
+    labels = read_labels(labels_path) if labels_path.exists() else None
     points = colors = None
     if rec.num_points3D() > 0:
         pts = [rec.points3D[i] for i in sorted(rec.point3D_ids())]

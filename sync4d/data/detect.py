@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sync4d.data.scene import DatasetError, Scene
+from sync4d.data.scene import DatasetError, Scene, check_scene
 
 
 def load_scene(root: str | Path, resolution_scale: float = 1.0, test_split: str = "test") -> Scene:
@@ -12,8 +12,14 @@ def load_scene(root: str | Path, resolution_scale: float = 1.0, test_split: str 
     validation frames as the test split): D-NeRF / Blender
     (`transforms_train.json`), Dynamic-3DGS Panoptic (`train_meta.json`), HyperNeRF
     (`dataset.json` + `metadata.json`), nerfstudio with per-frame time (`transforms.json`) or
-    COLMAP (`sparse/` + `images/`, read with pycolmap)."""
-    root = Path(root)
+    COLMAP (`sparse/` + `images/`, read with pycolmap). Every image and mask header is then
+    checked (`check_scene`), so a bad file fails here, before any training."""
+    scene = _load(Path(root), resolution_scale, test_split)
+    check_scene(scene)
+    return scene
+
+
+def _load(root: Path, resolution_scale: float, test_split: str) -> Scene:
     if not root.is_dir():
         raise DatasetError(root, "dataset directory does not exist")
     if (root / "transforms_train.json").exists():

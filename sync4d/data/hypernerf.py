@@ -11,36 +11,54 @@ from pathlib import Path
 import numpy as np
 
 from sync4d.data.blender import _read_json
-from sync4d.data.scene import Camera, DatasetError, Frame, Scene
+from sync4d.data.scene import (
+    Camera,
+    DatasetError,
+    Frame,
+    Scene,
+    as_number,
+    as_number_array,
+    as_string,
+    check_pose,
+)
 
 
 def _camera(path: Path) -> Camera:
     c = _read_json(path)
-    try:
-        r = np.asarray(c["orientation"], dtype=np.float64)
-        pos = np.asarray(c["position"], dtype=np.float64)
-        f = float(c["focal_length"])
-        aspect = float(c.get("pixel_aspect_ratio", 1.0))
-        cx, cy = (float(v) for v in c["principal_point"])
-        w, h = (int(v) for v in c["image_size"])
-    except KeyError as e:
-        raise DatasetError(path, f"missing camera field {e}") from None
-    except (TypeError, ValueError) as e:
-        raise DatasetError(path, f"malformed camera field ({e})") from None
+    for key in ("orientation", "position", "focal_length", "principal_point", "image_size"):
+        if key not in c:
+            raise DatasetError(path, f"missing camera field '{key}'")
+    r = as_number_array(c["orientation"], path, "'orientation'")
+    pos = as_number_array(c["position"], path, "'position'")
+    pp = as_number_array(c["principal_point"], path, "'principal_point'")
+    size = as_number_array(c["image_size"], path, "'image_size'")
     if r.shape != (3, 3) or pos.shape != (3,):
         raise DatasetError(
             path,
             f"'orientation' must be 3x3 and 'position' 3 values, got "
             f"{list(r.shape)} and {list(pos.shape)}",
         )
-    if not (
-        np.isfinite(r).all() and np.isfinite(pos).all() and np.isfinite([f, aspect, cx, cy]).all()
-    ):
+    if pp.shape != (2,) or size.shape != (2,):
+        raise DatasetError(
+            path,
+            f"'principal_point' and 'image_size' must be 2 values each, got "
+            f"{list(pp.shape)} and {list(size.shape)}",
+        )
+    if not (np.isfinite(pos).all() and np.isfinite(pp).all()):
         raise DatasetError(path, "camera contains NaN or inf")
+    check_pose(r, path, "'orientation'")
+    f = as_number(c["focal_length"], path, "'focal_length'", positive=True)
+    aspect = as_number(
+        c.get("pixel_aspect_ratio", 1.0), path, "'pixel_aspect_ratio'", positive=True
+    )
+    w, h = (
+        int(as_number(v, path, f"'image_size'[{j}]", integer=True, positive=True))
+        for j, v in enumerate(c["image_size"])
+    )
     vm = np.eye(4)
     vm[:3, :3] = r
     vm[:3, 3] = -r @ pos
-    return Camera(vm, f, f * aspect, cx, cy, w, h)
+    return Camera(vm, f, f * aspect, float(pp[0]), float(pp[1]), w, h)
 
 
 def load_hypernerf(root: str | Path, resolution_scale: float = 1.0) -> Scene:
@@ -56,6 +74,8 @@ def load_hypernerf(root: str | Path, resolution_scale: float = 1.0) -> Scene:
     for key in ("train_ids", "val_ids"):
         if not isinstance(ds.get(key), list):
             raise DatasetError(ds_path, f"missing '{key}' list")
+        for j, i in enumerate(ds[key]):
+            as_string(i, ds_path, f"'{key}'[{j}]")
     factor = round(1.0 / resolution_scale)
     folder = root / "rgb" / f"{factor}x"
     stored_scale = 1.0 / factor
@@ -66,7 +86,10 @@ def load_hypernerf(root: str | Path, resolution_scale: float = 1.0) -> Scene:
         entry = meta.get(i)
         if not isinstance(entry, dict) or ("time_id" not in entry and "warp_id" not in entry):
             raise DatasetError(meta_path, f"id {i!r} has no 'time_id' (or 'warp_id')")
-        times[i] = float(entry.get("time_id", entry.get("warp_id")))
+        key = "time_id" if "time_id" in entry else "warp_id"
+        times[i] = as_number(entry[key], meta_path, f"id {i!r} '{key}'")
+        if times[i] < 0:
+            raise DatasetError(meta_path, f"id {i!r} '{key}' must be >= 0, got {times[i]:g}")
     t_max = max(times.values()) or 1.0
 
     def frames(ids: list[str]) -> list[Frame]:

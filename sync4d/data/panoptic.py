@@ -10,7 +10,16 @@ from pathlib import Path
 import numpy as np
 
 from sync4d.data.blender import _read_json
-from sync4d.data.scene import Camera, DatasetError, Frame, Scene
+from sync4d.data.scene import (
+    Camera,
+    DatasetError,
+    Frame,
+    Scene,
+    as_number,
+    as_number_array,
+    as_string,
+    check_pose,
+)
 
 
 def _load_meta(root: Path, name: str, resolution_scale: float) -> list[Frame]:
@@ -19,16 +28,16 @@ def _load_meta(root: Path, name: str, resolution_scale: float) -> list[Frame]:
     for key in ("w", "h", "k", "w2c", "fn"):
         if key not in meta:
             raise DatasetError(path, f"missing '{key}'")
-    w, h = int(meta["w"]), int(meta["h"])
+    w = int(as_number(meta["w"], path, "'w'", integer=True, positive=True))
+    h = int(as_number(meta["h"], path, "'h'", integer=True, positive=True))
     fns = meta["fn"]
+    if not isinstance(fns, list) or not all(isinstance(row, list) for row in fns):
+        raise DatasetError(path, "'fn' must be a [T][cams] list of image paths")
     t_count = len(fns)
     if t_count == 0:
         raise DatasetError(path, "'fn' lists no timesteps")
-    try:
-        ks = np.asarray(meta["k"], dtype=np.float64)
-        w2cs = np.asarray(meta["w2c"], dtype=np.float64)
-    except ValueError:
-        raise DatasetError(path, "'k' and 'w2c' must be rectangular [T][cams] arrays") from None
+    ks = as_number_array(meta["k"], path, "'k'")
+    w2cs = as_number_array(meta["w2c"], path, "'w2c'")
     cams = len(fns[0])
     if ks.shape != (t_count, cams, 3, 3):
         raise DatasetError(
@@ -46,10 +55,18 @@ def _load_meta(root: Path, name: str, resolution_scale: float) -> list[Frame]:
             raise DatasetError(path, f"timestep {t} lists {len(row)} cameras, expected {cams}")
         time = t / max(1, t_count - 1)
         for c, fn in enumerate(row):
+            fn = as_string(fn, path, f"'fn'[{t}][{c}]")
             img = root / "ims" / fn
             if not img.exists():
                 raise DatasetError(img, f"image file is missing (timestep {t} of {name})")
+            check_pose(w2cs[t, c], path, f"timestep {t} camera {c} ({fn}) 'w2c'")
             k = ks[t, c]
+            if k[0, 0] <= 0 or k[1, 1] <= 0:
+                raise DatasetError(
+                    path,
+                    f"timestep {t} camera {c} ({fn}) 'k' has focal lengths {k[0, 0]:g}, "
+                    f"{k[1, 1]:g}; they must be positive",
+                )
             cam = Camera(w2cs[t, c], k[0, 0], k[1, 1], k[0, 2], k[1, 2], w, h)
             if resolution_scale != 1.0:
                 cam = cam.scaled(resolution_scale)

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.data.scene import DatasetError, cache_dir
+from sync4d.data.scene import DatasetError, as_number, as_number_array, cache_dir, check_pose
 
 __all__ = [
     "SyntheticConfig",
@@ -417,16 +417,20 @@ def load_ground_truth(root: str | Path) -> SyntheticGroundTruth:
     except ValueError as e:
         raise DatasetError(path, f"invalid JSON ({e})") from None
     try:
-        times = np.asarray(gt["times"], dtype=np.float64)
+        times = as_number_array(gt["times"], path, "'times'")
         objs = gt["objects"]
-        rot = np.asarray([o["rotations"] for o in objs], dtype=np.float64)
-        tr = np.asarray([o["translations"] for o in objs], dtype=np.float64)
-        states = [(int(s["object"]), str(s["state"]), float(s["t0"]), float(s["t1"]))
-                  for s in gt["states"]]  # fmt: skip
-        bounds = np.asarray(gt["scene_bounds"], dtype=np.float64)
+        rot = as_number_array([o["rotations"] for o in objs], path, "objects' 'rotations'")
+        tr = as_number_array([o["translations"] for o in objs], path, "objects' 'translations'")
+        states = [(int(s["object"]), str(s["state"]),
+                   as_number(s["t0"], path, f"state {j} 't0'"),
+                   as_number(s["t1"], path, f"state {j} 't1'"))
+                  for j, s in enumerate(gt["states"])]  # fmt: skip
+        bounds = as_number_array(gt["scene_bounds"], path, "'scene_bounds'")
         ids = [int(o["id"]) for o in objs]
         names = [str(o["name"]) for o in objs]
         static = [bool(o["static"]) for o in objs]
+    except DatasetError:
+        raise
     except (KeyError, TypeError, ValueError) as e:
         raise DatasetError(path, f"malformed ground truth ({type(e).__name__}: {e})") from None
     k, t = len(objs), len(times)
@@ -438,6 +442,9 @@ def load_ground_truth(root: str | Path) -> SyntheticGroundTruth:
         )
     if not (np.isfinite(rot).all() and np.isfinite(tr).all() and np.isfinite(times).all()):
         raise DatasetError(path, "ground truth contains NaN or inf")
+    for i, obj in zip(ids, rot, strict=True):
+        for j, r in enumerate(obj):
+            check_pose(r, path, f"object {i} rotation at time index {j}")
     return SyntheticGroundTruth(times, ids, names, static, rot, tr, states, bounds)
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.data.scene import DatasetError, Frame, Scene, cache_dir
+from sync4d.data.scene import DatasetError, Frame, Scene, cache_dir, image_depth
 
 #: Bumped whenever the triangulation recipe changes, so old cache entries are not reused.
 _VERSION = 1
@@ -104,7 +104,14 @@ def _run_pycolmap(
         name = f"view{i:04d}.png"
         try:
             with Image.open(f.image_path) as im:
-                im.convert("RGB").save(images / name)
+                if image_depth(im, f.image_path) == 16:  # convert("RGB") would clip at 255
+                    im.load()
+                    gray = np.asarray(im).astype(np.float64) / 257.0
+                    Image.fromarray(gray.round().astype(np.uint8)).convert("RGB").save(
+                        images / name
+                    )
+                else:
+                    im.convert("RGB").save(images / name)
         except OSError as e:
             raise DatasetError(f.image_path, f"cannot read image ({e})") from None
         names.append(name)
