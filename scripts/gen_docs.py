@@ -23,6 +23,7 @@ os.environ["COLUMNS"] = "100"  # argparse wraps help to the terminal: fix it
 
 from sync4d.cli import build_parser  # noqa: E402
 from sync4d.config import ALIASES, RunConfig, load_config  # noqa: E402
+from sync4d.settings import allowed  # noqa: E402
 
 CONFIG_FILES = ("synthetic", "dnerf", "panoptic", "phase1")
 
@@ -78,8 +79,16 @@ def _field_comments(cls) -> dict[str, str]:
     return out
 
 
+def _allowed(f: dataclasses.Field) -> str:
+    """The values field `f` accepts, in a few words ("in 0..3", "> 0", "true, false")."""
+    rule = allowed(f)
+    if rule is not None:
+        return rule.describe()
+    return "true, false" if isinstance(f.default, bool) else ""
+
+
 def _rows(obj, prefix: str, files: dict[str, object]):
-    """(key, default, {file: value}, meaning) for every leaf field of `obj`."""
+    """(key, default, allowed values, {file: value}, meaning) for every leaf field of `obj`."""
     comments = _field_comments(type(obj))
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
@@ -88,7 +97,7 @@ def _rows(obj, prefix: str, files: dict[str, object]):
         if dataclasses.is_dataclass(value):
             yield from _rows(value, key + ".", sub)
         else:
-            yield key, value, sub, comments.get(f.name, "")
+            yield key, value, _allowed(f), sub, comments.get(f.name, "")
 
 
 def _fmt(v) -> str:
@@ -104,7 +113,7 @@ def _fmt(v) -> str:
 def configs_markdown() -> str:
     """docs/configs.md: every config key with its default, the shipped files' values, meaning."""
     files = {n: load_config(n) for n in CONFIG_FILES}
-    head = ["key", "default", *(f"{n}.toml" for n in CONFIG_FILES), "meaning"]
+    head = ["key", "default", "allowed", *(f"{n}.toml" for n in CONFIG_FILES), "meaning"]
     out = [
         "# Config keys",
         "",
@@ -112,15 +121,17 @@ def configs_markdown() -> str:
         "(`sync4d/config.py`, `sync4d/phase1/`, `sync4d/phase2/`) and the shipped files "
         "(`sync4d/configs/`); a test fails when it is out of date. Defaults are the paper's "
         "values (Appendix A) where the paper gives one; a file's column is empty where it "
-        "keeps the default. Set a key in a TOML file "
+        "keeps the default. Every number must be finite and in its `allowed` range (a string "
+        "one of its values), from a file as from the command line; a value outside it stops "
+        "the run before it starts, naming the key. Set a key in a TOML file "
         "(`[phase1.densify]` then `stop = 10000`) or on the command line "
         "(`--set phase1.densify.stop=10000`).",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "|".join("---" for _ in head) + "|",
     ]
-    for key, default, values, meaning in _rows(RunConfig(), "", files):
-        cells = [f"`{key}`", _fmt(default)]
+    for key, default, rule, values, meaning in _rows(RunConfig(), "", files):
+        cells = [f"`{key}`", _fmt(default), rule.replace("|", "\\|")]
         cells += ["" if v == default else _fmt(v) for v in values.values()]
         cells.append(meaning.replace("|", "\\|"))
         out.append("| " + " | ".join(cells) + " |")

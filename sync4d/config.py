@@ -11,6 +11,7 @@ from typing import Any
 
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.trainer import Phase2Config
+from sync4d.settings import allowed, choice, ranged
 
 __all__ = [
     "ConfigError",
@@ -23,6 +24,7 @@ __all__ = [
     "parse_phases",
     "repo_configs",
     "phase2_budget",
+    "validate",
     "with_budget",
 ]
 
@@ -46,6 +48,26 @@ class ConfigError(ValueError):
     """A bad config file or override; the message names the key and what to do."""
 
 
+def parse_phases(text: str) -> tuple[int, ...]:
+    """The phases of a `phases` value ("1", "2", "1,2") as a sorted tuple."""
+    try:
+        phases = tuple(sorted({int(p) for p in str(text).split(",") if p.strip()}))
+    except ValueError:
+        phases = ()
+    if not phases or not set(phases) <= {1, 2}:
+        raise ConfigError(f"phases: expected 1, 2 or 1,2, got {text!r}")
+    return phases
+
+
+def _phases_problem(text: str) -> str | None:
+    """What is wrong with a `phases` value (`parse_phases`'s complaint), None if nothing."""
+    try:
+        parse_phases(text)
+    except ConfigError:
+        return f"expected 1, 2 or 1,2, got {text!r}"
+    return None
+
+
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Everything a run (Phase 1, then Phase 2) needs besides the data: one section per phase
@@ -54,17 +76,18 @@ class RunConfig:
     phase1: Phase1Config = dataclasses.field(default_factory=Phase1Config)
     phase2: Phase2Config = dataclasses.field(default_factory=Phase2Config)
     #: Which phases `fit` runs: "1", "2" (from the run's Phase 1 checkpoint) or "1,2".
-    phases: str = "1,2"
+    phases: str = choice("1,2", check=_phases_problem, text='"1", "2" or "1,2"')
     #: Image downsampling factor of the dataset (0.5: half width and height).
-    resolution_scale: float = 1.0
+    resolution_scale: float = ranged(1.0, 0.0, 1.0, lo_open=True)
     #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames.
-    test_split: str = "test"
+    test_split: str = choice("test", ("test", "val"))
     #: Test-split PSNR/SSIM every this many iterations during `fit` (0: only at the end).
-    eval_every: int = 1_000
+    eval_every: int = ranged(1_000, 0)
     #: Test frames used by the periodic evaluation (0: all); the final evaluation uses all.
-    eval_frames: int = 0
-    #: Atomic checkpoint every this many iterations (and always at the end and on Ctrl-C).
-    checkpoint_every: int = 1_000
+    eval_frames: int = ranged(0, 0)
+    #: Atomic checkpoint every this many iterations (0: none in between); always one at the
+    #: end and on Ctrl-C.
+    checkpoint_every: int = ranged(1_000, 0)
 
     def __getattr__(self, name: str) -> Any:
         """Read-only spellings of the keys that moved into the phase sections (`ALIASES`):
@@ -88,17 +111,6 @@ ALIASES = {
     "init_box_fraction": "phase1.init_box_fraction",
     "phase2_iterations": "phase2.iterations",
 }
-
-
-def parse_phases(text: str) -> tuple[int, ...]:
-    """The phases of a `phases` value ("1", "2", "1,2") as a sorted tuple."""
-    try:
-        phases = tuple(sorted({int(p) for p in str(text).split(",") if p.strip()}))
-    except ValueError:
-        phases = ()
-    if not phases or not set(phases) <= {1, 2}:
-        raise ConfigError(f"phases: expected 1, 2 or 1,2, got {text!r}")
-    return phases
 
 
 def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
@@ -188,36 +200,111 @@ def _replace(obj: Any, path: list[str], value: Any, full: str) -> Any:
         for k, v in value.items():
             current = _replace(current, [k], v, f"{full}.{k}")
         return dataclasses.replace(obj, **{name: current})
-    return dataclasses.replace(obj, **{name: _coerce(value, current, full)})
+    new = _coerce(value, current, full)
+    _check(fields[name], new, full)
+    return dataclasses.replace(obj, **{name: new})
+
+
+def _number(value: Any, like: int | float) -> int | float:
+    """`value` (a TOML number or a command-line string) as a number of `like`'s type; a bool
+    is not a number, and an int takes whole numbers only ("3e4" and 3.0e4 are 30000)."""
+    if isinstance(value, bool):
+        raise TypeError(value)
+    if isinstance(like, float):
+        return float(value)
+    if isinstance(value, int):
+        return value
+    if isinstance(value, str):
+        try:
+            return int(value)
+        except ValueError:
+            pass
+    number = float(value)
+    if not number.is_integer():
+        raise ValueError(value)
+    return int(number)
+
+
+def _flag(value: Any) -> bool | None:
+    """`value` as a TOML bool or a command-line "true"/"false"; None when it is neither."""
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.strip().lower() in ("true", "false"):
+        return value.strip().lower() == "true"
+    return None
 
 
 def _coerce(value: Any, like: Any, full: str) -> Any:
+    """`value` (a TOML value or a command-line string) as the type of the field's default
+    `like`; ConfigError (naming `full`) when it is not one. A flag takes true or false only
+    (not 1), and a number is never a flag (not true)."""
+    if isinstance(like, bool):
+        if _flag(value) is None:
+            raise ConfigError(f"{full}: expected true or false, got {value!r}")
+        return _flag(value)
+    if isinstance(like, str):
+        if isinstance(value, int) and not isinstance(value, bool):
+            return str(value)  # phases = 2
+        if not isinstance(value, str):
+            raise ConfigError(f"{full}: cannot use {value!r} as a str")
+        return value
+    parts = [value]
+    if isinstance(like, tuple):
+        parts = value.split(",") if isinstance(value, str) else value
+        parts = parts if isinstance(parts, list) else [parts]
+    flags = [_flag(p) for p in parts if _flag(p) is not None]
+    if flags:
+        kind = {int: "an integer", float: "a number"}.get(type(like), "numbers")
+        raise ConfigError(f"{full}: expected {kind}, got the bool {str(flags[0]).lower()}")
     try:
-        if isinstance(like, bool):
-            if isinstance(value, str):
-                if value.lower() not in ("true", "false"):
-                    raise ValueError(value)
-                return value.lower() == "true"
-            return bool(value)
-        if isinstance(like, int):
-            return int(value)
-        if isinstance(like, float):
-            return float(value)
         if isinstance(like, tuple):
-            parts = value.split(",") if isinstance(value, str) else list(value)
-            return tuple(type(like[0])(p) for p in parts)
-    except (TypeError, ValueError):
+            return tuple(_number(p.strip() if isinstance(p, str) else p, like[0]) for p in parts)
+        if isinstance(like, int | float):
+            return _number(value, like)
+    except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"{full}: cannot use {value!r} as a {type(like).__name__}") from None
     return value
 
 
+def _check(field: dataclasses.Field, value: Any, key: str) -> None:
+    """Raise ConfigError when `value` is outside what `field` declares (`sync4d.settings`)."""
+    rule = allowed(field)
+    if rule is None:
+        return
+    problem = rule.problem(value)
+    if problem is not None:
+        raise ConfigError(f"{key}: {problem}")
+
+
+def validate(cfg: RunConfig, source: str | None = None) -> None:
+    """Raise ConfigError naming the key, the value and the allowed values when a value of `cfg`
+    (any section) is outside its field's declared range or choices (`sync4d.settings`), or a
+    flag is not a bool; `source` (a file name, "--set") leads the message."""
+    prefix = f"{source}: " if source else ""
+
+    def walk(obj: Any, path: str) -> None:
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            key = f"{path}{f.name}"
+            if dataclasses.is_dataclass(value):
+                walk(value, f"{key}.")
+            elif isinstance(f.default, bool) and not isinstance(value, bool):
+                raise ConfigError(f"{prefix}{key}: must be true or false, got {value!r}")
+            else:
+                _check(f, value, f"{prefix}{key}")
+
+    walk(cfg, "")
+
+
 def apply_overrides(cfg: RunConfig, overrides: list[str]) -> RunConfig:
-    """`cfg` with `section.key=value` overrides applied in order."""
+    """`cfg` with `section.key=value` overrides applied in order, each checked against its
+    field's range (`validate`), as `load_config` checks a file's values."""
     for item in overrides:
         if "=" not in item:
-            raise ConfigError(f"{item}: overrides look like section.key=value")
+            raise ConfigError(f"--set {item}: overrides look like section.key=value")
         key, value = item.split("=", 1)
-        cfg = _replace(cfg, key.strip().split("."), value.strip(), key.strip())
+        cfg = _replace(cfg, key.strip().split("."), value.strip(), f"--set {key.strip()}")
+    validate(cfg)
     return cfg
 
 
@@ -227,20 +314,39 @@ def config_from_dict(data: dict, source: str) -> RunConfig:
     cfg = RunConfig()
     for k, v in data.items():
         cfg = _replace(cfg, [k], v, f"{source}: {k}")
+    validate(cfg, source)
     return cfg
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    """The table of the TOML file at `path`; ConfigError for a missing, unreadable, non-text or
+    malformed file, or a folder."""
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder, expected a .toml file")
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file is missing") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read the config file ({e.strerror or e})") from None
+    try:
+        if b"\0" in raw:
+            raise UnicodeError("NUL byte")
+        text = raw.decode("utf-8")
+    except UnicodeError:
+        raise ConfigError(f"{path}: is not a text TOML file (binary or not UTF-8)") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML ({e})") from None
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
     """Defaults, then the TOML file at `path` (if any; a shipped config's name such as "dnerf"
-    works too, `config_path`), then `section.key=value` overrides."""
+    works too, `config_path`), then `section.key=value` overrides; every value is checked
+    against its field's range or choices (`validate`), the file's as the overrides'."""
     cfg = RunConfig()
     if path is not None:
         path = config_path(path)
-        try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: config file is missing") from None
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"{path}: invalid TOML ({e})") from None
-        cfg = config_from_dict(data, str(path))
+        cfg = config_from_dict(_read_toml(path), str(path))
     return apply_overrides(cfg, overrides or [])

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from sync4d.geometry import axis_angle_to_quat, quat_multiply
+from sync4d.settings import ranged
 
 __all__ = [
     "DeformConfig",
@@ -31,19 +32,19 @@ class DeformConfig:
     """Hyperparameters of D_theta (Appendix A defaults)."""
 
     #: Dimension of each Gaussian's learned embedding z_i.
-    embed_dim: int = 32
+    embed_dim: int = ranged(32, 1)
     #: Frequencies L of the time encoding gamma(t) = [t, sin(2^k pi t), cos(2^k pi t)], k < L.
-    bands: int = 6
+    bands: int = ranged(6, 0, 20)
     #: Width of D_theta's hidden layers.
-    hidden: int = 128
+    hidden: int = ranged(128, 1)
     #: Hidden layers of D_theta (ReLU after each).
-    layers: int = 4
+    layers: int = ranged(4, 1)
     #: Output scale of the position offset dx (world units).
-    scale_position: float = 0.10
+    scale_position: float = ranged(0.10, 0.0)
     #: Output scale of the rotation vector dw (radians).
-    scale_rotation: float = 0.10
+    scale_rotation: float = ranged(0.10, 0.0)
     #: Output scale of the log-scale offset dl.
-    scale_log_scale: float = 0.05
+    scale_log_scale: float = ranged(0.05, 0.0)
 
     @property
     def input_dim(self) -> int:

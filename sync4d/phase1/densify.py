@@ -15,6 +15,7 @@ from torch import Tensor
 
 from sync4d.geometry import quat_to_matrix
 from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
+from sync4d.settings import ranged
 
 __all__ = ["DensifyConfig", "Densifier", "PER_GAUSSIAN"]
 
@@ -23,33 +24,33 @@ class DensifyConfig:
     """3DGS densification settings (paper Appendix A values where given)."""
 
     #: Mean screen-space gradient norm of a Gaussian's centre above which it is cloned or split.
-    grad_threshold: float = 2e-4
+    grad_threshold: float = ranged(2e-4, 0.0, lo_open=True)
     #: First iteration of densification.
-    start: int = 500
+    start: int = ranged(500, 0)
     #: Last iteration of densification.
-    stop: int = 15_000
+    stop: int = ranged(15_000, 0)
     #: Iterations between densification steps.
-    interval: int = 100
+    interval: int = ranged(100, 1)
     #: Iterations between opacity resets (every opacity set to at most 0.01).
-    opacity_reset_interval: int = 3_000
+    opacity_reset_interval: int = ranged(3_000, 1)
     #: Gaussians with opacity below this are pruned at each densification step.
-    prune_opacity: float = 0.005
+    prune_opacity: float = ranged(0.005, 0.0, 1.0)
     #: Gaussians larger than this fraction of the scene extent are split, smaller ones cloned.
-    percent_dense: float = 0.01
+    percent_dense: float = ranged(0.01, 0.0)
     #: Gaussians a split Gaussian becomes.
-    split_count: int = 2
+    split_count: int = ranged(2, 2)
     #: Densification stops adding Gaussians at this count.
-    max_gaussians: int = 1_000_000
+    max_gaussians: int = ranged(1_000_000, 1)
     #: After the first opacity reset, also prune Gaussians whose largest world-space scale
     #: exceeds this fraction of the scene extent (3DGS / gsplat use 0.1; 0 disables, the
     #: default here: on the embedded scene and bouncingballs it cost 0.6-1 dB in our short
     #: CPU schedules). Wide captures need it: metre-sized blobs otherwise fill empty space as
     #: fog and cover novel views (the panoptic config sets 0.1).
-    prune_world_scale: float = 0.0
+    prune_world_scale: float = ranged(0.0, 0.0)
     #: ...and, when > 0, those whose projected radius exceeded this fraction of the image's
     #: larger side in some view since the last densification (gsplat's optional 0.15; off by
     #: default as in gsplat and, effectively, 3DGS).
-    prune_screen_fraction: float = 0.0
+    prune_screen_fraction: float = ranged(0.0, 0.0)
 
 
 def _replace_rows(optimizer: torch.optim.Optimizer, model: DeformableGaussians, fn) -> None:

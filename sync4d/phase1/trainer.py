@@ -21,6 +21,7 @@ from sync4d.phase1.densify import Densifier, DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.init import scene_extent
 from sync4d.phase1.losses import photometric_loss
+from sync4d.settings import choice, ranged
 
 __all__ = ["Phase1Config", "Phase1Trainer"]
 
@@ -32,59 +33,59 @@ class Phase1Config:
     embeddings, Appendix A), schedules and loss weights."""
 
     #: Training iterations (Appendix A: 30k).
-    iterations: int = 30_000
+    iterations: int = ranged(30_000, 1)
     #: Spherical-harmonics degree of the Gaussians' colours (0-3).
-    sh_degree: int = 3
+    sh_degree: int = ranged(3, 0, 3)
     deform: DeformConfig = field(default_factory=DeformConfig)
     #: Near clipping plane of every render (training, evaluation, `render`), world units;
     #: Gaussians whose centre is closer to the camera are not drawn. Capture domes need more
     #: than the default: each camera's own housing, reconstructed from the cameras facing it,
     #: sits a few centimetres in front of its lens and would cover its whole view.
-    near: float = 0.01
+    near: float = ranged(0.01, 0.0, lo_open=True, what="distance")
     #: Where the initial Gaussians come from: "points" (the dataset's point cloud, e.g.
     #: COLMAP's), "triangulate" (SIFT matches of the training cameras at one instant,
     #: triangulated with the dataset's poses; multi-view captures), "random" (`init_points`
     #: uniform in a cube), or "auto": points if the dataset has them, else triangulate when
     #: several cameras see one instant, else random.
-    init_from: str = "auto"
+    init_from: str = choice("auto", ("auto", "points", "triangulate", "random"))
     #: Random initial Gaussians when the dataset has no point cloud (3DGS uses 100k on a GPU).
-    init_points: int = 20_000
+    init_points: int = ranged(20_000, 1)
     #: Half-size of the random-init cube as a fraction of the mean camera distance.
-    init_box_fraction: float = 0.33
+    init_box_fraction: float = ranged(0.33, 0.0, lo_open=True)
     #: Adam rate of the canonical means, times the scene extent (3DGS).
-    lr_means: float = 1.6e-4
+    lr_means: float = ranged(1.6e-4, 0.0, lo_open=True)
     #: The means' rate at the end of training (log-linear decay, times the extent).
-    lr_means_final: float = 1.6e-6
+    lr_means_final: float = ranged(1.6e-6, 0.0, lo_open=True)
     #: Adam rate of the canonical rotations.
-    lr_quats: float = 1e-3
+    lr_quats: float = ranged(1e-3, 0.0, lo_open=True)
     #: Adam rate of the log-scales.
-    lr_scales: float = 5e-3
+    lr_scales: float = ranged(5e-3, 0.0, lo_open=True)
     #: Adam rate of the opacity logits.
-    lr_opacity: float = 5e-2
+    lr_opacity: float = ranged(5e-2, 0.0, lo_open=True)
     #: Adam rate of the SH DC colours (the higher bands get 1/20 of it).
-    lr_sh: float = 2.5e-3
+    lr_sh: float = ranged(2.5e-3, 0.0, lo_open=True)
     #: Adam rate of D_theta (Appendix A).
-    lr_deform: float = 5e-4
+    lr_deform: float = ranged(5e-4, 0.0, lo_open=True)
     #: Adam rate of the per-Gaussian embeddings (Appendix A).
-    lr_embed: float = 5e-4
+    lr_embed: float = ranged(5e-4, 0.0, lo_open=True)
     #: D_theta's rate at the end of training: it decays log-linearly (the position-lr rule).
-    lr_deform_final: float = 5e-6
+    lr_deform_final: float = ranged(5e-6, 0.0, lo_open=True)
     #: The embeddings' rate at the end of training (log-linear decay).
-    lr_embed_final: float = 5e-6
+    lr_embed_final: float = ranged(5e-6, 0.0, lo_open=True)
     #: Iterations between steps of the SH degree (one band more each time).
-    sh_degree_interval: int = 1_000
+    sh_degree_interval: int = ranged(1_000, 1)
     #: Iterations at the start that train the canonical Gaussians alone, D_theta off (the
     #: static warm-up of Deformable-3DGS): the static scene settles first, so its gradients do
     #: not drown D_theta's time signal. 0 disables it.
-    static_warmup: int = 0
+    static_warmup: int = ranged(0, 0)
     #: Weight of the L1 term of the photometric loss.
-    lambda_l1: float = 0.8
+    lambda_l1: float = ranged(0.8, 0.0)
     #: Weight of the D-SSIM term of the photometric loss.
-    lambda_dssim: float = 0.2
+    lambda_dssim: float = ranged(0.2, 0.0)
     #: RGB in [0, 1] composited behind the Gaussians and into RGBA training images.
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    background: tuple[float, float, float] = ranged((1.0, 1.0, 1.0), 0.0, 1.0, length=3)
     #: Seed of the initial Gaussians, D_theta's weights, the frame order and densification.
-    seed: int = 42
+    seed: int = ranged(42, 0, 2**32 - 1)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
 
 

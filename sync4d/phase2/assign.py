@@ -21,6 +21,7 @@ import torch
 
 from sync4d.data.scene import Frame, Scene
 from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.settings import choice, ranged
 
 __all__ = [
     "ASSIGN_SOURCES",
@@ -46,13 +47,13 @@ class AssignConfig:
 
     #: "masks" (mask voting), "trajectories" (unsupervised clustering of Phase 1 motion), or
     #: "auto": masks when every training frame has one, else trajectories.
-    source: str = "auto"
+    source: str = choice("auto", ASSIGN_SOURCES)
     #: Mask voting: a Gaussian needs at least this many object votes to join an object.
-    min_votes: int = 3
+    min_votes: int = ranged(3, 0)
     #: Mask voting: and its majority label's share of its votes at least this.
-    min_consistency: float = 0.6
+    min_consistency: float = ranged(0.6, 0.0, 1.0)
     #: Objects assigned fewer Gaussians than this merge into background.
-    min_gaussians: int = 10
+    min_gaussians: int = ranged(10, 0)
     #: Count background (label 0) hits in the consistency denominator, so the majority over
     #: all K + 1 labels decides. Appendix C's formula counts object labels only (False); that
     #: hands static Gaussians occluded by an object in a few views (e.g. the ground behind it)
@@ -60,13 +61,13 @@ class AssignConfig:
     background_votes: bool = True
     #: Unsupervised assignment: Gaussians whose displacement never exceeds this fraction of the
     #: scene extent are background; K is searched in [1, max_clusters].
-    static_fraction: float = 0.01
+    static_fraction: float = ranged(0.01, 0.0)
     #: Unsupervised assignment: most objects (clusters) K searched.
-    max_clusters: int = 8
+    max_clusters: int = ranged(8, 1)
     #: Unsupervised assignment: times sampled in [0, 1] for the displacement curves.
-    trajectory_samples: int = 16
+    trajectory_samples: int = ranged(16, 2)
     #: Seed of the k-means initialisation.
-    seed: int = 42
+    seed: int = ranged(42, 0, 2**32 - 1)
 
 
 @dataclass

@@ -37,6 +37,7 @@ from sync4d.geometry import (
     rotvec_to_matrix,
 )
 from sync4d.phase1.deform import time_encoding
+from sync4d.settings import choice, ranged
 
 __all__ = [
     "MOTION_KINDS",
@@ -56,13 +57,13 @@ class MotionConfig:
 
     #: M_phi's parameterisation: "se3" (per-frame table of rotations and translations), "affine"
     #: (per-frame affine table) or "mlp".
-    kind: str = "se3"
+    kind: str = choice("se3", MOTION_KINDS)
     #: "identity" (the paper: near-identity start, sigma `init_std`) or "fit": start the tables
     #: at the closed-form minimiser of the residual energy given Phase 1's D_theta (weighted
     #: Kabsch per object and frame for SE(3), least squares for affine). A per-frame table
     #: entry is only updated when its frame is drawn, so from the identity it needs many
     #: thousands of iterations to reach large rotations; "fit" suits short CPU schedules.
-    init: str = "identity"
+    init: str = choice("identity", ("identity", "fit"))
     #: Photometric refinement of the fitted SE(3) table (init "fit" only; 0 skips it): at every
     #: stored frame, in time order and starting from the previous frame's result, this many Adam
     #: steps (4x at the first frame) on each moving object's rotation and translation, rendering
@@ -70,57 +71,59 @@ class MotionConfig:
     #: closed-form fit follows D_theta's point correspondences, and D_theta may morph a turning
     #: shape instead of rotating its Gaussians (measured on the embedded scene: 9 of the box's 45
     #: degrees); the images pin the rotation down. Not in the paper.
-    refine_steps: int = 0
+    refine_steps: int = ranged(0, 0)
     #: Adam learning rate of the refinement (radians and metres per step) at each frame's first
     #: step; it is cosine-annealed to `refine_lr_final` over the frame's steps.
-    refine_lr: float = 0.01
+    refine_lr: float = ranged(0.01, 0.0, lo_open=True)
     #: Learning rate at each frame's last refinement step (at most `refine_lr`). Equal to
     #: `refine_lr` is a constant rate, as before 2026-12-01: Adam's steps then stay ~0.01 rad
     #: (0.6 degrees) to the end and the result is wherever the last one-view steps left it
     #: (box 2.04 against 1.28 degrees annealed, docs/results/phase2-robustness.md).
-    refine_lr_final: float = 0.0005
+    refine_lr_final: float = ranged(0.0005, 0.0, lo_open=True)
     #: Training views rendered per refinement step (their losses summed); 0: all of the frame's
     #: views. 1 draws one view per step in turn.
-    refine_views: int = 1
+    refine_views: int = ranged(1, 0)
     #: Rounds of texture fit and re-tracking after the first tracking pass: the template's
     #: base colours (a copy of the moving Gaussians' SH DC) are fitted to every training view
     #: with the poses fixed, then every frame is tracked again from its pose. D_theta's colours
     #: are averaged over a morph, so the rigidly turned template is blurred where the object
     #: turned most and pulls those poses toward the blur (embedded scene, phase1.seed 42: ball
     #: 2.00 -> 0.85 degrees with one round, docs/results/phase2-robustness.md). Not in the paper.
-    refine_texture_rounds: int = 0
+    refine_texture_rounds: int = ranged(0, 0)
     #: Adam learning rate of the texture fit (SH DC units per step).
-    refine_colour_lr: float = 0.005
+    refine_colour_lr: float = ranged(0.005, 0.0, lo_open=True)
     #: Passes over every training view in each texture fit (one view per step).
-    refine_colour_epochs: int = 2
+    refine_colour_epochs: int = ranged(2, 0)
     #: Adam steps per frame when re-tracking after a texture fit; 0: `refine_steps`.
-    refine_retrack_steps: int = 0
+    refine_retrack_steps: int = ranged(0, 0)
     #: Adam learning rate at the first re-tracking step of each frame (annealed to
     #: `refine_lr_final` like the first pass); 0: `refine_lr`.
-    refine_retrack_lr: float = 0.0
+    refine_retrack_lr: float = ranged(0.0, 0.0)
     #: Restart a frame whose tracked pose scores a mean loss over its views more than this
     #: fraction above the previous frame's (0: never): each moving object is tracked again from
     #: the previous frame's rotation turned by each of `refine_restart_angles` about the axis of
     #: its last frame-to-frame turn, and the lowest-loss pose is kept. Not in the paper; off by
     #: default until the study has measured it (a flip into a neighbouring minimum of the
     #: ball's texture, docs/results/phase2-robustness.md section 5).
-    refine_restart_jump: float = 0.0
+    refine_restart_jump: float = ranged(0.0, 0.0)
     #: Degrees about that axis the restarts start from.
-    refine_restart_angles: tuple[float, ...] = (-30.0, -15.0, 15.0, 30.0, 45.0)
+    refine_restart_angles: tuple[float, ...] = ranged(
+        (-30.0, -15.0, 15.0, 30.0, 45.0), -180.0, 180.0
+    )
     #: For ``mlp``: whether it outputs an affine transform (12) instead of SE(3) (6).
     mlp_affine: bool = False
     #: Standard deviation of the identity start's random perturbation (Appendix A: 1e-4).
-    init_std: float = 1e-4
+    init_std: float = ranged(1e-4, 0.0)
     #: Adam rate of M_phi at the start of Phase 2 (cosine-annealed to `lr_final`).
-    lr: float = 1e-3
+    lr: float = ranged(1e-3, 0.0, lo_open=True)
     #: M_phi's Adam rate at the end of Phase 2.
-    lr_final: float = 1e-5
+    lr_final: float = ranged(1e-5, 0.0)
     #: kind "mlp": dimension of each object's learned embedding.
-    mlp_embed_dim: int = 16
+    mlp_embed_dim: int = ranged(16, 1)
     #: kind "mlp": width of its two hidden layers.
-    mlp_hidden: int = 64
+    mlp_hidden: int = ranged(64, 1)
     #: kind "mlp": frequencies of its time encoding.
-    mlp_bands: int = 6
+    mlp_bands: int = ranged(6, 0, 20)
 
 
 class ObjectMotion(nn.Module, ABC):

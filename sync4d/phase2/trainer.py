@@ -37,6 +37,7 @@ from sync4d.phase2.assign import AssignConfig, Assignment, assign_objects, displ
 from sync4d.phase2.diagnostics import diagnostics, motion_export, rigid_share
 from sync4d.phase2.motion import MotionConfig, ObjectMotion, cosine_lr, make_motion
 from sync4d.phase2.refine import refine_motion
+from sync4d.settings import ranged
 
 __all__ = ["Phase2Config", "Phase2Trainer", "frame_times"]
 
@@ -45,43 +46,44 @@ __all__ = ["Phase2Config", "Phase2Trainer", "frame_times"]
 class Phase2Config:
     """Phase 2 hyperparameters (Appendix A; the paper's values as defaults) and ablations."""
 
-    #: Phase 2 iterations after Phase 1 (Appendix A: 20k).
-    iterations: int = 20_000
+    #: Phase 2 iterations after Phase 1 (Appendix A: 20k; 0: only M_phi's start, its
+    #: closed-form fit and refinement).
+    iterations: int = ranged(20_000, 0)
     motion: MotionConfig = field(default_factory=MotionConfig)
     assign: AssignConfig = field(default_factory=AssignConfig)
     #: Weight of the modulated residual energy (Eq. 8).
-    lambda_res: float = 0.02
+    lambda_res: float = ranged(0.02, 0.0)
     #: Weight of the rigid-share hinge (Eq. 9).
-    lambda_share: float = 0.01
+    lambda_share: float = ranged(0.01, 0.0)
     #: Target rigid share of the hinge: mean rho below tau is penalised (Eq. 9).
-    tau: float = 0.35
+    tau: float = ranged(0.35, 0.0, 1.0)
     #: Weight of the velocity coherence term (Eq. 10).
-    lambda_vel: float = 0.01
+    lambda_vel: float = ranged(0.01, 0.0)
     #: Weight of M_phi's temporal smoothness (Eq. 11).
-    lambda_smooth: float = 0.01
+    lambda_smooth: float = ranged(0.01, 0.0)
     #: Weight of the identity prior on static objects (Eq. 12).
-    lambda_id: float = 0.001
+    lambda_id: float = ranged(0.001, 0.0)
     #: EMA factor of the per-Gaussian residual magnitude (Appendix A's modulation).
-    eta: float = 0.95
+    eta: float = ranged(0.95, 0.0, 1.0)
     #: Epsilon in the rigid share's denominator (metres).
-    share_eps: float = 1e-6
+    share_eps: float = ranged(1e-6, 0.0, lo_open=True)
     #: Iteration from which M_phi trains and the smoothness, rigid-share and identity terms act.
-    motion_start: int = 200
+    motion_start: int = ranged(200, 0)
     #: Iteration from which the velocity coherence term acts.
-    velocity_start: int = 300
+    velocity_start: int = ranged(300, 0)
     #: Start of the linear warm-up of the auxiliary terms' gradient into the scene.
-    warmup_start: int = 500
+    warmup_start: int = ranged(500, 0)
     #: End of that warm-up (full weight from here).
-    warmup_end: int = 1000
+    warmup_end: int = ranged(1000, 0)
     #: Iteration from which the modulated residual energy acts.
-    residual_start: int = 600
+    residual_start: int = ranged(600, 0)
     #: Keep densifying (clone/split/prune, opacity reset) on Phase 1's schedule, counted from
     #: Phase 2's first iteration; every change re-runs the assignment. Off by default: Phase 1's
     #: densification window is over when Phase 2 starts.
     densify: bool = False
     #: An object whose Gaussians' mean Phase 1 displacement stays below this fraction of the
     #: scene extent is static (it gets the identity prior); background always is.
-    static_fraction: float = 0.005
+    static_fraction: float = ranged(0.005, 0.0)
     # Ablation switches.
     #: Ablation: false trains Phase 2 without M_phi and its terms.
     use_motion: bool = True
