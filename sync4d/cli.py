@@ -52,16 +52,22 @@ def build_parser() -> argparse.ArgumentParser:
         "synthetic; default: the paper's values, synthetic for the embedded scene)",
     )  # fmt: skip
     fit.add_argument("--iters", type=positive_int, default=None, metavar="N",
-                     help="training iterations; the config's densification, opacity-reset and "
-                     "SH schedules are scaled to the new length")
+                     help="bound each phase to N iterations: Phase 1 trains N, with the config's "
+                     "densification, opacity-reset and SH schedules scaled to the new length; "
+                     "Phase 2 trains at most N, its start and warm-up iterations and the "
+                     "photometric refinement's steps per frame scaled alike. With --resume: "
+                     "continue the checkpoint's phase to N iterations")  # fmt: skip
     fit.add_argument("--resolution-scale", type=positive_float, default=None, metavar="S",
                      help="downsample images by S, e.g. 0.5")  # fmt: skip
     fit.add_argument("--phases", default=None, metavar="P",
                      help="1, 2 or 1,2 (default from the config: 1,2): Phase 1 reconstruction, "
                      "Phase 2 motion decomposition; 2 alone restarts Phase 2 from RUN's Phase 1 "
                      "checkpoint")  # fmt: skip
-    fit.add_argument("--resume", action="store_true", help="continue RUN's checkpoint")
-    fit.add_argument("--force", action="store_true", help="start over in an existing RUN")
+    fit.add_argument("--resume", action="store_true",
+                     help="continue RUN's checkpoint with the data and settings RUN recorded "
+                     "(DATA and settings that contradict them are refused)")
+    fit.add_argument("--force", action="store_true",
+                     help="start over in an existing RUN (deletes its results)")
     fit.set_defaults(handler="sync4d.commands.fit")
 
     ev = commands.add_parser(
