@@ -158,7 +158,8 @@ def test_signals_during_a_save_wait_for_it(
     assert len(calls) == 3 and _meta(run)["iteration"] == 4 and _no_temporaries(run)
 
 
-def test_a_hang_up_in_a_real_process_saves(data: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGUSR1])
+def test_a_hang_up_in_a_real_process_saves(data: Path, tmp_path: Path, sig: int) -> None:
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "sync4d", "fit", str(data), "--out", str(run), "--iters",
            "1000000", *TINY, "--set", "checkpoint_every=0"]  # fmt: skip
@@ -168,7 +169,7 @@ def test_a_hang_up_in_a_real_process_saves(data: Path, tmp_path: Path) -> None:
         for line in proc.stderr:
             if line.startswith("fit 100/"):
                 break
-        proc.send_signal(signal.SIGHUP)
+        proc.send_signal(sig)
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()

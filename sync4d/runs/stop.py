@@ -1,5 +1,8 @@
-"""How a run stops: Ctrl-C (SIGINT), SIGTERM and a hang-up (SIGHUP) all end training the same
-way, with a checkpoint of the last completed iteration.
+"""How a run stops: Ctrl-C (SIGINT), SIGTERM, a hang-up (SIGHUP) and every other catchable
+signal whose default would end the process (SIGQUIT, SIGUSR1, SIGUSR2, SIGXCPU: a batch
+scheduler's CPU limit) end training the same way, with a checkpoint of the last completed
+iteration. Timer signals (SIGALRM, SIGPROF, SIGVTALRM) are left to the libraries that use them;
+Python itself ignores SIGPIPE and SIGXFSZ (a write then fails as an error instead).
 
 While `StopSignals` is installed, a signal in a training loop only sets `requested`: the loop
 finishes its iteration (a half-applied optimiser or densification step is never saved) and
@@ -20,7 +23,15 @@ from types import FrameType
 __all__ = ["STOP_SIGNALS", "StopSignals"]
 
 #: The signals that end a run like Ctrl-C.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+STOP_SIGNALS = (
+    signal.SIGINT,
+    signal.SIGTERM,
+    signal.SIGHUP,
+    signal.SIGQUIT,
+    signal.SIGUSR1,
+    signal.SIGUSR2,
+    signal.SIGXCPU,
+)
 
 
 class StopSignals:
