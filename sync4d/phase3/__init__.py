@@ -1,0 +1,7 @@
+"""Phase 3 (Sec. 3.5, Appendices A, B, F): the synchronized object-time language field.
+
+On a frozen Phase 2 run (read through `sync4d.runs.load_run`, never by building a trainer):
+object crops and occlusion-aware visibility, image-text embeddings behind one encoder
+interface, 28-D kinematic features, a per-object closed-form ridge map, blending and temporal
+smoothing, and queries that answer which object and when. Evaluation follows Appendix F.
+"""
