@@ -6,6 +6,8 @@ Commands (every option: docs/cli.md):
   render RUN     render a run at chosen times (--time, --sweep) to PNGs and a GIF
   bench raster   time the rasterizer (forward/backward), optionally against the gsplat reference
   bench fit      Phase 1 test PSNR against training time over several budgets
+  encoder export write a SigLIP-ONNX encoder directory from a Hugging Face model (internet once)
+  encoder info   describe an encoder directory and check its files
 
 The command implementations are imported lazily, so ``--help`` stays fast and a missing optional
 module only affects the command that needs it.
@@ -128,6 +130,33 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_bench_fit_options(bfit)
     bfit.set_defaults(handler="sync4d.bench.fit")
+
+    enc = commands.add_parser("encoder", help="export or inspect a SigLIP-ONNX encoder (Phase 3)")
+    actions = enc.add_subparsers(dest="action", metavar="ACTION")
+    actions.required = True
+    exp = actions.add_parser(
+        "export",
+        help="write a SigLIP-ONNX encoder directory from a Hugging Face model",
+        description="Download a SigLIP model (needs internet once and the export extra: "
+        "pip install 'sync4d[export]') and write DIR: vision.onnx, text.onnx, tokenizer.json "
+        "and the manifest encoder.json. Phase 3 then runs it with onnxruntime, offline "
+        "(--encoder DIR or $SYNC4D_ENCODER).",
+    )
+    exp.add_argument("--model", default="google/siglip-base-patch16-224", metavar="NAME",
+                     help="Hugging Face model id or a local save_pretrained folder "
+                     "(default google/siglip-base-patch16-224)")  # fmt: skip
+    exp.add_argument("--out", required=True, metavar="DIR", help="encoder directory to write")
+    exp.add_argument("--force", action="store_true",
+                     help="replace the encoder already in DIR")  # fmt: skip
+    exp.set_defaults(handler="sync4d.commands.encoder")
+    info = actions.add_parser(
+        "info",
+        help="describe an encoder directory and check its files",
+        description="Print an encoder directory's kind, embedding size, preprocessing and "
+        "files, after checking every file's sha256 and loading both graphs.",
+    )
+    info.add_argument("dir", metavar="DIR", help="encoder directory written by 'encoder export'")
+    info.set_defaults(handler="sync4d.commands.encoder")
     return parser
 
 

@@ -1,0 +1,78 @@
+"""``python -m sync4d encoder export|info``: write a SigLIP-ONNX encoder directory from a Hugging
+Face model (once, with internet and the ``export`` extra), and describe and check one.
+
+The directory is what ``--encoder DIR`` (or ``$SYNC4D_ENCODER``) names in Phase 3; its layout is
+documented in `sync4d.phase3.siglip`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from sync4d.phase3.encoder import EncoderError
+from sync4d.runs.files import WriteFailed
+
+__all__ = ["main"]
+
+
+def _size(path: Path) -> str:
+    n = path.stat().st_size
+    return f"{n / 2**20:.1f} MiB" if n >= 2**20 else f"{n / 2**10:.1f} KiB"
+
+
+def _export(args: argparse.Namespace) -> int:
+    from sync4d.phase3.siglip import FILES, MANIFEST, export_pretrained
+
+    out = Path(args.out)
+    if (out / MANIFEST).exists() and not args.force:
+        print(f"encoder export: {out} already holds an encoder ({MANIFEST}); --force replaces "
+              "it", file=sys.stderr)  # fmt: skip
+        return 2
+    t0 = time.perf_counter()
+    manifest = export_pretrained(args.model, out)
+    print(f"encoder export: {args.model} -> {out} in {time.perf_counter() - t0:.0f} s "
+          f"(dim {manifest['dim']}, image {manifest['image_size']} px, "
+          f"text {manifest['max_length']} tokens)")  # fmt: skip
+    for f in (*FILES, MANIFEST):
+        print(f"  {f:<15} {_size(out / f)}")
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    from sync4d.phase3.siglip import FILES, MANIFEST, SiglipOnnxEncoder
+
+    enc = SiglipOnnxEncoder(args.dir, threads=1)  # checks every digest and both graphs
+    m = enc.manifest
+    folder = Path(args.dir)
+    rows = [
+        ("kind", enc.kind),
+        ("model", m.get("model") or "?"),
+        ("dim", str(enc.dim)),
+        ("image", f"{enc.image_size} x {enc.image_size} px, {m['resize']['resample']}, "
+                  f"mean {m['mean']}, std {m['std']}"),
+        ("text", f"{enc.max_length} tokens, pad id {enc.pad_id}"),
+        ("fingerprint", enc.fingerprint),
+    ]  # fmt: skip
+    for k, v in rows:
+        print(f"{k:<12} {v}")
+    print("files        (sha256 checked)")
+    for f in (*FILES, MANIFEST):
+        digest = m["files"].get(f, "")[:16]
+        print(f"  {f:<15} {_size(folder / f):>10}  {digest}")
+    return 0
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run `encoder export` or `encoder info` with parsed `args`; the exit status."""
+    name = f"encoder {args.action}"
+    try:
+        return _export(args) if args.action == "export" else _info(args)
+    except (EncoderError, WriteFailed) as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        done = "; the folder has no encoder.json, so it is not used" * (args.action == "export")
+        print(f"{name}: interrupted{done}", file=sys.stderr)
+        return 130
