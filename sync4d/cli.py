@@ -62,9 +62,14 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--resolution-scale", type=positive_float, default=None, metavar="S",
                      help="downsample images by S, e.g. 0.5")  # fmt: skip
     fit.add_argument("--phases", default=None, metavar="P",
-                     help="1, 2 or 1,2 (default from the config: 1,2): Phase 1 reconstruction, "
-                     "Phase 2 motion decomposition; 2 alone restarts Phase 2 from RUN's Phase 1 "
-                     "checkpoint")  # fmt: skip
+                     help="1, 2, 3 or a contiguous list such as 1,2 or 1,2,3 (default from the "
+                     "config: 1,2): Phase 1 reconstruction, Phase 2 motion decomposition, Phase "
+                     "3 language field; 2 alone restarts Phase 2 from RUN's Phase 1 checkpoint, "
+                     "3 alone builds the field of RUN's Phase 2 checkpoint")  # fmt: skip
+    fit.add_argument("--encoder", default=None, metavar="DIR",
+                     help="Phase 3's image-text encoder: a SigLIP-ONNX folder (python -m sync4d "
+                     "encoder export) or offline (the closed-vocabulary default; "
+                     "$SYNC4D_ENCODER when not given)")  # fmt: skip
     fit.add_argument("--resume", action="store_true",
                      help="continue RUN's checkpoint with the data and settings RUN recorded "
                      "(DATA and settings that contradict them are refused)")
@@ -74,14 +79,26 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = commands.add_parser(
         "eval",
-        help="PSNR / SSIM / LPIPS of a run",
+        help="PSNR / SSIM / LPIPS of a run, or its temporal queries (--queries)",
         description="Evaluate a run's checkpoint on its dataset's test split "
-        "(writes RUN/eval.json).",
+        "(writes RUN/eval.json), or with --queries its Phase 3 field on annotated temporal "
+        "queries (writes RUN/phase3/eval-NAME*.csv/json).",
     )
     ev.add_argument("run", metavar="RUN", help="run folder written by 'fit'")
     ev.add_argument("--data", default=None, metavar="DATA",
                     help="dataset folder, if it moved since training")
     ev.add_argument("--split", choices=("test", "train"), default="test")
+    ev.add_argument("--queries", default=None, metavar="ANNOTATIONS",
+                    help="evaluate Phase 3's temporal queries instead (Acc, vIoU, tIoU, "
+                    "Appendix F): our query JSON or 4D LangSplat's annotations folder")
+    ev.add_argument("--scorer", nargs="+", default=None, metavar="S",
+                    choices=("full", "paper", "static", "motion", "names"),
+                    help="with --queries: the scorers to report (default: all)")
+    ev.add_argument("--rule", choices=("half-peak", "mean"), default=None,
+                    help="with --queries: temporal activation above half the peak (Appendix "
+                    "F, default) or at least the mean (4D LangSplat)")
+    ev.add_argument("--encoder", default=None, metavar="DIR",
+                    help="with --queries: the encoder the field was built with, if it moved")
     add_threads(ev)
     ev.set_defaults(handler="sync4d.commands.evaluate")
 
@@ -109,6 +126,31 @@ def build_parser() -> argparse.ArgumentParser:
     rd.add_argument("--no-gif", action="store_true", help="write PNGs only")
     add_threads(rd)
     rd.set_defaults(handler="sync4d.commands.render")
+
+    qy = commands.add_parser(
+        "query",
+        help="ask a run's language field which object matches a text, and when",
+        description="Rank a run's objects for each text query and give the frames where each "
+        "is active, from the Phase 3 field (fit --phases 3). Writes a timeline PNG per query.",
+    )
+    qy.add_argument("run", metavar="RUN",
+                    help="run folder with a Phase 3 field (fit --phases 3)")
+    qy.add_argument("texts", nargs="+", metavar="TEXT", help="one or more queries")
+    qy.add_argument("--scorer", choices=("full", "paper", "static", "names", "motion"),
+                    default="full",
+                    help="full (default: motion phrases + the paper's score + object names), "
+                    "paper (Eq. 15 only), static (the static-only ablation), names, motion")
+    qy.add_argument("--rule", choices=("half-peak", "mean"), default=None,
+                    help="temporal activation: above half the peak (Appendix F, default) or at "
+                    "least the mean (4D LangSplat)")  # fmt: skip
+    qy.add_argument("--encoder", default=None, metavar="DIR",
+                    help="the encoder the field was built with, if it moved (a SigLIP-ONNX "
+                    "folder, or offline)")  # fmt: skip
+    qy.add_argument("--json", action="store_true", help="print the answers as JSON")
+    qy.add_argument("--plot", default=None, metavar="DIR",
+                    help="folder for the timeline PNGs (default RUN/phase3)")
+    qy.add_argument("--no-plot", action="store_true", help="write no timeline PNG")
+    qy.set_defaults(handler="sync4d.commands.query")
 
     bench = commands.add_parser("bench", help="run a benchmark")
     targets = bench.add_subparsers(dest="target", metavar="TARGET")

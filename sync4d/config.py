@@ -15,6 +15,7 @@ from sync4d.settings import allowed, choice, ranged
 
 __all__ = [
     "ConfigError",
+    "Phase3Config",
     "ALIASES",
     "config_path",
     "RunConfig",
@@ -48,14 +49,18 @@ class ConfigError(ValueError):
     """A bad config file or override; the message names the key and what to do."""
 
 
+_PHASES_TEXT = '"1", "2", "3", "1,2", "2,3" or "1,2,3"'
+
+
 def parse_phases(text: str) -> tuple[int, ...]:
-    """The phases of a `phases` value ("1", "2", "1,2") as a sorted tuple."""
+    """The phases of a `phases` value ("1", "2", "3", "1,2", "2,3", "1,2,3") as a sorted tuple
+    (contiguous: Phase 3 reads Phase 2's result, Phase 2 Phase 1's)."""
     try:
         phases = tuple(sorted({int(p) for p in str(text).split(",") if p.strip()}))
     except ValueError:
         phases = ()
-    if not phases or not set(phases) <= {1, 2}:
-        raise ConfigError(f"phases: expected 1, 2 or 1,2, got {text!r}")
+    if not phases or not set(phases) <= {1, 2, 3} or phases[-1] - phases[0] + 1 != len(phases):
+        raise ConfigError(f"phases: expected {_PHASES_TEXT}, got {text!r}")
     return phases
 
 
@@ -64,8 +69,82 @@ def _phases_problem(text: str) -> str | None:
     try:
         parse_phases(text)
     except ConfigError:
-        return f"expected 1, 2 or 1,2, got {text!r}"
+        return f"expected {_PHASES_TEXT}, got {text!r}"
     return None
+
+
+def _encoder_problem(text: str) -> str | None:
+    """What is wrong with a `phase3.encoder` value, None if nothing."""
+    if text in ("", "offline"):
+        return None
+    if Path(text).is_file():
+        return f"expected a model folder (vision.onnx, text.onnx, ...), got the file {text!r}"
+    return None
+
+
+def _name_problem(text: str) -> str | None:
+    """A name must not be empty."""
+    return None if text.strip() else "expected a non-empty object name"
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase3Config:
+    """The language field (Sec. 3.5, Appendices A, B, F): the paper's values as defaults.
+
+    It lives here rather than in `sync4d.phase3` because Phase 3 reads runs (`sync4d.runs`),
+    which sit above this module; `sync4d.phase3` reads its settings from this class."""
+
+    #: Encoder: "offline" (closed-vocabulary default), a SigLIP-ONNX model directory, or ""
+    #: for $SYNC4D_ENCODER (else offline).
+    encoder: str = choice("", check=_encoder_problem,
+                          text='"", "offline" or a SigLIP-ONNX model folder')
+    #: Crop box: lower percentile of the projected Gaussian centres (App. A: 2nd) ...
+    crop_low: float = ranged(2.0, 0.0, 50.0)
+    #: ... upper percentile (98th) ...
+    crop_high: float = ranged(98.0, 50.0, 100.0)
+    #: ... and the margin added on each side, as a fraction of the box's size (12 %).
+    crop_margin: float = ranged(0.12, 0.0, 1.0)
+    #: An object is observed in a frame when at least this fraction of its Gaussians is visible
+    #: (beyond the paper, which leaves the threshold open; docs/phase3.md) ...
+    min_visible: float = ranged(0.05, 0.0, 1.0)
+    #: ... and its crop box is at least this many pixels on each side.
+    min_box: int = ranged(4, 1)
+    #: Ridge regularisation lambda (Eq. 13).
+    ridge_lambda: float = ranged(0.01, 0.0, lo_open=True)
+    #: Blend weight beta between prediction and observation where observed ...
+    beta: float = ranged(0.65, 0.0, 1.0)
+    #: ... and which side takes it (docs/phase3.md).
+    beta_on: str = choice("prediction", ("prediction", "observation"))
+    #: Temporal EMA gamma: the weight of the neighbouring smoothed frame (zero phase).
+    ema_gamma: float = ranged(0.15, 0.0, 1.0, hi_open=True)
+    #: Query score weight w_s of the static similarity (Eq. 15) ...
+    w_static: float = ranged(0.35, 0.0)
+    #: ... and w_t of the peak temporal similarity.
+    w_temporal: float = ranged(0.65, 0.0)
+    #: Temporal activation: "half-peak" (Appendix F: above 0.5 of the peak) or "mean" (4D
+    #: LangSplat's: at least the query's mean).
+    activation: str = choice("half-peak", ("half-peak", "mean"))
+    #: Static-only ablation: e_sync = e_static at every frame (Table 5's "static only").
+    static_only: bool = False
+    #: Name of the hand object for Appendix B dims 26-27 (zero when no object has this name).
+    hand_object: str = choice("hand", check=_name_problem, text="an object name")
+    #: World up for the motion phrases: "auto" (mean of the training cameras' up vectors) or
+    #: an axis "+x", "-x", "+y", "-y", "+z", "-z".
+    up: str = choice("auto", ("auto", "+x", "-x", "+y", "-y", "+z", "-z"))
+    #: Motion phrases (beyond the paper): "moving" above this fraction of the scene's
+    #: reference speed (the 95th percentile of every object's speed) ...
+    moving_speed: float = ranged(0.15, 0.0)
+    #: ... "at rest" below this fraction ...
+    rest_speed: float = ranged(0.08, 0.0)
+    #: ... "rising" / "falling" above this fraction along the up vector ...
+    vertical_speed: float = ranged(0.15, 0.0)
+    #: ... "approaching" / "moving away" above this fraction of closing speed ...
+    closing_speed: float = ranged(0.1, 0.0)
+    #: ... touching when the robust gap is below this fraction of the object's radius, ...
+    contact_gap: float = ranged(0.5, 0.0)
+    #: ... and a predicate matches a query when a phrase occurs in it or the text encoder's
+    #: similarity of a query n-gram to a phrase reaches this.
+    phrase_match: float = ranged(0.8, -1.0, 1.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,8 +154,10 @@ class RunConfig:
 
     phase1: Phase1Config = dataclasses.field(default_factory=Phase1Config)
     phase2: Phase2Config = dataclasses.field(default_factory=Phase2Config)
-    #: Which phases `fit` runs: "1", "2" (from the run's Phase 1 checkpoint) or "1,2".
-    phases: str = choice("1,2", check=_phases_problem, text='"1", "2" or "1,2"')
+    phase3: Phase3Config = dataclasses.field(default_factory=Phase3Config)
+    #: Which phases `fit` runs: "1", "2" (from the run's Phase 1 checkpoint), "3" (the language
+    #: field of the run's Phase 2 checkpoint) or a contiguous list such as "1,2".
+    phases: str = choice("1,2", check=_phases_problem, text=_PHASES_TEXT)
     #: Image downsampling factor of the dataset (0.5: half width and height).
     resolution_scale: float = ranged(1.0, 0.0, 1.0, lo_open=True)
     #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames.

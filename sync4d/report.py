@@ -67,3 +67,38 @@ def plot_object_trajectories(
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def plot_query_timeline(answer: dict, path: Path) -> Path:
+    """One row per object of a query answer (`sync4d.phase3.query.answer`): its per-frame
+    score curve against time with the active frames shaded, objects in ranked order. Writes a
+    PNG to `path` and returns it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    times = np.asarray(answer["times"])
+    objects = answer["objects"]
+    n = max(1, len(objects))
+    fig, axes = plt.subplots(n, 1, figsize=(8, 1.1 + 1.0 * n), dpi=110, sharex=True,
+                             squeeze=False)  # fmt: skip
+    for ax, obj in zip(axes[:, 0], objects, strict=False):
+        name = obj["name"]
+        colour = next((w for w in name.split() if matplotlib.colors.is_color_like(w)), None)
+        curve = np.asarray(answer["timeline"][name])
+        active = np.asarray(answer["active"][name], dtype=bool)
+        ax.plot(times, curve, lw=1.5, color=colour or "C0")
+        lo, hi = float(np.min(curve)), float(np.max(curve))
+        ax.fill_between(times, lo, hi, where=active, step="mid", alpha=0.25,
+                        color=colour or "C0", linewidth=0)  # fmt: skip
+        ax.set_ylabel(f"{name}\n{obj['score']:.3f}", rotation=0, ha="right", va="center",
+                      fontsize=8)  # fmt: skip
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("time")
+    fig.suptitle(f"\"{answer['query']}\" ({answer['scorer']} scorer; shaded: active)",
+                 fontsize=10)  # fmt: skip
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -35,7 +35,8 @@ BAD: list[tuple[str, str, str, str | tuple[str, str]]] = [
         "1",
         ("expected true or false, got 1", "expected true or false, got '1'"),
     ),
-    ("phases", '"3"', "3", "expected 1, 2 or 1,2, got '3'"),
+    ("phases", '"1,3"', "1,3",
+     'expected "1", "2", "3", "1,2", "2,3" or "1,2,3", got \'1,3\''),
     ("test_split", '"train"', "train", "expected one of test, val, got 'train'"),
     (
         "init_from",

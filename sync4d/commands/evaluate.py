@@ -19,8 +19,42 @@ from sync4d.runs.record import dataset_differences
 __all__ = ["main"]
 
 
+def _queries(args: argparse.Namespace) -> int:
+    """`eval RUN --queries ANNOTATIONS`: Acc / vIoU / tIoU per scorer, printed as a table."""
+    from sync4d.phase3.annotations import AnnotationError
+    from sync4d.phase3.encoder import EncoderError
+    from sync4d.phase3.evaluate import EVAL_SCORERS, evaluate_queries
+    from sync4d.phase3.query import QueryError
+    from sync4d.report import align_table
+
+    try:
+        with RunLock(args.run, "eval"):
+            if args.threads:
+                torch.set_num_threads(args.threads)
+            summary = evaluate_queries(
+                args.run, args.queries, scorers=tuple(args.scorer or EVAL_SCORERS),
+                rule=args.rule, data=args.data, threads=args.threads,
+                encoder=args.encoder,
+            )  # fmt: skip
+    except (RunError, CheckpointError, DatasetError, RunBusy, WriteFailed, AnnotationError,
+            EncoderError, QueryError) as e:  # fmt: skip
+        print(f"eval: {e}", file=sys.stderr)
+        return 2
+
+    def cell(v: object) -> str:
+        return "-" if v is None else f"{v:.3f}"
+
+    rows = [[s, cell(m.get("acc")), cell(m.get("viou")), cell(m.get("tiou")),
+             cell(m.get("object_accuracy"))] for s, m in summary.items()]  # fmt: skip
+    print(align_table(["scorer", "Acc", "vIoU", "tIoU", "object"], rows))
+    print(f"rows: {Path(args.run) / 'phase3'}/eval-*.csv")
+    return 0
+
+
 def main(args: argparse.Namespace) -> int:
     """Run `eval` with parsed `args`; the exit status."""
+    if getattr(args, "queries", None):
+        return _queries(args)
     run_dir = Path(args.run)
     try:
         run = load_run(run_dir)

@@ -25,6 +25,7 @@ from sync4d.config import (
 )
 from sync4d.data import DatasetError, load_scene
 from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
+from sync4d.phase3.encoder import EncoderError
 from sync4d.progress import format_duration
 from sync4d.runs import (
     CHECKPOINT_NAME,
@@ -58,6 +59,8 @@ def _overrides(args: argparse.Namespace) -> list[str]:
         overrides.append(f"resolution_scale={args.resolution_scale}")
     if getattr(args, "phases", None) is not None:
         overrides.append(f"phases={args.phases}")
+    if getattr(args, "encoder", None) is not None:
+        overrides.append(f"phase3.encoder={args.encoder}")
     return overrides
 
 
@@ -95,8 +98,9 @@ def _continued_config(
     cfg = apply_overrides(cfg, _overrides(args))
     free = {*CADENCE_KEYS, "phase1.iterations", "phase2.iterations"}
 
-    def allowed(key: str) -> bool:
-        return key in free or (restart and (key == "phases" or key.startswith("phase2.")))
+    def allowed(key: str) -> bool:  # Phase 3 rebuilds its field: its settings are free
+        return (key in free or key.startswith("phase3.")
+                or (restart and (key == "phases" or key.startswith("phase2."))))
 
     diffs = config_differences(stored, cfg)
     bad = {k: v for k, v in diffs.items() if not allowed(k)}
@@ -156,7 +160,8 @@ def main(args: argparse.Namespace) -> int:
         fresh = _fresh_config(args)
         with RunLock(run_dir, "fit"):
             return _fit(args, run_dir, fresh)
-    except (ConfigError, DatasetError, CheckpointError, RunError, RunBusy, WriteFailed) as e:
+    except (ConfigError, DatasetError, CheckpointError, RunError, RunBusy, WriteFailed,
+            EncoderError) as e:
         print(f"fit: {e}", file=sys.stderr)
         return 2
     except FitInterrupted:
@@ -172,7 +177,10 @@ def _fit(args: argparse.Namespace, run_dir: Path, fresh: RunConfig) -> int:
     kind = checkpoint_kind(ckpt)
     if args.resume and kind is None:
         raise RunError(f"{ckpt}: no checkpoint to resume from")
-    restart = parse_phases(fresh.phases) == (2,) and not args.resume
+    phases = parse_phases(fresh.phases)
+    if phases == (3,):
+        return _phase3_only(args, run_dir, kind)
+    restart = phases[0] == 2 and not args.resume
     if kind is not None and not (args.resume or args.force or restart):
         raise RunError(
             f"{run_dir} already holds a run; pass --resume to continue it, --force to start "
@@ -226,4 +234,58 @@ def _fit(args: argparse.Namespace, run_dir: Path, fresh: RunConfig) -> int:
             f"fit: Phase 2: mean rigid share {d['rigid_share']:.3f}, shuffle ratio "
             f"{d['shuffle_ratio']:.2f}, {len(d['objects'])} labels ({d['assignment']})"
         )
+    if 3 in parse_phases(cfg.phases):
+        _build_phase3(run_dir, cfg.phase3, args.threads, data)
     return 0
+
+
+def _phase3_only(args: argparse.Namespace, run_dir: Path, kind: str | None) -> int:
+    """`fit RUN --phases 3`: the language field of RUN's Phase 2 checkpoint, with the run's
+    recorded Phase 3 settings, then --config's, then --set phase3.* and --encoder."""
+    if kind != "sync4d.phase2":
+        raise RunError(
+            f"{run_dir / CHECKPOINT_NAME}: --phases 3 needs a Phase 2 checkpoint (found "
+            f"{kind or 'none'}); run fit with --phases 2 (or 1,2) first"
+        )
+    if args.resume or args.force or args.iters is not None:
+        raise ConfigError("--phases 3 builds the language field of a finished Phase 2 run; "
+                          "--resume, --force and --iters do not apply to it")  # fmt: skip
+    others = [s for s in args.set or [] if not s.startswith("phase3.")]
+    if others or args.resolution_scale is not None:
+        raise ConfigError(
+            f"--phases 3 only builds the language field: settings other than phase3.* do not "
+            f"apply ({', '.join(others) or '--resolution-scale'}); drop them"
+        )
+    record = read_record(run_dir)
+    cfg = load_config(args.config) if args.config else recorded_config(record, run_dir)
+    cfg = apply_overrides(cfg, [s for s in _overrides(args) if not s.startswith("phases=")])
+    data = Path(args.data) if args.data else None
+    _build_phase3(run_dir, cfg.phase3, args.threads, data)
+    return 0
+
+
+def _build_phase3(run_dir: Path, cfg3, threads: int | None, data: Path | None) -> None:
+    """Build and save the language field of the Phase 2 run in `run_dir`; print a summary."""
+    import dataclasses as dc
+
+    from sync4d.phase3 import build_field, load_encoder
+    from sync4d.phase3.query import TextCache
+    from sync4d.runs import load_run
+
+    run = load_run(run_dir)
+    encoder = load_encoder(cfg3.encoder or None)
+    spec = cfg3.encoder or os.environ.get("SYNC4D_ENCODER") or "offline"
+    cfg3 = dc.replace(cfg3, encoder=str(Path(spec).resolve()) if spec != "offline" else spec)
+    print(f"fit: Phase 3 (language field) with the {encoder.kind} encoder ({encoder.dim}-d"
+          f"{', closed-vocabulary' if encoder.closed_vocabulary else ''}) ...",
+          file=sys.stderr)  # fmt: skip
+    field = build_field(run, cfg3, encoder, data=data, threads=threads)
+    out = field.save(run_dir)
+    TextCache(run_dir, field, encoder).get(field.names)
+    t = field.timings
+    print(
+        f"fit: Phase 3: {len(field.labels)} objects x {len(field.times)} frames, "
+        f"{int(t['crops'])} crops ({100 * field.observed.mean():.0f} % observed), built in "
+        f"{t['total_s']:.1f} s (observe {t['observe_s']:.1f}, encode {t['encode_s']:.1f}); "
+        f"field in {out}"
+    )

@@ -29,19 +29,18 @@ Design notes
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import math
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+
+from sync4d.runs.files import write_text_atomic
 
 if TYPE_CHECKING:
     from sync4d.phase3.annotations import Query
@@ -276,17 +275,19 @@ def evaluate_query(
     rule: Rule = "half-peak",
     object: str | int | None = None,
     pred_masks: Sequence[np.ndarray | None] | None = None,
+    active: np.ndarray | Sequence[bool] | None = None,
 ) -> QueryResult:
     """Score one query answered by the object `object` (a name or label id; None: the GT one)
     with its per-frame similarities `scores` [T] over all run frames.
 
     Only the frames in `query.evaluated` are scored, as in 4D LangSplat (frames annotated with
     the object's mask): the activation threshold, Acc, tIoU and vIoU all use them alone.
-    `pred_masks` (T entries, bool [H, W] or None) give vIoU; without them, or without GT masks,
-    `viou` is None. A chosen object that differs from the GT one (compared by label id when
-    both are ints, else by name) turns every predicted-active frame into a wrong frame: Acc
-    counts it as a mismatch, tIoU and vIoU see no overlap; the reported predicted intervals stay
-    the real activation.
+    `active` [T] (bool) replaces the thresholded scores for a scorer that decides the frames
+    itself. `pred_masks` (T entries, bool [H, W] or None) give vIoU; without them, or without
+    GT masks, `viou` is None. A chosen object that differs from the GT one (compared by label
+    id when both are ints, else by name) turns every predicted-active frame into a wrong frame:
+    Acc counts it as a mismatch, tIoU and vIoU see no overlap; the reported predicted intervals
+    stay the real activation.
     """
     s = np.asarray(scores, dtype=np.float64)
     n = query.gt_active.size
@@ -297,7 +298,13 @@ def evaluate_query(
     ev = np.flatnonzero(query.evaluated)
     if ev.size == 0:
         raise ValueError(f"query {query.text!r} has no frame to score")
-    active = activate(s[ev], rule)
+    if active is None:
+        active = activate(s[ev], rule)
+    else:  # a scorer that decides the frames itself (the motion phrases)
+        active = _bool_vector(active, "active")
+        if active.shape != (n,):
+            raise ValueError(f"active must cover the run's {n} frames, got {list(active.shape)}")
+        active = active[ev]
     gt = query.gt_active[ev]
 
     correct: bool | None = None
@@ -367,29 +374,6 @@ def _cell(v: object) -> str:
     return str(v)
 
 
-def _write_text_atomic(path: Path, text: str) -> None:
-    """Write `text` (UTF-8) to `path` via a unique temporary in its folder, fsync, rename and
-    fsync of the folder: a crash leaves the old file or the new one, never half of one."""
-    folder = path.parent
-    folder.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(name, path)
-        dfd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(name)
-        raise
-
-
 def write_rows(
     rows: Sequence[QueryResult], csv_path: str | Path, json_path: str | Path
 ) -> dict:
@@ -404,7 +388,7 @@ def write_rows(
         d = r.as_dict()
         w.writerow([_cell(d[c]) for c in CSV_COLUMNS])
     w.writerow([_cell(mean.get(c)) for c in CSV_COLUMNS])
-    _write_text_atomic(Path(csv_path), buf.getvalue())
+    write_text_atomic(Path(csv_path), buf.getvalue())
     doc = {"queries": [r.as_dict() for r in rows], "mean": mean}
-    _write_text_atomic(Path(json_path), json.dumps(doc, indent=2) + "\n")
+    write_text_atomic(Path(json_path), json.dumps(doc, indent=2) + "\n")
     return mean

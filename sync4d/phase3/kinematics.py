@@ -1,0 +1,167 @@
+"""The 28-D kinematic feature vector of Appendix B, per object and frame, from per-object tracks.
+
+Pure numpy on `Tracks` (built from a Phase 2 run by `sync4d.phase3.tracks`). Dimension order
+exactly as Appendix B:
+
+    0 speed |v|            1 |a|                 2 angular velocity     3 residual mean
+    4 rigid share rho      5 visible fraction    6-8 v (x, y, z)        9-11 a (x, y, z)
+    12 speed delta         13 rho delta          14 EMA speed           15 EMA |a|
+    16 rotation angle |w|  17 |t|                18 residual std        19 |A - I|_F (affine)
+    20 speed / s_ref       21 speed rank         22 is fastest          23 f / (T - 1)
+    24 nearest distance    25 d/dt of 24         26 distance to hand    27 d/dt of 26
+
+Decisions (docs/phase3.md): velocities and accelerations are central differences (second-order
+one-sided at the ends, `numpy.gradient` over the frame times) of M_phi's predicted object centroid
+c_k(f) = A_k(f) c0_k + b_k(f), in world units per unit of normalised time, so they are the
+shared motion Phase 2 factored out, not the residual wiggle; deltas (12, 13) are backward
+differences, 0 at the first frame; the EMAs (14, 15) are causal with a 5-frame time constant
+(weight 1 - exp(-1/5) on the new frame), started at the first value; the angular velocity (2) is
+the angle of R(f) R(f-1)^T over the frame gap (forward at frame 0), with R the rotation of
+A's polar decomposition in affine mode; s_ref is the 95th percentile of every object's speed
+over all frames; the rank (21) is the fraction of other objects slower than k (0 with one
+object); relational distances are between centroids; hand dims (26, 27) are 0 when the scene has
+no hand object or for the hand itself.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["FEATURE_NAMES", "NUM_FEATURES", "Tracks", "kinematic_features", "rotation_angle"]
+
+NUM_FEATURES = 28
+#: Short name of each of the 28 dimensions, in order.
+FEATURE_NAMES = (
+    "speed", "accel", "angular_velocity", "residual_mean", "rigid_share", "visible",
+    "vx", "vy", "vz", "ax", "ay", "az", "speed_delta", "rigid_share_delta", "speed_ema",
+    "accel_ema", "rotation_angle", "translation", "residual_std", "affine_delta",
+    "relative_speed", "speed_rank", "is_fastest", "time_fraction", "nearest_distance",
+    "nearest_closing_speed", "hand_distance", "hand_closing_speed",
+)  # fmt: skip
+#: Time constant (frames) of the smoothed speed and acceleration (dims 14, 15).
+EMA_FRAMES = 5.0
+
+
+@dataclass
+class Tracks:
+    """Per-object, per-frame motion of K objects over T frames (float64).
+
+    `times` [T] normalised frame times; `linear` [K, T, 3, 3] and `offsets` [K, T, 3]: M_phi's
+    transform x~ = A x0 + b; `canonical_centroids` [K, 3]: mean canonical position of each
+    object's Gaussians; `residual_mean`, `residual_std`, `rigid_share`, `visible` [K, T];
+    `rigid`: SE(3) (True) or affine M_phi; `hand`: index of the hand object or None.
+    """
+
+    times: np.ndarray
+    linear: np.ndarray
+    offsets: np.ndarray
+    canonical_centroids: np.ndarray
+    residual_mean: np.ndarray
+    residual_std: np.ndarray
+    rigid_share: np.ndarray
+    visible: np.ndarray
+    rigid: bool = True
+    hand: int | None = None
+
+    @property
+    def centroids(self) -> np.ndarray:
+        """M_phi's predicted centroid of each object [K, T, 3]: A c0 + b."""
+        return np.einsum("ktij,kj->kti", self.linear, self.canonical_centroids) + self.offsets
+
+
+def _rotation_part(a: np.ndarray) -> np.ndarray:
+    """The rotation of the polar decomposition of `a` [..., 3, 3] (nearest rotation)."""
+    u, _, vt = np.linalg.svd(a)
+    d = np.sign(np.linalg.det(u @ vt))
+    u = u.copy()
+    u[..., :, 2] *= d[..., None]
+    return u @ vt
+
+
+def rotation_angle(r: np.ndarray) -> np.ndarray:
+    """Angle (radians, in [0, pi]) of rotation matrices `r` [..., 3, 3]."""
+    cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def _gradient(x: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """d x / d t along axis 1 of `x` [K, T, ...] (0 with a single frame)."""
+    if x.shape[1] < 2:
+        return np.zeros_like(x)
+    return np.gradient(x, times, axis=1, edge_order=2 if x.shape[1] >= 3 else 1)
+
+
+def _backward_delta(x: np.ndarray) -> np.ndarray:
+    """x(f) - x(f-1) along axis 1, 0 at f = 0."""
+    d = np.zeros_like(x)
+    d[:, 1:] = x[:, 1:] - x[:, :-1]
+    return d
+
+
+def _ema(x: np.ndarray, frames: float = EMA_FRAMES) -> np.ndarray:
+    """Causal EMA along axis 1 with time constant `frames`, started at the first value."""
+    w = 1.0 - math.exp(-1.0 / frames)
+    out = np.empty_like(x)
+    out[:, 0] = x[:, 0]
+    for f in range(1, x.shape[1]):
+        out[:, f] = (1.0 - w) * out[:, f - 1] + w * x[:, f]
+    return out
+
+
+def kinematic_features(tr: Tracks) -> np.ndarray:
+    """The Appendix B feature vectors [K, T, 28] (float64) of the objects in `tr`."""
+    k, t = tr.residual_mean.shape
+    times = np.asarray(tr.times, dtype=np.float64)
+    c = tr.centroids
+    v = _gradient(c, times)
+    a = _gradient(v, times)
+    speed = np.linalg.norm(v, axis=-1)
+    accel = np.linalg.norm(a, axis=-1)
+    rot = tr.linear if tr.rigid else _rotation_part(tr.linear)
+    ang = np.zeros((k, t))
+    if t > 1:
+        rel = rot[:, 1:] @ np.swapaxes(rot[:, :-1], -1, -2)
+        step = rotation_angle(rel) / np.diff(times)[None, :]
+        ang[:, 1:] = step
+        ang[:, 0] = step[:, 0]
+    f = np.zeros((k, t, NUM_FEATURES))
+    f[..., 0] = speed
+    f[..., 1] = accel
+    f[..., 2] = ang
+    f[..., 3] = tr.residual_mean
+    f[..., 4] = tr.rigid_share
+    f[..., 5] = tr.visible
+    f[..., 6:9] = v
+    f[..., 9:12] = a
+    f[..., 12] = _backward_delta(speed)
+    f[..., 13] = _backward_delta(np.asarray(tr.rigid_share, dtype=np.float64))
+    f[..., 14] = _ema(speed)
+    f[..., 15] = _ema(accel)
+    f[..., 16] = rotation_angle(rot)
+    f[..., 17] = np.linalg.norm(tr.offsets, axis=-1)
+    f[..., 18] = tr.residual_std
+    if not tr.rigid:
+        f[..., 19] = np.linalg.norm(tr.linear - np.eye(3), axis=(-2, -1))
+    s_ref = float(np.percentile(speed, 95)) if speed.size else 0.0
+    f[..., 20] = speed / (s_ref + 1e-12)
+    if k > 1:
+        slower = (speed[:, None, :] > speed[None, :, :]).sum(1)  # [K, T]
+        f[..., 21] = slower / (k - 1)
+    f[..., 22] = (speed >= speed.max(0, keepdims=True)).astype(np.float64)
+    f[..., 23] = np.arange(t) / max(t - 1, 1)
+    if k > 1:
+        d = np.linalg.norm(c[:, None] - c[None, :], axis=-1)  # [K, K, T]
+        d[np.arange(k), np.arange(k)] = np.inf
+        nearest = d.min(1)
+        f[..., 24] = nearest
+        f[..., 25] = _gradient(nearest, times)
+    if tr.hand is not None:
+        dh = np.linalg.norm(c - c[tr.hand][None], axis=-1)
+        dh[tr.hand] = 0.0
+        f[..., 26] = dh
+        f[..., 27] = _gradient(dh, times)
+        f[tr.hand, :, 27] = 0.0
+    return f

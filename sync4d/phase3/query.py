@@ -1,0 +1,236 @@
+"""Answering a text query on a built field: which object, and when.
+
+Scorers (each reported on its own by `eval`):
+
+* ``paper``: Eq. 15, S(k; q) = w_s <e_static_k, q> + w_t max_f <e_sync_k,f, q>; the top object's
+  active frames by Appendix F's rule on <e_sync_k,f, q> (or 4D LangSplat's mean rule);
+* ``static``: the same with e_sync = e_static (the paper's static-only ablation);
+* ``names`` (beyond the paper): identity by the text-text similarity of the query to each
+  object's name (from the masks' labels.json), when the ranking of `paper` would need an
+  open-vocabulary image encoder; frames as `paper`;
+* ``motion`` (beyond the paper): the query's motion phrases (`motion_phrases`) decide the frames;
+  the objects are ranked first by whether the motion happens at all, then by the fraction of
+  frames it holds, then by the paper's score of the rest of the query (its identity part);
+* ``full``: `motion` whose identity part is the paper's score plus the names' (when the objects
+  are named); without a motion phrase it is `paper` plus `names`.
+
+Text embeddings are cached in ``RUN/phase3/texts.json`` under the encoder's fingerprint, so a
+repeated query loads no encoder and encodes nothing.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sync4d.config import Phase3Config
+from sync4d.phase3 import motion_phrases as mp
+from sync4d.phase3.build import FIELD_DIR, Field, load_field
+from sync4d.phase3.encoder import Encoder, EncoderError, load_encoder
+from sync4d.phase3.field import query_scores
+from sync4d.phase3.metrics import activate, intervals
+from sync4d.runs.files import write_text_atomic
+
+__all__ = ["SCORERS", "QueryError", "TextCache", "answer", "query"]
+
+SCORERS = ("full", "paper", "static", "names", "motion")
+TEXT_CACHE = "texts.json"
+
+
+class QueryError(ValueError):
+    """A query that cannot be answered (empty text, unknown scorer); the message says why."""
+
+
+class TextCache:
+    """Text embeddings of one run's field, keyed by text, stored in ``RUN/phase3/texts.json``;
+    the encoder is loaded only when a text is missing."""
+
+    def __init__(self, run_dir: str | Path, field: Field, encoder: Encoder | str | None = None):
+        self.path = Path(run_dir) / FIELD_DIR / TEXT_CACHE
+        self.field = field
+        self._encoder = encoder if isinstance(encoder, Encoder) else None
+        self._spec = None if isinstance(encoder, Encoder) else encoder
+        self.fingerprint = field.encoder.get("fingerprint", "")
+        self.texts: dict[str, list[float]] = {}
+        self.encoded = 0
+        try:
+            data = json.loads(self.path.read_text(encoding="utf-8"))
+            if data.get("fingerprint") == self.fingerprint:
+                self.texts = dict(data.get("texts", {}))
+        except (OSError, ValueError, AttributeError):
+            pass  # no cache, or an unreadable one: it is rebuilt
+
+    def encoder(self) -> Encoder:
+        """The field's encoder (loaded on first use); EncoderError when it is not the one the
+        field was built with."""
+        if self._encoder is None:
+            spec = self._spec or self.field.config.get("encoder") or None
+            self._encoder = load_encoder(spec)
+        if self._encoder.fingerprint != self.fingerprint:
+            raise EncoderError(
+                f"the field in {self.path.parent} was built with encoder "
+                f"{self.field.encoder.get('kind')} ({self.fingerprint[:12]}), not "
+                f"{self._encoder.kind} ({self._encoder.fingerprint[:12]}); give that encoder "
+                "with --encoder or rebuild the field (fit RUN --phases 3)"
+            )
+        return self._encoder
+
+    def get(self, texts: list[str]) -> np.ndarray:
+        """Unit embeddings [n, D] of `texts`, encoding only those not cached."""
+        missing = sorted({t for t in texts if t not in self.texts})
+        if missing:
+            emb = self.encoder().encode_texts(missing)
+            for t, e in zip(missing, emb, strict=True):
+                self.texts[t] = [float(x) for x in e]
+            self.encoded += len(missing)
+            self.save()
+        return np.asarray([self.texts[t] for t in texts], dtype=np.float64)
+
+    def similarity(self, a: list[str], b: list[str]) -> np.ndarray:
+        """Cosine similarities [len(a), len(b)] of two text lists."""
+        return self.get(a) @ self.get(b).T
+
+    def save(self) -> None:
+        """Write the cache atomically (beside the field)."""
+        if self.path.parent.is_dir():
+            write_text_atomic(self.path, json.dumps(
+                {"fingerprint": self.fingerprint, "texts": self.texts}) + "\n")
+
+
+@dataclass
+class _Scored:
+    score: np.ndarray  # [K] ranking score
+    active: np.ndarray  # [K, T] bool
+    sims: np.ndarray  # [K, T] the per-frame curve the timeline plots
+    identity: np.ndarray  # [K]
+    motion: np.ndarray | None = None  # [K] fraction of frames the motion holds
+
+
+def _resolve_target(m: mp.MatchedPredicate, field: Field, cache: TextCache) -> None:
+    """Set `m.target` from its target text (background words, names, embeddings)."""
+    text = m.target_text
+    if not text or m.target is not None:
+        return
+    words = text.split()
+    if any(w in mp.BACKGROUND_WORDS for w in words):
+        m.target = 0
+        return
+    low = [n.lower() for n in field.names]
+    for j, n in enumerate(low):
+        if n and n in text:
+            m.target = field.labels[j]
+            return
+    q = cache.get([text])[0]
+    named = not all(n.startswith("object ") for n in field.names)
+    sims = cache.get(field.names) @ q if named else field.static @ q
+    m.target = field.labels[int(np.argmax(sims))]
+
+
+def _identity(field: Field, text: str, cache: TextCache, cfg: Phase3Config,
+              static_only: bool) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(S [K], sims [K, T]): Eq. 15 of `text`, constant when it is empty."""
+    if not text.strip():
+        k, t = field.observed.shape
+        return np.zeros(k), np.zeros((k, t))
+    q = cache.get([text])[0]
+    return query_scores(field.static, field.temporal(static_only), q, cfg.w_static,
+                        cfg.w_temporal)  # fmt: skip
+
+
+def _names_score(field: Field, text: str, cache: TextCache) -> np.ndarray | None:
+    """Text-text similarity [K] of `text` to the object names; None when unnamed."""
+    if all(n.startswith("object ") for n in field.names) or not text.strip():
+        return None
+    return cache.get(field.names) @ cache.get([text])[0]
+
+
+def _score(field: Field, text: str, scorer: str, rule: str, cfg: Phase3Config,
+           cache: TextCache) -> tuple[_Scored, list[mp.MatchedPredicate], str]:  # fmt: skip
+    k, t = field.observed.shape
+    if scorer in ("paper", "static", "names"):
+        s, sims = _identity(field, text, cache, cfg, scorer == "static")
+        if scorer == "names":
+            ns = _names_score(field, text, cache)
+            if ns is None:
+                raise QueryError("the names scorer needs named objects (labels.json beside the "
+                                 "masks); this run's objects have no names")  # fmt: skip
+            s = ns
+        act = np.stack([activate(sims[j], rule) for j in range(k)])
+        return _Scored(s, act, sims, s), [], text
+    matched, rest = mp.match_predicates(text, cache.similarity, cfg.phrase_match)
+    s, sims = _identity(field, rest if matched else text, cache, cfg, False)
+    ident = s.copy()
+    if scorer == "full":
+        ns = _names_score(field, rest if matched else text, cache)
+        if ns is not None:
+            ident = ident + ns
+    if not matched:
+        act = np.stack([activate(sims[j], rule) for j in range(k)])
+        return _Scored(ident, act, sims, ident), [], text
+    truth = np.ones((k, t), bool)
+    for m in matched:
+        _resolve_target(m, field, cache)
+        truth &= mp.evaluate(m, field.features, field.centroids, field.gaps, field.gap_labels,
+                             field.labels, field.radius, field.up, field.right, field.times,
+                             cfg)  # fmt: skip
+    frac = truth.mean(1)
+    # Ranking: the motion happens at all (2), how often (1), then identity (< 1 in size).
+    span = float(np.ptp(ident)) if k > 1 else 0.0
+    ident_n = (ident - ident.min()) / span if span > 0 else np.zeros(k)
+    score = 2.0 * truth.any(1) + frac + 0.999 * ident_n
+    return _Scored(score, truth, truth.astype(np.float64), ident, frac), matched, rest
+
+
+def answer(
+    field: Field, text: str, *, cache: TextCache, scorer: str = "full",
+    rule: str | None = None, cfg: Phase3Config | None = None,
+) -> dict:  # fmt: skip
+    """The answer to `text` on `field` as plain data: every object ranked with its score and
+    active frame intervals (frames and times), the matched motion phrases, the timeline."""
+    text = " ".join(str(text).split())
+    if not text:
+        raise QueryError("empty query: give a text such as \"the red ball while it is falling\"")
+    if scorer not in SCORERS:
+        raise QueryError(f"unknown scorer {scorer!r}: expected one of {', '.join(SCORERS)}")
+    cfg = cfg or Phase3Config(**{k: v for k, v in field.config.items()
+                                 if k in Phase3Config.__dataclass_fields__})  # fmt: skip
+    rule = rule or cfg.activation
+    sc, matched, rest = _score(field, text, scorer, rule, cfg, cache)
+    order = np.argsort(-sc.score, kind="stable")
+    times = field.times
+    objects = []
+    for j in order:
+        iv = intervals(sc.active[j])
+        objects.append({
+            "label": field.labels[j], "name": field.names[j], "score": float(sc.score[j]),
+            "identity_score": float(sc.identity[j]),
+            "motion_fraction": None if sc.motion is None else float(sc.motion[j]),
+            "intervals": [{"start": int(a), "end": int(b), "t0": float(times[a]),
+                           "t1": float(times[b])} for a, b in iv],  # fmt: skip
+            "active_frames": int(sc.active[j].sum()),
+        })  # fmt: skip
+    return {
+        "query": text, "scorer": scorer, "rule": rule, "identity_text": rest,
+        "encoder": field.encoder.get("kind"),
+        "closed_vocabulary": bool(field.encoder.get("closed_vocabulary", False)),
+        "motion_phrases": [{"predicate": m.predicate.name, "phrase": m.phrase,
+                            "similarity": m.similarity, "target": m.target}
+                           for m in matched],  # fmt: skip
+        "objects": objects,
+        "times": [float(x) for x in times],
+        "timeline": {field.names[j]: [float(x) for x in sc.sims[j]] for j in range(len(order))},
+        "active": {field.names[j]: [bool(x) for x in sc.active[j]] for j in range(len(order))},
+    }
+
+
+def query(
+    run_dir: str | Path, text: str, *, scorer: str = "full", rule: str | None = None,
+    encoder: Encoder | str | None = None,
+) -> dict:  # fmt: skip
+    """Answer `text` on the field of the run in `run_dir` (see `answer`); `encoder` overrides
+    the one the field records (it must be the same model)."""
+    field = load_field(run_dir)
+    return answer(field, text, cache=TextCache(run_dir, field, encoder), scorer=scorer, rule=rule)
