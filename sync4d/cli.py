@@ -65,7 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="1, 2, 3 or a contiguous list such as 1,2 or 1,2,3 (default from the "
                      "config: 1,2): Phase 1 reconstruction, Phase 2 motion decomposition, Phase "
                      "3 language field; 2 alone restarts Phase 2 from RUN's Phase 1 checkpoint, "
-                     "3 alone builds the field of RUN's Phase 2 checkpoint")  # fmt: skip
+                     "3 alone builds the field of RUN's Phase 2 checkpoint (fit RUN --phases 3 "
+                     "or fit --out RUN --phases 3)")  # fmt: skip
     fit.add_argument("--encoder", default=None, metavar="DIR",
                      help="Phase 3's image-text encoder: a SigLIP-ONNX folder (python -m sync4d "
                      "encoder export) or offline (the closed-vocabulary default; "
@@ -172,6 +173,26 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_bench_fit_options(bfit)
     bfit.set_defaults(handler="sync4d.bench.fit")
+
+    bp3 = targets.add_parser(
+        "phase3",
+        help="Phase 3 build time and query latency on Phase 2 runs",
+        description="Build each run's language field in a temporary folder (the run is not "
+        "touched) and time its steps and text queries, cold and cached; writes a JSON.",
+    )
+    bp3.add_argument("runs", nargs="+", metavar="RUN", help="Phase 2 run folders")
+    bp3.add_argument("--encoder", default=None, metavar="DIR",
+                     help="SigLIP-ONNX folder or offline (default: $SYNC4D_ENCODER, else "
+                     "offline)")  # fmt: skip
+    bp3.add_argument("--queries", nargs="+", default=None, metavar="TEXT",
+                     help="the queries to time (default: five identity, state and motion "
+                     "queries)")  # fmt: skip
+    bp3.add_argument("--repeat", type=positive_int, default=3, metavar="N",
+                     help="timings per query (the median is reported; default 3)")
+    bp3.add_argument("--out", default=None, metavar="FILE.json",
+                     help="results JSON (default bench-phase3.json)")
+    add_threads(bp3)
+    bp3.set_defaults(handler="sync4d.bench.phase3")
 
     enc = commands.add_parser("encoder", help="export or inspect a SigLIP-ONNX encoder (Phase 3)")
     actions = enc.add_subparsers(dest="action", metavar="ACTION")

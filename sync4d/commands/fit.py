@@ -147,12 +147,27 @@ def _clear(run_dir: Path) -> None:
     shutil.rmtree(run_dir / "renders", ignore_errors=True)
 
 
+def _is_run(path: Path) -> bool:
+    """Whether `path` is a run folder (it holds a run record or a checkpoint)."""
+    return (path / "run.json").is_file() or (path / CHECKPOINT_NAME).is_file()
+
+
+def _phase3_only_asked(args: argparse.Namespace) -> bool:
+    """Whether the command line asks for Phase 3 alone (--phases 3)."""
+    try:
+        return args.phases is not None and parse_phases(args.phases) == (3,)
+    except ConfigError:
+        return False
+
+
 def main(args: argparse.Namespace) -> int:
     """Run `fit` with parsed `args`; the exit status."""
     if args.resume and args.force:
         print("fit: --resume continues RUN and --force deletes it; pass one of them",
               file=sys.stderr)  # fmt: skip
         return 2
+    if args.out is None and args.data and _is_run(Path(args.data)) and _phase3_only_asked(args):
+        args.out, args.data = args.data, None  # `fit RUN --phases 3`: RUN, not a dataset
     name = Path(args.data).name if args.data else default_scene_dir().name
     run_dir = Path(args.out) if args.out else Path("runs") / name
     created = not run_dir.exists()

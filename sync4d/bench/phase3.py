@@ -1,0 +1,97 @@
+"""``python -m sync4d bench phase3 RUN [RUN ...]``: Phase 3's cost on finished Phase 2 runs.
+
+For each run: the encoder's load time, the field's build time split into its steps (observe:
+crops, visibility, residuals and gaps; encode: the crops through the image encoder; field:
+kinematics, ridge, blend and EMA) and the latency of text queries, cold (the query's texts
+encoded) and warm (read from the text cache, as a repeated query is). The run folders are not
+touched: the field and its text cache live in a temporary folder. Writes a JSON and prints a
+table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from sync4d.config import Phase3Config
+from sync4d.report import align_table
+
+__all__ = ["DEFAULT_QUERIES", "bench_run", "main"]
+
+#: Queries timed by default (identity, state and motion phrases).
+DEFAULT_QUERIES = ("red ball", "the ball that is falling", "a ball touching the plate",
+                   "the fastest ball", "the blue box while it is sliding")  # fmt: skip
+
+
+def bench_run(run_dir: Path, encoder_spec: str | None, queries: list[str], repeat: int,
+              threads: int | None) -> dict:  # fmt: skip
+    """Timings of one run (see the module notes) as a dict."""
+    import torch
+
+    from sync4d.phase3 import build_field, load_encoder
+    from sync4d.phase3.query import TextCache, answer
+    from sync4d.runs import load_run
+
+    if threads:
+        torch.set_num_threads(threads)
+    run = load_run(run_dir)
+    t0 = time.perf_counter()
+    encoder = load_encoder(encoder_spec)
+    load_s = time.perf_counter() - t0
+    field = build_field(run, Phase3Config(), encoder, threads=threads, progress=False)
+    cold, warm = [], []
+    with tempfile.TemporaryDirectory(prefix="sync4d-bench-phase3-") as tmp:
+        (Path(tmp) / "phase3").mkdir()
+        for _ in range(repeat):
+            for q in queries:
+                fresh = TextCache(tmp, field, encoder)
+                fresh.texts.clear()
+                t1 = time.perf_counter()
+                answer(field, q, cache=fresh)
+                cold.append(time.perf_counter() - t1)
+                t2 = time.perf_counter()
+                answer(field, q, cache=TextCache(tmp, field, encoder))
+                warm.append(time.perf_counter() - t2)
+    return {
+        "run": str(run_dir), "encoder": encoder.describe(), "objects": len(field.labels),
+        "frames": len(field.times), "gaussians": int(run.model.num_gaussians),
+        "encoder_load_s": load_s, **{k: v for k, v in field.timings.items()},
+        "query_cold_ms": 1e3 * statistics.median(cold),
+        "query_warm_ms": 1e3 * statistics.median(warm), "queries": queries, "repeat": repeat,
+    }  # fmt: skip
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run `bench phase3` with parsed `args`; the exit status."""
+    from sync4d.phase3 import EncoderError, FieldError
+    from sync4d.runs import CheckpointError, RunError
+
+    queries = list(args.queries or DEFAULT_QUERIES)
+    rows = []
+    for run_dir in args.runs:
+        try:
+            rows.append(bench_run(Path(run_dir), args.encoder, queries, args.repeat,
+                                  args.threads))  # fmt: skip
+        except (RunError, CheckpointError, FieldError, EncoderError) as e:
+            print(f"bench phase3: {e}", file=sys.stderr)
+            return 2
+    out = Path(args.out or "bench-phase3.json")
+    doc = {"date": _dt.datetime.now().isoformat(timespec="seconds"),
+           "machine": {"platform": platform.platform(), "threads": args.threads},
+           "results": rows}  # fmt: skip
+    out.write_text(json.dumps(doc, indent=1) + "\n")
+    table = [[Path(r["run"]).name, f"{r['objects']}x{r['frames']}", str(int(r["crops"])),
+              f"{r['encoder_load_s']:.2f}", f"{r['observe_s']:.1f}", f"{r['encode_s']:.1f}",
+              f"{r['field_s']:.2f}", f"{r['total_s']:.1f}", f"{r['query_cold_ms']:.0f}",
+              f"{r['query_warm_ms']:.1f}"] for r in rows]  # fmt: skip
+    print(align_table(["run", "objects x frames", "crops", "load s", "observe s", "encode s",
+                       "field s", "build s", "query cold ms", "query warm ms"], table))
+    print(f"wrote {out}")
+    return 0

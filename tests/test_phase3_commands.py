@@ -1,0 +1,101 @@
+"""Phase 3 through the command line on a tiny real run: `fit --phases 3`, `query`,
+`eval --queries`, `bench phase3`, and the clear errors for runs, encoders and queries that
+cannot be used."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from test_data_blender import _write_scene
+
+from sync4d.cli import main
+
+SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=300", "--set", "eval_every=0",
+            "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    tmp = tmp_path_factory.mktemp("phase3_cli")
+    _write_scene(tmp / "tiny", n=4, size=24)
+    assert main(["fit", str(tmp / "tiny"), "--out", str(tmp / "p1"), *SETTINGS,
+                 "--phases", "1"]) == 0  # fmt: skip
+    assert main(["fit", str(tmp / "tiny"), "--out", str(tmp / "p2"), *SETTINGS]) == 0
+    return {"data": tmp / "tiny", "p1": tmp / "p1", "p2": tmp / "p2", "tmp": tmp}
+
+
+def test_phase3_needs_a_phase2_run(runs, capsys):
+    assert main(["fit", str(runs["p1"]), "--phases", "3", "--threads", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "needs a Phase 2 checkpoint" in err and "--phases 2" in err
+    assert not (runs["p1"] / "phase3").exists()
+
+
+def test_phase3_refuses_settings_that_do_not_apply(runs, capsys):
+    assert main(["fit", str(runs["p2"]), "--phases", "3", "--set", "phase1.iterations=5"]) == 2
+    assert "settings other than phase3.*" in capsys.readouterr().err
+    assert main(["fit", str(runs["p2"]), "--phases", "3", "--set", "phase3.beta=2"]) == 2
+    assert "phase3.beta" in capsys.readouterr().err
+
+
+def test_a_missing_or_broken_encoder_folder_is_named(runs, capsys, tmp_path):
+    missing = tmp_path / "no-such-encoder"
+    assert main(["fit", str(runs["p2"]), "--phases", "3", "--encoder", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "encoder export" in err
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "encoder.json").write_text("{}")
+    assert main(["fit", str(runs["p2"]), "--phases", "3", "--encoder", str(broken)]) == 2
+    assert str(broken) in capsys.readouterr().err
+
+
+def test_query_without_a_field_says_how_to_build_it(runs, capsys):
+    assert main(["query", str(runs["p2"]), "red ball"]) == 2
+    err = capsys.readouterr().err
+    assert "no language field" in err and "--phases 3" in err
+    assert main(["query", str(runs["tmp"] / "nowhere"), "red ball"]) == 2
+    assert "no such run folder" in capsys.readouterr().err
+
+
+def test_phases_must_be_contiguous(runs, capsys):
+    assert main(["fit", str(runs["data"]), "--out", str(runs["tmp"] / "x"), "--phases", "1,3"]) == 2
+    assert "1,3" in capsys.readouterr().err
+    assert not (runs["tmp"] / "x").exists()
+
+
+def test_fit_query_and_eval_with_the_offline_encoder(runs, capsys, tmp_path):
+    pytest.importorskip("sync4d.phase3.offline")
+    run = tmp_path / "run"
+    shutil.copytree(runs["p2"], run)
+    assert main(["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "Phase 3: 1 objects x 4 frames" in out
+    assert (run / "phase3" / "field.safetensors").is_file()
+    assert main(["query", str(run), "the ball", "a ball at rest", "--json"]) == 0
+    answers = json.loads(capsys.readouterr().out)
+    assert [a["query"] for a in answers] == ["the ball", "a ball at rest"]
+    assert answers[0]["objects"][0]["name"] == "ball" and answers[0]["closed_vocabulary"]
+    assert answers[1]["motion_phrases"][0]["predicate"] == "at rest"
+    assert Path(answers[0]["plot"]).is_file()
+    assert main(["query", str(run), "   "]) == 2
+    assert "empty query" in capsys.readouterr().err
+    queries = tmp_path / "queries.json"
+    queries.write_text(json.dumps({"queries": [
+        {"query": "the ball", "object": "ball", "frames": [[0, 3]]}]}))  # fmt: skip
+    assert main(["eval", str(run), "--queries", str(queries), "--scorer", "paper", "names"]) == 0
+    table = capsys.readouterr().out
+    assert "paper" in table and "names" in table
+    rows = json.loads((run / "phase3" / "eval-queries-paper.json").read_text())
+    assert rows["queries"][0]["query"] == "the ball"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"queries": [{"query": "x", "object": "ghost", "frames": [[0, 1]]}]}))
+    assert main(["eval", str(run), "--queries", str(bad)]) == 2
+    assert "ghost" in capsys.readouterr().err
+    assert main(["bench", "phase3", str(run), "--repeat", "1", "--queries", "the ball",
+                 "--out", str(tmp_path / "b.json"), "--threads", "1"]) == 0  # fmt: skip
+    res = json.loads((tmp_path / "b.json").read_text())["results"][0]
+    assert res["query_warm_ms"] > 0 and res["crops"] >= 1
