@@ -12,6 +12,10 @@ import pytest
 from test_data_blender import _write_scene
 
 from sync4d.cli import main
+from sync4d.data import synthetic as syn
+
+SMALL = syn.SyntheticConfig(size=48, frames=6, train_cameras=4, test_cameras=1, test_every=3,
+                            supersample=1)  # fmt: skip
 
 SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=300", "--set", "eval_every=0",
             "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2"]  # fmt: skip
@@ -24,7 +28,12 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     assert main(["fit", str(tmp / "tiny"), "--out", str(tmp / "p1"), *SETTINGS,
                  "--phases", "1"]) == 0  # fmt: skip
     assert main(["fit", str(tmp / "tiny"), "--out", str(tmp / "p2"), *SETTINGS]) == 0
-    return {"data": tmp / "tiny", "p1": tmp / "p1", "p2": tmp / "p2", "tmp": tmp}
+    # the embedded scene, small: its masks give every object Gaussians from the first votes
+    syn.write_synthetic_scene(tmp / "objects", SMALL)
+    assert main(["fit", str(tmp / "objects"), "--out", str(tmp / "objects-run"), *SETTINGS,
+                 "--set", "init_points=3000", "--set", "init_from=random"]) == 0  # fmt: skip
+    return {"data": tmp / "tiny", "p1": tmp / "p1", "p2": tmp / "p2", "tmp": tmp,
+            "objects": tmp / "objects-run"}  # fmt: skip
 
 
 def test_phase3_needs_a_phase2_run(runs, capsys):
@@ -70,32 +79,36 @@ def test_phases_must_be_contiguous(runs, capsys):
 def test_fit_query_and_eval_with_the_offline_encoder(runs, capsys, tmp_path):
     pytest.importorskip("sync4d.phase3.offline")
     run = tmp_path / "run"
-    shutil.copytree(runs["p2"], run)
+    shutil.copytree(runs["objects"], run)
     assert main(["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]) == 0
     out = capsys.readouterr().out
-    assert "Phase 3: 1 objects x 4 frames" in out
+    assert "Phase 3: 3 objects x 6 frames" in out
     assert (run / "phase3" / "field.safetensors").is_file()
-    assert main(["query", str(run), "the ball", "a ball at rest", "--json"]) == 0
+    assert main(["query", str(run), "the blue box", "a green pillar at rest", "--json"]) == 0
     answers = json.loads(capsys.readouterr().out)
-    assert [a["query"] for a in answers] == ["the ball", "a ball at rest"]
-    assert answers[0]["objects"][0]["name"] == "ball" and answers[0]["closed_vocabulary"]
+    assert [a["query"] for a in answers] == ["the blue box", "a green pillar at rest"]
+    assert answers[0]["objects"][0]["name"] == "blue box" and answers[0]["closed_vocabulary"]
     assert answers[1]["motion_phrases"][0]["predicate"] == "at rest"
     assert Path(answers[0]["plot"]).is_file()
     assert main(["query", str(run), "   "]) == 2
     assert "empty query" in capsys.readouterr().err
     queries = tmp_path / "queries.json"
     queries.write_text(json.dumps({"queries": [
-        {"query": "the ball", "object": "ball", "frames": [[0, 3]]}]}))  # fmt: skip
+        {"query": "the red ball", "object": "red ball", "frames": [[0, 5]]}]}))  # fmt: skip
     assert main(["eval", str(run), "--queries", str(queries), "--scorer", "paper", "names"]) == 0
     table = capsys.readouterr().out
     assert "paper" in table and "names" in table
-    rows = json.loads((run / "phase3" / "eval-queries-paper.json").read_text())
-    assert rows["queries"][0]["query"] == "the ball"
+    rows = json.loads((run / "phase3" / "eval-queries-names.json").read_text())
+    assert rows["queries"][0]["query"] == "the red ball"
+    assert rows["queries"][0]["object_correct"] is True
+    assert rows["queries"][0]["viou"] is not None  # the dataset's masks are the GT masks
     bad = tmp_path / "bad.json"
-    bad.write_text(json.dumps({"queries": [{"query": "x", "object": "ghost", "frames": [[0, 1]]}]}))
+    bad.write_text(json.dumps({"queries": [{"query": "x", "object": "ghost",
+                                            "frames": [[0, 1]]}]}))  # fmt: skip
     assert main(["eval", str(run), "--queries", str(bad)]) == 2
     assert "ghost" in capsys.readouterr().err
     assert main(["bench", "phase3", str(run), "--repeat", "1", "--queries", "the ball",
                  "--out", str(tmp_path / "b.json"), "--threads", "1"]) == 0  # fmt: skip
     res = json.loads((tmp_path / "b.json").read_text())["results"][0]
-    assert res["query_warm_ms"] > 0 and res["crops"] >= 1
+    built = json.loads((run / "phase3" / "field.json").read_text())["timings"]
+    assert res["query_warm_ms"] > 0 and res["crops"] == built["crops"]  # same field, same crops

@@ -249,3 +249,16 @@ def test_bad_field_and_run_inputs(oracle_run, tmp_path):
     (out / "field.json").write_text("{not json")
     with pytest.raises(FieldError, match="field.json"):
         load_field(tmp_path / "copy")
+
+
+def test_states_are_intervals_and_smoothing_keeps_the_mean():
+    act = np.array([[1, 1, 0, 1, 1, 0, 0, 1, 0, 0, 1, 1, 1]], bool)
+    # the one-frame gap at 2 closes; the lone frame at 7 goes; the 3-frame run at 10-12 stays
+    np.testing.assert_array_equal(
+        mp.clean_runs(act, 3)[0], [1, 1, 1, 1, 1, 0, 0, 0, 0, 0, 1, 1, 1])
+    times = np.sort(np.random.default_rng(4).uniform(0, 1, 30))
+    line = np.stack([times, 2 * times, np.zeros(30)], -1)[None]
+    sm = mp.smooth_in_time(line, times, 0.02)
+    mid = (times > 0.1) & (times < 0.9)  # a line is kept away from the ends
+    np.testing.assert_allclose(sm[0, mid], line[0, mid], atol=0.01)
+    np.testing.assert_array_equal(mp.smooth_in_time(line, times, 0.0), line)

@@ -167,9 +167,11 @@ def build_field(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     share_eps = float(run.settings.get("config", {}).get("phase2", {}).get("share_eps", 1e-6))
+    cams = [fr.camera for fr in scene.train]
+    up = up_vector(run, cams, cfg.up)
     obs = observe(
         run, scene, min_visible=cfg.min_visible, min_box=cfg.min_box, margin=cfg.crop_margin,
-        percentiles=(cfg.crop_low, cfg.crop_high), share_eps=share_eps, threads=threads,
+        percentiles=(cfg.crop_low, cfg.crop_high), share_eps=share_eps, up=up, threads=threads,
         progress=progress,
     )  # fmt: skip
     if not obs.labels:
@@ -198,14 +200,13 @@ def build_field(
     timings["field_s"] = time.perf_counter() - t2
     timings["total_s"] = time.perf_counter() - t0
     timings["crops"] = len(obs.crops)
-    cams = [fr.camera for fr in scene.train]
     return Field(
         labels=obs.labels, names=names, times=obs.times, obs=e_obs.astype(np.float32),
         observed=obs.observed, static=static.astype(np.float32), features=feats,
         standardised=std, ridge=w, pred=pred.astype(np.float32), sync=sync.astype(np.float32),
         visible=obs.visible, boxes=obs.boxes, gaps=obs.gaps, radius=obs.radius,
         centroids=tracks.centroids, gap_labels=obs.gap_labels, views=obs.views,
-        up=up_vector(run, cams, cfg.up), right=np.asarray(cams[0].viewmat[0, :3], float),
+        up=up, right=np.asarray(cams[0].viewmat[0, :3], float),
         encoder=encoder.describe(),
         config=dataclasses.asdict(cfg), timings=timings,
     )  # fmt: skip

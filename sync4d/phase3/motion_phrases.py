@@ -13,11 +13,19 @@ the contact gaps, and matched to the query text:
   background) means the background (label 0); otherwise the object whose name occurs in the
   text, else the one whose name (or static embedding, when objects are unnamed) the text encoder
   finds nearest; no target means any other object or the background;
+* motion is read from M_phi's centroids smoothed in time by a Gaussian of `phrase_smooth`
+  (normalised time; the paper's per-frame features stay raw): finite differences of a
+  reconstruction's per-frame table flip sign from frame to frame (bouncingballs: vertical
+  velocity -2.3, -0.5, -1.5 on consecutive frames of one fall);
 * speeds are compared with the scene's reference speed s_ref (95th percentile of every object's
   speed), with a floor for static scenes; "up" is the field's up vector; "left"/"right" are
-  along the first training camera's image x axis.
+  along the first training camera's image x axis;
+* "touching the background" compares the object's height above the background surface under it
+  with `contact_gap` times its radius; touching another object, the robust gap between them.
 
-Each predicate gives a bool per object and frame; matched predicates are combined with AND.
+Each predicate gives a bool per object and frame; matched predicates are combined with AND; a
+state holds over an interval: one-frame gaps are closed and runs shorter than
+`phrase_min_frames` dropped.
 """
 
 from __future__ import annotations
@@ -28,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BACKGROUND_WORDS", "PREDICATES", "MatchedPredicate", "Predicate", "evaluate",
-           "match_predicates"]  # fmt: skip
+__all__ = ["BACKGROUND_WORDS", "PREDICATES", "MatchedPredicate", "Predicate", "clean_runs",
+           "evaluate", "match_predicates", "smooth_in_time"]  # fmt: skip
 
 #: Words that name the background (label 0) as a relation target.
 BACKGROUND_WORDS = ("ground", "floor", "plate", "table", "background", "surface", "scene")
@@ -155,17 +163,69 @@ def match_predicates(
     return [m for _, _, m in sorted(found, key=lambda x: x[0])], rest
 
 
+def smooth_in_time(x: np.ndarray, times: np.ndarray, sigma: float) -> np.ndarray:
+    """`x` [K, T, ...] smoothed along T by a local linear fit with Gaussian weights of `sigma`
+    (normalised time) at each frame time: unevenly spaced frames are fine and a linear motion is
+    kept exactly (a plain weighted mean would bend it where frames cluster); `sigma` 0 returns
+    `x`."""
+    if sigma <= 0 or x.shape[1] < 2:
+        return x
+    d = times[None, :] - times[:, None]  # [t, s]: s's offset from t
+    w = np.exp(-0.5 * (d / sigma) ** 2)
+    s0, s1, s2 = w.sum(1), (w * d).sum(1), (w * d * d).sum(1)
+    det = s0 * s2 - s1 * s1
+    flat = det <= 1e-12 * np.maximum(s0 * s2, 1e-300)
+    # weights of the fitted intercept: (s2 - s1 d) w / det; the weighted mean where it is flat
+    lin = (s2[:, None] - s1[:, None] * d) * w / np.where(flat, 1.0, det)[:, None]
+    mean = w / s0[:, None]
+    coef = np.where(flat[:, None], mean, lin)
+    return np.einsum("ts,ks...->kt...", coef, x)
+
+
+def clean_runs(active: np.ndarray, min_frames: int) -> np.ndarray:
+    """`active` [K, T] with one-frame gaps inside a run closed and then runs shorter than
+    `min_frames` dropped: a state holds over an interval, not for a flickering frame."""
+    out = active.copy()
+    t = out.shape[1]
+    for row in out:
+        for f in range(1, t - 1):
+            if not row[f] and row[f - 1] and row[f + 1]:
+                row[f] = True
+        f = 0
+        while f < t:
+            if row[f]:
+                g = f
+                while g < t and row[g]:
+                    g += 1
+                if g - f < min_frames:
+                    row[f:g] = False
+                f = g
+            else:
+                f += 1
+    return out
+
+
 def evaluate(
     m: MatchedPredicate, features: np.ndarray, centroids: np.ndarray, gaps: np.ndarray,
     gap_labels: list[int], labels: list[int], radius: np.ndarray, up: np.ndarray,
     right: np.ndarray, times: np.ndarray, cfg,
 ) -> np.ndarray:  # fmt: skip
     """Truth of predicate `m` per object and frame [K, T] (bool). `features` [K, T, 28],
-    `centroids` [K, T, 3], `gaps` [K, L, T] to `gap_labels`, `labels` [K] the objects' labels,
-    `radius` [K], `up` and `right` [3] unit vectors, `times` [T], `cfg` a Phase3Config."""
-    speed = features[..., 0]
-    vel = features[..., 6:9]
-    k, t = speed.shape
+    `centroids` [K, T, 3] (M_phi's), `gaps` [K, L, T] to `gap_labels` (0: height above the
+    background surface), `labels` [K] the objects' labels, `radius` [K], `up` and `right` [3]
+    unit vectors, `times` [T], `cfg` a Phase3Config. Motion is read from the centroids smoothed
+    in time (`cfg.phrase_smooth`), and the result keeps only runs of `cfg.phrase_min_frames`."""
+    raw = _evaluate(m, features, centroids, gaps, gap_labels, labels, radius, up, right,
+                    times, cfg)  # fmt: skip
+    return clean_runs(raw, cfg.phrase_min_frames)
+
+
+def _evaluate(m, features, centroids, gaps, gap_labels, labels, radius, up, right, times, cfg):
+    k, t = centroids.shape[:2]
+    c = smooth_in_time(centroids, times, cfg.phrase_smooth)
+    vel = np.gradient(c, times, axis=1, edge_order=2 if t >= 3 else 1) if t > 1 \
+        else np.zeros_like(c)
+    speed = np.linalg.norm(vel, axis=-1)
     floor = 0.05 * float(np.median(radius)) if len(radius) else 1e-3
     s_ref = max(float(np.percentile(speed, 95)) if speed.size else 0.0, floor)
     name = m.predicate.name
@@ -182,25 +242,28 @@ def evaluate(
         sign = 1.0 if name == "moving right" else -1.0
         return sign * vr > cfg.moving_speed * s_ref
     if name == "turning":
-        return features[..., 2] > 0.5
+        return smooth_in_time(features[..., 2], times, cfg.phrase_smooth) > 0.5
     if name in ("fastest", "slowest"):
         pick = speed.max(0) if name == "fastest" else speed.min(0)
         moving = speed > cfg.moving_speed * s_ref
         return (speed >= pick[None]) & (moving if name == "fastest" else True)
     if name in ("approaching", "moving away"):
-        if m.target is None or m.target == 0:
-            closing = features[..., 25]
-        else:
-            tgt = labels.index(m.target) if m.target in labels else None
-            if tgt is None:
+        if m.target is None or m.target == 0 or m.target not in labels:
+            if m.target not in (None, 0):
                 return np.zeros((k, t), bool)
-            d = np.linalg.norm(centroids - centroids[tgt][None], axis=-1)
-            closing = np.gradient(d, times, axis=1) if t > 1 else np.zeros_like(d)
-            closing[tgt] = 0.0
+            d = np.linalg.norm(c[:, None] - c[None, :], axis=-1)
+            d[np.arange(k), np.arange(k)] = np.inf
+            d = d.min(1) if k > 1 else np.zeros((k, t))
+            tgt = None
+        else:
+            tgt = labels.index(m.target)
+            d = np.linalg.norm(c - c[tgt][None], axis=-1)
+        closing = np.gradient(d, times, axis=1) if t > 1 and np.isfinite(d).all() \
+            else np.zeros((k, t))
         sign = -1.0 if name == "approaching" else 1.0
         out = sign * closing > cfg.closing_speed * s_ref
-        if m.target in labels:
-            out[labels.index(m.target)] = False
+        if tgt is not None:
+            out[tgt] = False
         return out
     if name == "touching":
         tol = cfg.contact_gap * radius[:, None]
