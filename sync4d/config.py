@@ -124,7 +124,8 @@ class Phase3Config:
     #: Temporal activation: "half-peak" (Appendix F: above 0.5 of the peak) or "mean" (4D
     #: LangSplat's: at least the query's mean).
     activation: str = choice("half-peak", ("half-peak", "mean"))
-    #: Static-only ablation: e_sync = e_static at every frame (Table 5's "static only").
+    #: Static-only ablation: e_sync = e_static at every frame in every scorer (Table 5's
+    #: "static only"; `query --scorer static` gives it for one query).
     static_only: bool = False
     #: Name of the hand object for Appendix B dims 26-27 (zero when no object has this name).
     hand_object: str = choice("hand", check=_name_problem, text="an object name")

@@ -22,7 +22,7 @@ from sync4d.phase2.motion import MotionConfig
 from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.build import FieldError, build_field, load_field
-from sync4d.phase3.encoder import Encoder, normalise_rows
+from sync4d.phase3.encoder import Encoder, EncoderError, normalise_rows
 from sync4d.phase3.evaluate import evaluate_queries, state_queries
 from sync4d.phase3.metrics import temporal_iou
 from sync4d.phase3.query import QueryError, TextCache, answer
@@ -262,3 +262,56 @@ def test_states_are_intervals_and_smoothing_keeps_the_mean():
     mid = (times > 0.1) & (times < 0.9)  # a line is kept away from the ends
     np.testing.assert_allclose(sm[0, mid], line[0, mid], atol=0.01)
     np.testing.assert_array_equal(mp.smooth_in_time(line, times, 0.0), line)
+
+
+def test_eval_reads_4d_langsplat_annotations(oracle_run, monkeypatch, tmp_path):
+    """A 4D LangSplat-style annotation folder (COCO polygons + video_annotations.json) for the
+    red ball's hop: the polygons are the bounding boxes of its instance mask in each frame's
+    first view, so vIoU compares the rendered label mask with them."""
+    run, field, enc, root = oracle_run
+    scene = load_scene(root)
+    ann = tmp_path / "annotations"
+    (ann / "train").mkdir(parents=True)
+    images, annotations = [], []
+    for f, t in enumerate(field.times):
+        view = next(fr for fr in scene.train if abs(fr.time - t) < 1e-6)
+        ys, xs = np.nonzero(view.load_mask() == 1)
+        x0, y0, x1, y1 = int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1
+        images.append({"id": f, "file_name": f"{f + 1:06d}.png", "width": 48, "height": 48})
+        annotations.append({"id": f, "image_id": f, "category_id": 1, "bbox": [0, 0, 1, 1],
+                            "segmentation": [[x0, y0, x1, y0, x1, y1, x0, y1]]})
+    (ann / "train" / "_annotations.coco.json").write_text(json.dumps({
+        "images": images, "annotations": annotations,
+        "categories": [{"id": 1, "name": "red ball"}]}))  # fmt: skip
+    hop = [int(np.argmax(field.times >= syn.HOP[0])), int(np.argmax(field.times >= syn.HOP[2]))]
+    (ann / "video_annotations.json").write_text(json.dumps(
+        {"red ball": {"the red ball in the air": [hop]}}))  # fmt: skip
+    monkeypatch.setattr("sync4d.phase3.evaluate.load_run", lambda _: run)
+    summary = evaluate_queries(run.path, ann, scorers=("paper",), encoder=enc)
+    row = json.loads((run.path / "phase3" / "eval-annotations-paper.json").read_text())
+    q = row["queries"][0]
+    assert q["query"] == "the red ball in the air" and q["object_correct"] is True
+    assert q["gt_intervals"] == [hop]
+    assert summary["paper"]["viou"] is not None and 0.0 < summary["paper"]["viou"] <= 1.0
+
+
+def test_another_encoder_than_the_fields_is_refused(oracle_run):
+    run, field, _, _ = oracle_run
+
+    class Other(ColourEncoder):
+        @property
+        def fingerprint(self) -> str:
+            return "another-model"
+
+    with pytest.raises(EncoderError, match="was built with encoder test-colour"):
+        answer(field, "a purple thing nobody asked before", cache=TextCache(run.path, field,
+                                                                           Other()))
+
+
+def test_the_static_only_switch_applies_to_every_scorer(oracle_run):
+    run, field, enc, _ = oracle_run
+    cfg = Phase3Config(static_only=True)
+    ans = answer(field, "red", cache=TextCache(run.path, field, enc), scorer="paper", cfg=cfg)
+    assert all(ans["active"]["red ball"])
+    sims = np.asarray(ans["timeline"]["red ball"])
+    np.testing.assert_allclose(sims, sims[0])

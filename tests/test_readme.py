@@ -1,5 +1,6 @@
 """The README's first-run commands, run as written with a small iteration count: a new user who
-follows them gets a trained embedded scene, its metrics and a render."""
+follows them gets a trained embedded scene, its metrics, a language field answering a query and
+a render."""
 
 from __future__ import annotations
 
@@ -43,9 +44,14 @@ def test_readme_first_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> No
     monkeypatch.setenv("SYNC4D_CACHE", str(tmp_path / "cache"))
     monkeypatch.chdir(tmp_path)
     cmds = _first_run_commands()
-    assert [c[0] for c in cmds] == ["fit", "fit", "render"]
+    assert [c[0] for c in cmds] == ["fit", "fit", "fit", "query", "render"]
     for cmd in cmds:
-        extra = SMALL if cmd[0] == "fit" else ["--threads", "2"]
+        if cmd[0] == "fit" and cmd[-2:] != ["--phases", "3"]:
+            extra = SMALL
+        elif cmd[0] == "query":
+            extra = []
+        else:
+            extra = ["--threads", "2"]
         assert main(cmd + extra) == 0, cmd
     run = tmp_path / "runs" / "first"
     for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, EVAL_FILE, PHASE2_FILE):
@@ -54,3 +60,5 @@ def test_readme_first_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> No
     assert len(json.loads((run / PHASE2_FILE).read_text())["objects"]) == 4
     assert len(list((run / "renders").glob("*.png"))) == 24
     assert list((run / "renders").glob("*.gif"))
+    assert (run / "phase3" / "field.safetensors").is_file()
+    assert list((run / "phase3").glob("query-*.png"))

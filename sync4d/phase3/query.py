@@ -136,8 +136,8 @@ def _identity(field: Field, text: str, cache: TextCache, cfg: Phase3Config,
         k, t = field.observed.shape
         return np.zeros(k), np.zeros((k, t))
     q = cache.get([text])[0]
-    return query_scores(field.static, field.temporal(static_only), q, cfg.w_static,
-                        cfg.w_temporal)  # fmt: skip
+    return query_scores(field.static, field.temporal(static_only or cfg.static_only), q,
+                        cfg.w_static, cfg.w_temporal)  # fmt: skip
 
 
 def _names_score(field: Field, text: str, cache: TextCache) -> np.ndarray | None:
