@@ -238,6 +238,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             return 2
         raise
+    if not hasattr(args, "backend"):  # e.g. query: no rendering, no torch import
+        return int(module.main(args) or 0)
     from sync4d import raster
 
     backend = getattr(args, "backend", None)

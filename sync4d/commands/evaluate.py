@@ -25,6 +25,7 @@ def _queries(args: argparse.Namespace) -> int:
     from sync4d.phase3.encoder import EncoderError
     from sync4d.phase3.evaluate import EVAL_SCORERS, evaluate_queries
     from sync4d.phase3.query import QueryError
+    from sync4d.phase3.store import FieldError
     from sync4d.report import align_table
 
     try:
@@ -37,7 +38,7 @@ def _queries(args: argparse.Namespace) -> int:
                 encoder=args.encoder,
             )  # fmt: skip
     except (RunError, CheckpointError, DatasetError, RunBusy, WriteFailed, AnnotationError,
-            EncoderError, QueryError) as e:  # fmt: skip
+            EncoderError, QueryError, FieldError) as e:  # fmt: skip
         print(f"eval: {e}", file=sys.stderr)
         return 2
 

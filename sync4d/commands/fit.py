@@ -26,6 +26,7 @@ from sync4d.config import (
 from sync4d.data import DatasetError, load_scene
 from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
 from sync4d.phase3.encoder import EncoderError
+from sync4d.phase3.store import FieldError
 from sync4d.progress import format_duration
 from sync4d.runs import (
     CHECKPOINT_NAME,
@@ -176,7 +177,7 @@ def main(args: argparse.Namespace) -> int:
         with RunLock(run_dir, "fit"):
             return _fit(args, run_dir, fresh)
     except (ConfigError, DatasetError, CheckpointError, RunError, RunBusy, WriteFailed,
-            EncoderError) as e:
+            EncoderError, FieldError) as e:
         print(f"fit: {e}", file=sys.stderr)
         return 2
     except FitInterrupted:

@@ -11,12 +11,10 @@ import re
 import sys
 from pathlib import Path
 
-from sync4d.phase3.build import FIELD_DIR, FieldError, load_field
 from sync4d.phase3.encoder import EncoderError
 from sync4d.phase3.query import QueryError, TextCache, answer
+from sync4d.phase3.store import FIELD_DIR, FieldError, load_field
 from sync4d.report import align_table, plot_query_timeline
-from sync4d.runs import CheckpointError, RunError
-from sync4d.runs.files import WriteFailed
 
 __all__ = ["main", "slug"]
 
@@ -41,7 +39,7 @@ def main(args: argparse.Namespace) -> int:
     run_dir = Path(args.run)
     try:
         if not run_dir.is_dir():
-            raise RunError(f"{run_dir}: no such run folder")
+            raise FieldError(f"{run_dir}: no such run folder")
         field = load_field(run_dir)
         cache = TextCache(run_dir, field, args.encoder)
         answers = []
@@ -52,7 +50,7 @@ def main(args: argparse.Namespace) -> int:
                 out.mkdir(parents=True, exist_ok=True)
                 ans["plot"] = str(plot_query_timeline(ans, out / f"query-{slug(text)}.png"))
             answers.append(ans)
-    except (FieldError, RunError, CheckpointError, EncoderError, QueryError, WriteFailed) as e:
+    except (FieldError, EncoderError, QueryError, OSError) as e:  # OSError: a failed write
         print(f"query: {e}", file=sys.stderr)
         return 2
     if args.json:

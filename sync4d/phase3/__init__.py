@@ -6,19 +6,21 @@ interface, 28-D kinematic features, a per-object closed-form ridge map, blending
 smoothing, and queries that answer which object and when. Evaluation follows Appendix F.
 """
 
-from sync4d.phase3.build import Field, FieldError, build_field, load_field
-from sync4d.phase3.encoder import Encoder, EncoderError, load_encoder
-from sync4d.phase3.query import QueryError, answer, query
+from importlib import import_module
 
-__all__ = [
-    "Encoder",
-    "EncoderError",
-    "Field",
-    "FieldError",
-    "QueryError",
-    "answer",
-    "build_field",
-    "load_encoder",
-    "load_field",
-    "query",
-]
+#: Public names and the module that defines each, imported on first use (a query needs neither
+#: torch nor the rasterizer, so `sync4d.phase3.query` stays light).
+_EXPORTS = {
+    "Encoder": "encoder", "EncoderError": "encoder", "load_encoder": "encoder",
+    "Field": "store", "FieldError": "store", "load_field": "store",
+    "build_field": "build", "QueryError": "query", "answer": "query", "query": "query",
+}  # fmt: skip
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):  # noqa: ANN202 - PEP 562 module attribute
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'sync4d.phase3' has no attribute {name!r}")
+    module = import_module(f"sync4d.phase3.{_EXPORTS[name]}")
+    return getattr(module, name)

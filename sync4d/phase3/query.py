@@ -23,16 +23,19 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sync4d.config import Phase3Config
 from sync4d.phase3 import motion_phrases as mp
-from sync4d.phase3.build import FIELD_DIR, Field, load_field
 from sync4d.phase3.encoder import Encoder, EncoderError, load_encoder
 from sync4d.phase3.field import query_scores
 from sync4d.phase3.metrics import activate, intervals
-from sync4d.runs.files import write_text_atomic
+from sync4d.phase3.store import FIELD_DIR, Field, FieldError, load_field
+
+if TYPE_CHECKING:
+    from sync4d.config import Phase3Config
 
 __all__ = ["SCORERS", "QueryError", "TextCache", "answer", "query"]
 
@@ -95,6 +98,8 @@ class TextCache:
 
     def save(self) -> None:
         """Write the cache atomically (beside the field)."""
+        from sync4d.runs.files import write_text_atomic
+
         if self.path.parent.is_dir():
             write_text_atomic(self.path, json.dumps(
                 {"fingerprint": self.fingerprint, "texts": self.texts}) + "\n")
@@ -184,6 +189,21 @@ def _score(field: Field, text: str, scorer: str, rule: str, cfg: Phase3Config,
     return _Scored(score, truth, truth.astype(np.float64), ident, frac), matched, rest
 
 
+#: The Phase 3 settings a query reads (the field records every one it was built with).
+_QUERY_KEYS = ("w_static", "w_temporal", "activation", "static_only", "moving_speed",
+               "rest_speed", "vertical_speed", "closing_speed", "contact_gap", "phrase_match",
+               "phrase_smooth", "phrase_min_frames")  # fmt: skip
+
+
+def _settings(field: Field) -> SimpleNamespace:
+    """The settings the field was built with, as attributes (no torch import for a query)."""
+    missing = [k for k in _QUERY_KEYS if k not in field.config]
+    if missing:
+        raise FieldError(f"the field's header lacks the settings {missing}; rebuild it with "
+                         "`fit RUN --phases 3`")  # fmt: skip
+    return SimpleNamespace(**field.config)
+
+
 def answer(
     field: Field, text: str, *, cache: TextCache, scorer: str = "full",
     rule: str | None = None, cfg: Phase3Config | None = None,
@@ -195,8 +215,7 @@ def answer(
         raise QueryError("empty query: give a text such as \"the red ball while it is falling\"")
     if scorer not in SCORERS:
         raise QueryError(f"unknown scorer {scorer!r}: expected one of {', '.join(SCORERS)}")
-    cfg = cfg or Phase3Config(**{k: v for k, v in field.config.items()
-                                 if k in Phase3Config.__dataclass_fields__})  # fmt: skip
+    cfg = cfg or _settings(field)
     rule = rule or cfg.activation
     sc, matched, rest = _score(field, text, scorer, rule, cfg, cache)
     order = np.argsort(-sc.score, kind="stable")
