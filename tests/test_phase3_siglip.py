@@ -15,13 +15,11 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+import transformers  # the test extra: make setup installs it with onnx and sentencepiece
 
-transformers = pytest.importorskip("transformers")
-pytest.importorskip("onnx")
-
-from sync4d.cli import main  # noqa: E402
-from sync4d.phase3.encoder import ENCODER_ENV, EncoderError, load_encoder  # noqa: E402
-from sync4d.phase3.siglip import (  # noqa: E402
+from sync4d.cli import main
+from sync4d.phase3.encoder import ENCODER_ENV, EncoderError, load_encoder
+from sync4d.phase3.siglip import (
     MANIFEST,
     SiglipOnnxEncoder,
     export_pretrained,
@@ -350,8 +348,7 @@ def test_export_pretrained_siglip_tokenizer(tmp_path: Path, capsys) -> None:
     SentencePiece SiglipTokenizer, a SiglipImageProcessor config): the converted tokenizer.json
     gives SiglipTokenizer's ids (case, punctuation, whitespace, truncation), and the text
     embeddings match the torch model's."""
-    spm = pytest.importorskip("sentencepiece")
-    pytest.importorskip("google.protobuf")
+    import sentencepiece as spm
     from transformers import SiglipTokenizer
 
     corpus = ["a photo of a cat", "a photo of a dog", "the red cube moves left",
