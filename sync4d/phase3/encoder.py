@@ -16,12 +16,14 @@ the loaded model, never assumed) and returns L2-normalised float32 rows. Two kin
 from __future__ import annotations
 
 import abc
+import hashlib
 import os
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ENCODER_ENV", "Encoder", "EncoderError", "load_encoder", "normalise_rows"]
+__all__ = ["ENCODER_ENV", "Encoder", "EncoderError", "file_sha256", "load_encoder",
+           "normalise_rows"]
 
 #: Environment variable naming the encoder when ``--encoder`` is not given.
 ENCODER_ENV = "SYNC4D_ENCODER"
@@ -29,6 +31,15 @@ ENCODER_ENV = "SYNC4D_ENCODER"
 
 class EncoderError(RuntimeError):
     """An encoder that cannot be loaded or used; the message names the file and what to do."""
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of the file at `path`, read in 1 MiB blocks (model-file digests)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def normalise_rows(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:

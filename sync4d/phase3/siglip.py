@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from sync4d.phase3.encoder import Encoder, EncoderError, normalise_rows
+from sync4d.phase3.encoder import Encoder, EncoderError, file_sha256, normalise_rows
 
 __all__ = [
     "FILES",
@@ -67,15 +67,6 @@ _EXPORT_HINT = "pip install 'sync4d[export]'"
 _REEXPORT = "export it again with `python -m sync4d encoder export --model NAME --out DIR`"
 _REQUIRED = ("format", "kind", "dim", "image_size", "mean", "std", "resize", "max_length",
              "pad_id", "files")  # fmt: skip
-
-
-def file_sha256(path: str | Path) -> str:
-    """The sha256 (hex) of the file at `path`, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------------------------
