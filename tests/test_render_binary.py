@@ -18,6 +18,7 @@ import torch
 from PIL import Image
 from test_train_phase1 import _scene
 
+from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
 from sync4d.runs import camera_records, save_checkpoint
@@ -35,15 +36,16 @@ def _binary() -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory) -> tuple[Path, DeformableGaussians, object]:
-    """A checkpoint of a small model whose D_theta is far from the identity, with SH degree 1."""
+@pytest.fixture(scope="module", params=[0, 4], ids=["raw-position", "position-bands-4"])
+def run(tmp_path_factory, request) -> tuple[Path, DeformableGaussians, object]:
+    """A checkpoint of a small model whose D_theta is far from the identity, with SH degree 1;
+    D_theta reads the raw position (the paper) or its 4-band encoding."""
     tmp = tmp_path_factory.mktemp("render")
     scene, _ = _scene(tmp)
     g = torch.Generator().manual_seed(5)
     model = DeformableGaussians(
         torch.randn(60, 3, generator=g) * 0.4, torch.rand(60, 3, generator=g), sh_degree=1,
-        generator=g,
+        config=DeformConfig(position_bands=request.param), generator=g,
     )  # fmt: skip
     with torch.no_grad():
         model.log_scales.fill_(math.log(0.08))

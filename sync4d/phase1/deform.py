@@ -6,6 +6,8 @@ deformation MLP D_theta(x0, z, gamma(t)) -> (dx, dw, dl), applied as
     s(t) = exp(log s0 + dl)                         (Eq. 4)
 
 The last layer is zero-initialised, so training starts from the identity deformation.
+Beyond the paper, behind `DeformConfig` switches whose defaults are the paper's model: a
+positional encoding of x0 (`position_bands`) and bfloat16 hidden layers (`precision`).
 """
 
 from __future__ import annotations
@@ -17,12 +19,13 @@ import torch
 from torch import Tensor, nn
 
 from sync4d.geometry import axis_angle_to_quat, quat_multiply
-from sync4d.settings import ranged
+from sync4d.settings import choice, ranged
 
 __all__ = [
     "DeformConfig",
     "DeformationMLP",
     "deform_gaussians",
+    "position_encoding",
     "time_encoding",
 ]
 
@@ -35,6 +38,11 @@ class DeformConfig:
     embed_dim: int = ranged(32, 1)
     #: Frequencies L of the time encoding gamma(t) = [t, sin(2^k pi t), cos(2^k pi t)], k < L.
     bands: int = ranged(6, 0, 20)
+    #: Frequencies of an encoding of the canonical position, [x0, sin(2^k pi x0),
+    #: cos(2^k pi x0)] for k below it (3 + 6 L inputs instead of x0's 3). 0 (the paper) feeds
+    #: the raw position; Deformable-3DGS encodes it with 10 so limbs next to each other can
+    #: move apart.
+    position_bands: int = ranged(0, 0, 20)
     #: Width of D_theta's hidden layers.
     hidden: int = ranged(128, 1)
     #: Hidden layers of D_theta (ReLU after each).
@@ -45,11 +53,17 @@ class DeformConfig:
     scale_rotation: float = ranged(0.10, 0.0)
     #: Output scale of the log-scale offset dl.
     scale_log_scale: float = ranged(0.05, 0.0)
+    #: Arithmetic of the hidden layers after the first: "float32", or "bfloat16" (CPU
+    #: autocast; the first layer, reading the position, and the head stay float32). D_theta
+    #: is most of a Phase 1 iteration's time on a CPU, and bfloat16 runs it about 3x faster on
+    #: CPUs with AVX-512 BF16 (docs/results/phase1-articulated.md).
+    precision: str = choice("float32", ("float32", "bfloat16"))
 
     @property
     def input_dim(self) -> int:
-        """3 (position) + embedding + 1 + 2 * bands (time encoding): 48 by default."""
-        return 3 + self.embed_dim + 1 + 2 * self.bands
+        """3 + 6 * position_bands (position) + embedding + 1 + 2 * bands (time encoding): 48
+        by default."""
+        return 3 * (1 + 2 * self.position_bands) + self.embed_dim + 1 + 2 * self.bands
 
 
 def time_encoding(t: Tensor, bands: int = 6) -> Tensor:
@@ -62,6 +76,17 @@ def time_encoding(t: Tensor, bands: int = 6) -> Tensor:
     return torch.cat([t, enc], dim=-1)
 
 
+def position_encoding(x: Tensor, bands: int) -> Tensor:
+    """[x, sin(2^0 pi x), cos(2^0 pi x), ..., sin(2^(L-1) pi x), cos(2^(L-1) pi x)], each
+    term the 3 coordinates: [N, 3] -> [N, 3 (1 + 2 L)]; `x` itself when `bands` is 0."""
+    if bands == 0:
+        return x
+    freqs = (2.0 ** torch.arange(bands, dtype=x.dtype, device=x.device)) * math.pi
+    ang = x.unsqueeze(-2) * freqs.unsqueeze(-1)  # [N, L, 3]
+    enc = torch.cat([torch.sin(ang), torch.cos(ang)], dim=-1).flatten(-2)  # [N, 6 L]
+    return torch.cat([x, enc], dim=-1)
+
+
 @torch.no_grad()
 def _default_linear_init(layer: nn.Linear, generator: torch.Generator) -> None:
     """nn.Linear's own initialisation (weights Kaiming-uniform with a = sqrt(5), biases
@@ -72,10 +97,10 @@ def _default_linear_init(layer: nn.Linear, generator: torch.Generator) -> None:
 
 
 class DeformationMLP(nn.Module):
-    """D_theta: [x0; z; gamma(t)] (48-d) -> Lin 128 -> ReLU -> ... -> Lin 9 (zero-initialised),
-    scaled to (dx 0.10, dw 0.10, dl 0.05). Hidden layers start with torch's default Linear
-    initialisation drawn from `generator` (torch's unseeded global generator when None), so a
-    seeded model is the same in every process."""
+    """D_theta: [x0 (or its encoding); z; gamma(t)] (48-d by default) -> Lin 128 -> ReLU ->
+    ... -> Lin 9 (zero-initialised), scaled to (dx 0.10, dw 0.10, dl 0.05). Hidden layers
+    start with torch's default Linear initialisation drawn from `generator` (torch's unseeded
+    global generator when None), so a seeded model is the same in every process."""
 
     def __init__(
         self, config: DeformConfig | None = None, generator: torch.Generator | None = None
@@ -102,9 +127,18 @@ class DeformationMLP(nn.Module):
         t = torch.as_tensor(t, dtype=x0.dtype, device=x0.device)
         if t.dim() == 0:
             t = t.expand(n)
-        h = torch.cat([x0, z, time_encoding(t, self.config.bands)], dim=-1)
-        o = self.head(self.trunk(h))
         c = self.config
+        h = torch.cat(
+            [position_encoding(x0, c.position_bands), z, time_encoding(t, c.bands)], dim=-1
+        )
+        if c.precision == "bfloat16" and h.device.type == "cpu":
+            first, rest = self.trunk[:2], self.trunk[2:]
+            h = first(h)
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                h = rest(h)
+            o = self.head(h.float())
+        else:
+            o = self.head(self.trunk(h))
         return (
             o[:, 0:3] * c.scale_position,
             o[:, 3:6] * c.scale_rotation,

@@ -67,6 +67,8 @@ pub struct DeformMlp {
     pub head: Linear,
     /// Frequency bands L of the time encoding (1 + 2L values).
     pub bands: usize,
+    /// Frequency bands of the position encoding (3 (1 + 2L) values; 0: the raw position).
+    pub position_bands: usize,
     /// Output scales of dx, dw and dl.
     pub scales: [f32; 3],
 }
@@ -283,6 +285,20 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
             format!("deform_config.bands = {bands} is out of range"),
         ));
     }
+    // Absent in checkpoints written before the option existed: the raw position.
+    let position_bands = match dc.get("position_bands") {
+        None => 0,
+        Some(_) => {
+            let v = num(dc, "position_bands", path)?;
+            if !((0.0..=30.0).contains(&v) && v.fract() == 0.0) {
+                return Err(err(
+                    path,
+                    format!("deform_config.position_bands must be an integer in 0..=30, got {v}"),
+                ));
+            }
+            v as usize
+        }
+    };
 
     let n = *t.shape("gaussians.means")?.first().unwrap_or(&0);
     let k = ((sh_degree + 1) * (sh_degree + 1)) as usize;
@@ -303,7 +319,7 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         sh.extend_from_slice(&sh_rest[3 * (k - 1) * i..3 * (k - 1) * (i + 1)]);
     }
 
-    let input = 3 + embed_dim + 1 + 2 * bands;
+    let input = 3 * (1 + 2 * position_bands) + embed_dim + 1 + 2 * bands;
     let mut trunk = Vec::new();
     let mut width = input;
     for l in 0..layers - 1 {
@@ -358,6 +374,7 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
             trunk,
             head,
             bands,
+            position_bands,
             scales,
         },
         near,

@@ -1,5 +1,6 @@
-//! D_theta evaluated in Rust (f32), exactly as `sync4d/deform.py`: the input
-//! [x0; z; gamma(t)] with gamma(t) = [t, sin(2^0 pi t), cos(2^0 pi t), ...], ReLU trunk, linear
+//! D_theta evaluated in Rust (f32), exactly as `sync4d/phase1/deform.py`: the input
+//! [x0 or its encoding; z; gamma(t)] with gamma(t) = [t, sin(2^0 pi t), cos(2^0 pi t), ...]
+//! (the position encoding: x0, then per band sin and cos of the 3 coordinates), ReLU trunk, linear
 //! head scaled to (dx, dw, dl), then Eqs. 2-4: x = x0 + dx, q = normalize(aa2q(dw) (x) q0),
 //! s = exp(log s0 + dl).
 
@@ -28,6 +29,17 @@ pub fn time_encoding(t: f32, bands: usize) -> Vec<f32> {
         out.push(a.cos());
     }
     out
+}
+
+/// The position encoding appended to `out`: x, then for each band k < L sin(2^k pi x) and
+/// cos(2^k pi x) of the 3 coordinates (3 (1 + 2L) values; x alone when L = 0).
+pub fn push_position_encoding(x: &[f32], bands: usize, out: &mut Vec<f32>) {
+    out.extend_from_slice(&x[..3]);
+    for b in 0..bands {
+        let f = 2.0f32.powi(b as i32) * std::f32::consts::PI;
+        out.extend(x[..3].iter().map(|v| (v * f).sin()));
+        out.extend(x[..3].iter().map(|v| (v * f).cos()));
+    }
 }
 
 fn linear(l: &Linear, x: &[f32], y: &mut Vec<f32>, relu: bool) {
@@ -102,11 +114,16 @@ pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
         .enumerate()
         .for_each(|(c, ((m, q), s))| {
             let (mut a, mut b) = (Vec::new(), Vec::new());
-            let mut input = Vec::with_capacity(3 + e + gamma.len());
+            let mut input =
+                Vec::with_capacity(3 * (1 + 2 * ck.mlp.position_bands) + e + gamma.len());
             for l in 0..m.len() / 3 {
                 let i = c * CHUNK + l;
                 input.clear();
-                input.extend_from_slice(&ck.means[3 * i..3 * i + 3]);
+                push_position_encoding(
+                    &ck.means[3 * i..3 * i + 3],
+                    ck.mlp.position_bands,
+                    &mut input,
+                );
                 input.extend_from_slice(&ck.embeddings[e * i..e * (i + 1)]);
                 input.extend_from_slice(&gamma);
                 let o = mlp_eval(&ck.mlp, &input, &mut a, &mut b);
