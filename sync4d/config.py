@@ -203,10 +203,10 @@ ALIASES = {
 def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     """`cfg` bounded to `iterations` per phase (`fit --iters N`). Phase 1 trains `iterations`
     instead of `cfg.phase1.iterations`, with its iteration-based schedules (densification
-    start/stop/interval, opacity reset, SH degree steps, static warm-up, periodic evaluation and
-    checkpoints) scaled by the same ratio, so a shorter run still densifies, resets opacities
-    and reaches full SH degree at the same fractions of training. Phase 2 trains at most
-    `iterations` (`phase2_budget`)."""
+    start/stop/interval, opacity reset, SH degree steps, static and learning-rate warm-ups,
+    periodic evaluation and checkpoints) scaled by the same ratio, so a shorter run still
+    densifies, resets opacities and reaches full SH degree at the same fractions of training.
+    Phase 2 trains at most `iterations` (`phase2_budget`)."""
     if iterations < 1:
         raise ConfigError(f"iterations: expected a positive integer, got {iterations}")
     r = iterations / cfg.phase1.iterations
@@ -228,6 +228,7 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
         densify=densify,
         sh_degree_interval=scaled(cfg.phase1.sh_degree_interval),
         static_warmup=scaled(cfg.phase1.static_warmup, 0),
+        lr_deform_warmup=scaled(cfg.phase1.lr_deform_warmup, 0),
     )
     return dataclasses.replace(
         cfg,

@@ -94,3 +94,29 @@ def test_opacity_reset_applies_at_the_start_of_the_next_iteration(tmp_path: Path
     assert float(torch.sigmoid(model.opacity_logits.detach()).min()) > 0.5
     trainer.step()
     assert float(torch.sigmoid(model.opacity_logits.detach()).max()) < 0.05
+
+
+def test_static_and_learning_rate_warmups_hold_d_theta_back(tmp_path: Path) -> None:
+    """During the static warm-up D_theta is off (its weights do not move); then its and the
+    embeddings' rates ramp linearly to the schedule over `lr_deform_warmup` iterations."""
+    scene, gt = _scene(tmp_path)
+    model = DeformableGaussians(gt.means.data.clone(), None, sh_degree=0,
+                                generator=torch.Generator().manual_seed(2))  # fmt: skip
+    cfg = Phase1Config(static_warmup=4, lr_deform_warmup=10,
+                       densify=DensifyConfig(start=10_000))  # fmt: skip
+    trainer = Phase1Trainer(model, scene, cfg, total_iterations=40, threads=1)
+    lr = {g["name"]: g for g in trainer.optimizer.param_groups}
+    head = model.deform.head.weight.detach().clone()
+    trainer.train(4)
+    assert not trainer.deform_active()
+    assert torch.equal(model.deform.head.weight.detach(), head)
+    trainer.train(1)  # iteration 5: the first with D_theta, at a tenth of its rate
+    assert trainer.deform_active()
+    full = trainer._decayed(cfg.lr_deform, cfg.lr_deform_final)
+    assert math.isclose(lr["deform"]["lr"], 0.1 * full, rel_tol=1e-9)
+    assert not torch.equal(model.deform.head.weight.detach(), head)
+    trainer.train(9)  # iteration 14: the ramp is over
+    full = trainer._decayed(cfg.lr_deform, cfg.lr_deform_final)
+    assert math.isclose(lr["deform"]["lr"], full, rel_tol=1e-9)
+    embed = trainer._decayed(cfg.lr_embed, cfg.lr_embed_final)
+    assert math.isclose(lr["embeddings"]["lr"], embed, rel_tol=1e-9)

@@ -78,6 +78,13 @@ class Phase1Config:
     #: static warm-up of Deformable-3DGS): the static scene settles first, so its gradients do
     #: not drown D_theta's time signal. 0 disables it.
     static_warmup: int = ranged(0, 0)
+    #: Iterations (after the static warm-up) over which D_theta's and the embeddings' learning
+    #: rates ramp linearly from 0 to their schedule. 0 (the paper) starts them at full rate.
+    #: Adam's first steps move every weight of the zero-initialised head by about its rate in
+    #: one direction, which shifts all Gaussians together: with a position scale of 1.0 and
+    #: a rate of 1.6e-3 this threw hook's whole scene out of view within 100 iterations and
+    #: it never recovered (docs/results/phase1-articulated.md).
+    lr_deform_warmup: int = ranged(0, 0)
     #: Weight of the L1 term of the photometric loss.
     lambda_l1: float = ranged(0.8, 0.0)
     #: Weight of the D-SSIM term of the photometric loss.
@@ -150,15 +157,28 @@ class Phase1Trainer:
         c = self.config
         return self._decayed(c.lr_means, c.lr_means_final) * self.extent
 
+    def deform_active(self) -> bool:
+        """Whether D_theta deforms the Gaussians at the current iteration (not during the
+        static warm-up)."""
+        return self.iteration > self.config.static_warmup
+
+    def deform_lr_factor(self) -> float:
+        """The warm-up ramp's factor on D_theta's and the embeddings' rates, in (0, 1]."""
+        c = self.config
+        if c.lr_deform_warmup <= 0:
+            return 1.0
+        return min(1.0, max(1, self.iteration - c.static_warmup) / c.lr_deform_warmup)
+
     def _update_learning_rates(self) -> None:
         c = self.config
+        ramp = self.deform_lr_factor()
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = self._position_lr()
             elif g["name"] == "deform":
-                g["lr"] = self._decayed(c.lr_deform, c.lr_deform_final)
+                g["lr"] = ramp * self._decayed(c.lr_deform, c.lr_deform_final)
             elif g["name"] == "embeddings":
-                g["lr"] = self._decayed(c.lr_embed, c.lr_embed_final)
+                g["lr"] = ramp * self._decayed(c.lr_embed, c.lr_embed_final)
 
     def step(self) -> dict[str, float]:
         """One iteration on a random training frame; returns loss, PSNR and N."""
@@ -171,7 +191,7 @@ class Phase1Trainer:
         frame = self.scene.train[idx]
         target = self._image(idx, frame)
         degree = self.sh_degree_now()
-        deformed = self.model.at_time(frame.time, deform=self.iteration > c.static_warmup)
+        deformed = self.model.at_time(frame.time, deform=self.deform_active())
         out = self.model.render(
             frame.camera, frame.time, sh_degree=degree, background=self._background,
             deformed=deformed, threads=self.threads,

@@ -289,6 +289,14 @@ class Phase2Trainer(Phase1Trainer):
         stats["rho"] = float(rho.detach())
         return total, stats
 
+    def deform_active(self) -> bool:
+        """D_theta is always on in Phase 2 (Phase 1's static warm-up is behind it)."""
+        return True
+
+    def deform_lr_factor(self) -> float:
+        """Phase 1's warm-up ramp of D_theta's rate is behind Phase 2: full rate."""
+        return 1.0
+
     def _update_learning_rates(self) -> None:
         super()._update_learning_rates()
         mc = self.phase2.motion
