@@ -140,3 +140,14 @@ def test_bfloat16_hidden_layers_match_float32() -> None:
     for a, b in zip(ref_grads, low_grads, strict=True):
         assert torch.isfinite(b).all()
         assert (a - b).norm() <= 0.03 * a.norm() + 1e-12
+
+
+def test_bad_encoding_or_precision_is_rejected() -> None:
+    """A checkpoint's deform_config reaches DeformationMLP unvalidated: an unknown precision
+    must not fall back to float32 silently, nor a negative band count build a broken MLP."""
+    import pytest
+
+    with pytest.raises(ValueError, match="precision"):
+        DeformationMLP(DeformConfig(precision="float16"))
+    with pytest.raises(ValueError, match="position_bands"):
+        DeformationMLP(DeformConfig(position_bands=-1))

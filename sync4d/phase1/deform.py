@@ -55,8 +55,8 @@ class DeformConfig:
     scale_log_scale: float = ranged(0.05, 0.0)
     #: Arithmetic of the hidden layers after the first: "float32", or "bfloat16" (CPU
     #: autocast; the first layer, reading the position, and the head stay float32). D_theta
-    #: is most of a Phase 1 iteration's time on a CPU, and bfloat16 runs it about 3x faster on
-    #: CPUs with AVX-512 BF16 (docs/results/phase1-articulated.md).
+    #: is about half of a Phase 1 iteration's time on a CPU; bfloat16 runs its forward and
+    #: backward 1.5-1.8x faster on CPUs with AVX-512 BF16 (docs/results/phase1-articulated.md).
     precision: str = choice("float32", ("float32", "bfloat16"))
 
     @property
@@ -108,6 +108,10 @@ class DeformationMLP(nn.Module):
         super().__init__()
         self.config = config or DeformConfig()
         c = self.config
+        if c.precision not in ("float32", "bfloat16"):
+            raise ValueError(f"precision: expected 'float32' or 'bfloat16', got {c.precision!r}")
+        if c.position_bands < 0:
+            raise ValueError(f"position_bands: expected 0 or more, got {c.position_bands}")
         dims = [c.input_dim] + [c.hidden] * (c.layers - 1)
         blocks: list[nn.Module] = []
         for d_in, d_out in zip(dims[:-1], dims[1:], strict=True):

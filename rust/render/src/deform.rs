@@ -31,12 +31,19 @@ pub fn time_encoding(t: f32, bands: usize) -> Vec<f32> {
     out
 }
 
-/// The position encoding appended to `out`: x, then for each band k < L sin(2^k pi x) and
-/// cos(2^k pi x) of the 3 coordinates (3 (1 + 2L) values; x alone when L = 0).
-pub fn push_position_encoding(x: &[f32], bands: usize, out: &mut Vec<f32>) {
+/// The frequencies 2^k pi, k < `bands`, of the position encoding.
+pub fn position_frequencies(bands: usize) -> Vec<f32> {
+    (0..bands)
+        .map(|b| 2.0f32.powi(b as i32) * std::f32::consts::PI)
+        .collect()
+}
+
+/// The position encoding appended to `out`: x, then for each frequency f of
+/// `position_frequencies(L)` sin(f x) and cos(f x) of the 3 coordinates (3 (1 + 2L) values; x
+/// alone when L = 0).
+pub fn push_position_encoding(x: &[f32], freqs: &[f32], out: &mut Vec<f32>) {
     out.extend_from_slice(&x[..3]);
-    for b in 0..bands {
-        let f = 2.0f32.powi(b as i32) * std::f32::consts::PI;
+    for &f in freqs {
         out.extend(x[..3].iter().map(|v| (v * f).sin()));
         out.extend(x[..3].iter().map(|v| (v * f).cos()));
     }
@@ -100,6 +107,7 @@ fn axis_angle_to_quat(w: [f32; 3]) -> [f32; 4] {
 pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
     let n = ck.n;
     let gamma = time_encoding(t, ck.mlp.bands);
+    let freqs = position_frequencies(ck.mlp.position_bands);
     let e = ck.embed_dim;
     let mut d = Deformed {
         means: vec![0.0; 3 * n],
@@ -119,11 +127,7 @@ pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
             for l in 0..m.len() / 3 {
                 let i = c * CHUNK + l;
                 input.clear();
-                push_position_encoding(
-                    &ck.means[3 * i..3 * i + 3],
-                    ck.mlp.position_bands,
-                    &mut input,
-                );
+                push_position_encoding(&ck.means[3 * i..3 * i + 3], &freqs, &mut input);
                 input.extend_from_slice(&ck.embeddings[e * i..e * (i + 1)]);
                 input.extend_from_slice(&gamma);
                 let o = mlp_eval(&ck.mlp, &input, &mut a, &mut b);
