@@ -25,11 +25,19 @@ __all__ = [
 ]
 
 
-def axis_angle_to_quat(w: Tensor, eps: float = 1e-8) -> Tensor:
-    """Unit quaternion (w, x, y, z) of rotation vectors `w` [..., 3] (Appendix A's aa2q)."""
-    theta = w.norm(dim=-1, keepdim=True)
-    axis = w / (theta + eps)
-    q = torch.cat([torch.cos(0.5 * theta), axis * torch.sin(0.5 * theta)], dim=-1)
+def axis_angle_to_quat(w: Tensor) -> Tensor:
+    """Unit quaternion (w, x, y, z) of rotation vectors `w` [..., 3] (Appendix A's aa2q):
+    (cos(theta / 2), w sin(theta / 2) / theta), theta = |w|. A Taylor series below 1e-4 rad
+    keeps the derivative right at w = 0 (d q_xyz / d w = I / 2): D_theta's rotation head starts
+    at exactly zero, and the axis-times-sine form has a zero gradient there, so before
+    2026-12-03 Phase 1 never learnt a rotation."""
+    theta2 = (w * w).sum(-1, keepdim=True)
+    theta = theta2.clamp_min(1e-24).sqrt()
+    small = theta2 < 1e-8
+    safe = torch.where(small, torch.ones_like(theta), theta)
+    half_sinc = torch.where(small, 0.5 - theta2 / 48.0, torch.sin(0.5 * safe) / safe)
+    cos_half = torch.where(small, 1.0 - theta2 / 8.0, torch.cos(0.5 * safe))
+    q = torch.cat([cos_half, w * half_sinc], dim=-1)
     return q / q.norm(dim=-1, keepdim=True)
 
 

@@ -72,6 +72,31 @@ def test_axis_angle_to_quat_matches_rodrigues_and_zero() -> None:
     assert torch.allclose(q0, torch.tensor([[1.0, 0, 0, 0]] * 2))
 
 
+def test_axis_angle_to_quat_gradient_at_and_near_zero() -> None:
+    """The derivative at w = 0 is [0; I / 2] (D_theta's zero-initialised rotation head starts
+    there; the axis-times-sine form had a zero gradient, so no rotation was ever learnt), and
+    finite differences agree on both sides of the Taylor-series switch."""
+    zero = torch.zeros(3, dtype=torch.float64)
+    jac = torch.autograd.functional.jacobian(axis_angle_to_quat, zero)
+    want = torch.cat([torch.zeros(1, 3), 0.5 * torch.eye(3)]).double()
+    assert torch.allclose(jac, want, atol=1e-12)
+    gen = torch.Generator().manual_seed(3)
+    for scale in (1e-6, 3e-5, 2e-4, 0.3, 2.5):
+        w = (torch.randn(3, generator=gen, dtype=torch.float64) * scale).requires_grad_()
+        assert torch.autograd.gradcheck(axis_angle_to_quat, (w,), eps=1e-7, atol=1e-7)
+
+
+def test_deformation_learns_a_rotation_from_the_zero_head() -> None:
+    """One gradient step on a loss that wants the Gaussians turned moves the rotation head off
+    zero (it did not before 2026-12-03)."""
+    mlp = DeformationMLP(DeformConfig(), torch.Generator().manual_seed(0))
+    x0 = torch.randn(8, 3, generator=torch.Generator().manual_seed(1))
+    _, dw, _ = mlp(x0, torch.zeros(8, 32), 0.3)
+    q = quat_multiply(axis_angle_to_quat(dw), torch.tensor([[1.0, 0, 0, 0]]).expand(8, 4))
+    (-q[:, 3]).sum().backward()  # wants a turn about z
+    assert mlp.head.weight.grad[3:6].abs().sum() > 0
+
+
 def test_quat_multiply_composes_rotations() -> None:
     gen = torch.Generator().manual_seed(1)
     a, b = torch.randn(2, 4, generator=gen, dtype=torch.float64)

@@ -1,6 +1,7 @@
 """Phase 1 initialisation: the canonical Gaussians a run starts from (the dataset's point
-cloud, or random points in a cube around where the cameras look), and the scene measures the
-trainers use (3DGS's camera extent, the cameras' focus point).
+cloud, or random points in a cube around where the cameras look, optionally with a shell of
+points on a capture dome's wall), and the scene measures the trainers use (3DGS's camera
+extent, the cameras' focus point).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from sync4d.data.scene import Scene
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 
-__all__ = ["initial_model", "scene_extent", "scene_focus"]
+__all__ = ["camera_sphere", "dome_points", "initial_model", "scene_extent", "scene_focus"]
 
 
 def scene_extent(scene: Scene) -> float:
@@ -41,6 +42,74 @@ def scene_focus(scene: Scene) -> tuple[np.ndarray, float]:
         focus = np.linalg.solve(a, b)
     dist = float(np.linalg.norm(centres_arr - focus, axis=1).mean())
     return focus, max(dist, 1e-6)
+
+
+#: Largest spread of the camera distances from the fitted sphere's centre, as a fraction of its
+#: radius, for `camera_sphere` to call the cameras a dome (Panoptic's 31 HD cameras: 0.4 %).
+DOME_TOLERANCE = 0.05
+
+
+def camera_sphere(scene: Scene) -> tuple[np.ndarray, float] | None:
+    """Centre [3] and radius of the sphere through every camera of `scene` (least squares), or
+    None when the cameras do not fix one or do not lie on it (fewer than 4 distinct cameras,
+    all of them on one plane, or a distance off by more than `DOME_TOLERANCE` of the
+    radius)."""
+    centres = np.unique(
+        np.round(np.stack([f.camera.center for f in scene.train + scene.test]), 6), axis=0
+    )
+    a = np.c_[2.0 * centres, np.ones(len(centres))]
+    if len(centres) < 4 or np.linalg.matrix_rank(a) < 4:  # too few, or all on one plane
+        return None
+    sol, *_ = np.linalg.lstsq(a, (centres**2).sum(1), rcond=None)
+    centre = sol[:3]
+    r2 = sol[3] + centre @ centre
+    if not np.isfinite(r2) or r2 <= 0:
+        return None
+    radius = float(np.sqrt(r2))
+    spread = np.abs(np.linalg.norm(centres - centre, axis=1) - radius).max() / radius
+    return (centre, radius) if spread <= DOME_TOLERANCE else None
+
+
+def dome_points(
+    scene: Scene, count: int, radius_factor: float = 1.03, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points [M, 3] float64 and colours [M, 3] float32 on the wall of a capture dome: `count`
+    directions uniform on the sphere through the cameras (`camera_sphere`), at `radius_factor`
+    times its radius (just behind the cameras, which hang on the wall), each coloured by the
+    median of the training images of the first instant it projects into; directions no such
+    image sees are dropped. Raises ValueError when the cameras are not on a sphere."""
+    sphere = camera_sphere(scene)
+    if sphere is None:
+        raise ValueError(
+            f"scene '{scene.name}': its cameras do not lie on a sphere (a capture dome), so "
+            "there is no dome wall to place points on; set init_dome_points = 0"
+        )
+    centre, radius = sphere
+    rng = np.random.default_rng(seed)
+    dirs = rng.normal(size=(count, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    pts = centre + radius_factor * radius * dirs
+    first = min(f.time for f in scene.train)
+    samples: list[np.ndarray] = []
+    owners: list[np.ndarray] = []
+    for f in (f for f in scene.train if f.time == first):
+        cam = f.camera
+        uv, z = cam.project(pts)
+        u, v = uv[:, 0], uv[:, 1]
+        inside = (z > 1e-3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        idx = np.nonzero(inside)[0]
+        img = f.load_image()
+        samples.append(img[v[idx].astype(int), u[idx].astype(int)])
+        owners.append(idx)
+    if not owners:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
+    owner = np.concatenate(owners)
+    colour = np.concatenate(samples)
+    order = np.argsort(owner, kind="stable")
+    owner, colour = owner[order], colour[order]
+    seen, starts = np.unique(owner, return_index=True)
+    medians = np.stack([np.median(c, axis=0) for c in np.split(colour, starts[1:])])
+    return pts[seen], medians.astype(np.float32)
 
 
 def initial_model(

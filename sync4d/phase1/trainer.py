@@ -50,6 +50,16 @@ class Phase1Config:
     init_from: str = choice("auto", ("auto", "points", "triangulate", "random"))
     #: Random initial Gaussians when the dataset has no point cloud (3DGS uses 100k on a GPU).
     init_points: int = ranged(20_000, 1)
+    #: Points added to the initial ones on the wall of a capture dome (`init_from` points or
+    #: triangulate): directions uniform on the sphere through the cameras, at
+    #: `init_dome_radius` times its radius, coloured from the first instant's training images
+    #: (`sync4d.phase1.init.dome_points`). 0 (default) adds none. A dome's wall is seen
+    #: by few cameras at grazing angles and triangulates sparsely; without it, Gaussians
+    #: floating in front of the wall explain the training views and fog the novel ones.
+    init_dome_points: int = ranged(0, 0)
+    #: Radius of those points as a multiple of the cameras' sphere (the cameras hang on the
+    #: wall, so just behind them).
+    init_dome_radius: float = ranged(1.03, 0.5, 4.0)
     #: Half-size of the random-init cube as a fraction of the mean camera distance.
     init_box_fraction: float = ranged(0.33, 0.0, lo_open=True)
     #: Adam rate of the canonical means, times the scene extent (3DGS).

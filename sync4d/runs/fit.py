@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
@@ -200,8 +201,13 @@ def with_initial_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Sc
                 f"init_from=points: the dataset '{scene.name}' has no point cloud; "
                 "use init_from=triangulate (multi-view) or init_from=random"
             )
-        return scene
+        return with_dome_points(scene, cfg, quiet)
     if source == "random":
+        if cfg.phase1.init_dome_points > 0:
+            raise ConfigError(
+                "init_dome_points adds to a point cloud; use init_from=points or triangulate "
+                "with it, or set init_dome_points = 0"
+            )
         return dataclasses.replace(scene, points=None, point_colors=None)
     if not quiet:
         print("fit: triangulating initial points (pycolmap, fixed poses)...", file=sys.stderr)
@@ -217,7 +223,35 @@ def with_initial_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Sc
             f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "
             f"({how})", file=sys.stderr,
         )  # fmt: skip
-    return dataclasses.replace(scene, points=tri.points, point_colors=tri.colors)
+    return with_dome_points(
+        dataclasses.replace(scene, points=tri.points, point_colors=tri.colors), cfg, quiet
+    )
+
+
+def with_dome_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Scene:
+    """`scene` with `cfg.phase1.init_dome_points` points on its capture dome's wall added to
+    its point cloud (unchanged when that is 0); ConfigError when the cameras are not on a
+    sphere."""
+    from sync4d.phase1.init import dome_points
+
+    p1 = cfg.phase1
+    if p1.init_dome_points <= 0:
+        return scene
+    try:
+        pts, cols = dome_points(scene, p1.init_dome_points, p1.init_dome_radius, p1.seed)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if not quiet:
+        print(f"fit: {len(pts)} initial points on the dome's wall", file=sys.stderr)
+    base = np.zeros((0, 3)) if scene.points is None else np.asarray(scene.points, np.float64)
+    base_cols = scene.point_colors
+    if base_cols is None:
+        base_cols = np.full((len(base), 3), 0.5, np.float32)
+    return dataclasses.replace(
+        scene,
+        points=np.concatenate([base, pts]),
+        point_colors=np.concatenate([np.asarray(base_cols, np.float32), cols]),
+    )
 
 
 def run_fit(
