@@ -217,6 +217,12 @@ def test_bench_fit_writes_json_and_plot(data: Path, tmp_path: Path) -> None:
     assert all(r["psnr"] > 0 and r["train_seconds"] > 0 for r in rec["results"])
     assert any(r["pareto"] for r in rec["results"])
     assert out.with_suffix(".png").stat().st_size > 1000
+    worst = rec["results"][-1]["worst_view"]
+    assert worst["psnr"] <= rec["results"][-1]["psnr"] and worst["name"].endswith(".png")
+    from PIL import Image
+
+    with Image.open(rec["worst_view_png"]) as im:  # render beside ground truth
+        assert im.size[0] > im.size[1]
 
 
 def test_pareto_front() -> None:

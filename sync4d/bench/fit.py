@@ -2,9 +2,10 @@
 
 Trains the same scene at several budgets (iterations x resolution scale x Gaussian cap), each a
 full `fit` run with its schedule scaled to the budget, and records training seconds against
-test PSNR / SSIM / LPIPS. Writes a JSON and a PNG plot of test PSNR against wall time with the
-Pareto front (no other budget is both faster and better) marked, so a user can pick the budget
-that fits their time.
+test PSNR / SSIM / LPIPS and the worst test view. Writes a JSON, a PNG plot of test PSNR against
+wall time with the Pareto front (no other budget is both faster and better) marked, so a user
+can pick the budget that fits their time, and the largest budget's worst test view rendered
+beside its ground truth (``<out>-worst.png``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import dataclasses
 import datetime as _dt
 import json
 import platform
+import shutil
 import sys
 import tempfile
 from itertools import product
@@ -72,6 +74,7 @@ def run_grid(
         summary = run_fit(
             scene, cfg, run_dir, data, threads=threads, log_every=max(50, iters // 10), quiet=True
         )
+        worst = worst_view(run_dir)
         rows.append(
             {
                 "iterations": iters,
@@ -86,12 +89,44 @@ def run_grid(
                 "psnr": summary["psnr"],
                 "ssim": summary["ssim"],
                 "lpips": summary["lpips"],
+                "worst_view": worst,
+                "run_dir": str(run_dir),
             }
         )
     front = pareto_front([(r["train_seconds"], r["psnr"]) for r in rows])
     for r, f in zip(rows, front, strict=True):
         r["pareto"] = f
     return rows
+
+
+def worst_view(run_dir: Path) -> dict[str, Any] | None:
+    """The test frame with the lowest PSNR in `run_dir/eval.json` (name, time, PSNR, and the
+    path of its render beside the ground truth), or None when the run has no evaluation."""
+    try:
+        frames = json.loads((run_dir / "eval.json").read_text())["frames"]
+    except (OSError, ValueError, KeyError):
+        return None
+    if not frames:
+        return None
+    f = min(frames, key=lambda f: f["psnr"])
+    render = run_dir / "renders" / "test" / f["name"]
+    return {
+        "name": f["name"], "time": f["time"], "psnr": f["psnr"],
+        "render": str(render) if render.is_file() else None,
+    }  # fmt: skip
+
+
+def copy_worst_view(rows: list[dict[str, Any]], path: Path) -> Path | None:
+    """Copy the worst test view of the largest budget (most iterations, then resolution) to
+    `path`; None when that run wrote no render."""
+    if not rows:
+        return None
+    largest = max(rows, key=lambda r: (r["iterations"], r["resolution_scale"]))
+    worst = largest["worst_view"]
+    if not worst or not worst["render"] or not Path(worst["render"]).is_file():
+        return None
+    shutil.copyfile(worst["render"], path)
+    return path
 
 
 def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
@@ -132,6 +167,10 @@ def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
     return path
 
 
+def _worst_text(worst: dict[str, Any] | None) -> str:
+    return "-" if not worst else f"{worst['name']} {worst['psnr']:.2f}"
+
+
 def format_rows(rows: list[dict[str, Any]]) -> str:
     """The results as an aligned table."""
     body = [
@@ -140,10 +179,11 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
             f"{r['train_seconds']:.0f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}",
             "-" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['gaussians']:,}",
             "*" if r["pareto"] else "",
+            _worst_text(r["worst_view"]),
         ]
         for r in sorted(rows, key=lambda r: r["train_seconds"])
     ]  # fmt: skip
-    header = ["iters", "res", "cap", "train s", "PSNR", "SSIM", "LPIPS", "#G", "front"]
+    header = ["iters", "res", "cap", "train s", "PSNR", "SSIM", "LPIPS", "#G", "front", "worst"]
     return align_table(header, body, left=(1,))
 
 
@@ -165,6 +205,7 @@ def main(args: argparse.Namespace) -> int:
         with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
             work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
             rows = run_grid(data, base, iterations, scales, caps, args.threads, work)
+            worst_png = copy_worst_view(rows, out.with_name(out.stem + "-worst.png"))
     except (ConfigError, DatasetError, WriteFailed) as e:
         print(f"bench fit: {e}", file=sys.stderr)
         return 2
@@ -180,8 +221,16 @@ def main(args: argparse.Namespace) -> int:
         "config": dataclasses.asdict(base),
         "results": rows,
     }
+    written = [out, plot_pareto(rows, out.with_suffix(".png"), f"sync4d fit: {data.name}")]
+    if worst_png is not None:
+        record["worst_view_png"] = str(worst_png)
+        written.append(worst_png)
+    for r in rows:  # the runs' folders are gone unless --keep-runs
+        if not args.keep_runs:
+            r.pop("run_dir", None)
+            if r["worst_view"]:
+                r["worst_view"]["render"] = None
     write_text_atomic(out, json.dumps(record, indent=2) + "\n")
-    png = plot_pareto(rows, out.with_suffix(".png"), f"sync4d fit: {data.name}")
     print(format_rows(rows))
-    print(f"bench fit: wrote {out} and {png}")
+    print(f"bench fit: wrote {', '.join(str(w) for w in written)}")
     return 0
