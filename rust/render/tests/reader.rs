@@ -22,6 +22,11 @@ fn bytes_of(v: &[f32]) -> Vec<u8> {
 /// A valid checkpoint: N Gaussians, SH degree 1, a 2-layer D_theta; `poison` puts a NaN into
 /// the named tensor.
 fn checkpoint(poison: Option<&str>) -> Vec<u8> {
+    checkpoint_with(poison, serde_json::json!({}))
+}
+
+/// `checkpoint`, with the keys of `deform_extra` set in its `deform_config`.
+fn checkpoint_with(poison: Option<&str>, deform_extra: serde_json::Value) -> Vec<u8> {
     let input = 3 + E + 1 + 2 * BANDS;
     let mut specs: Vec<(String, Vec<usize>)> = vec![
         ("gaussians.means".into(), vec![N, 3]),
@@ -66,7 +71,7 @@ fn checkpoint(poison: Option<&str>) -> Vec<u8> {
             )
         })
         .collect();
-    let meta = serde_json::json!({
+    let mut meta = serde_json::json!({
         "sh_degree": 1, "near": 0.05, "background": [1.0, 1.0, 1.0],
         "deform_config": {"embed_dim": E, "bands": BANDS, "hidden": HIDDEN, "layers": 2,
                           "scale_position": 0.1, "scale_rotation": 0.1, "scale_log_scale": 0.05},
@@ -74,6 +79,9 @@ fn checkpoint(poison: Option<&str>) -> Vec<u8> {
             "viewmat": [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0],
             "fx": 20.0, "fy": 20.0, "cx": 8.0, "cy": 8.0, "width": 16, "height": 16}]}
     });
+    for (k, v) in deform_extra.as_object().unwrap() {
+        meta["deform_config"][k] = v.clone();
+    }
     let info = HashMap::from([("sync4d".to_string(), meta.to_string())]);
     serialize(views, Some(info)).unwrap()
 }
@@ -115,6 +123,32 @@ fn bad_tensors_are_named() {
         .unwrap_err()
         .to_string();
     assert!(msg.contains("safetensors"), "{msg}");
+}
+
+#[test]
+fn bad_position_bands_are_refused_by_name() {
+    for bad in [
+        serde_json::json!(2.5),
+        serde_json::json!(-1),
+        serde_json::json!(31),
+    ] {
+        let bytes = checkpoint_with(None, serde_json::json!({ "position_bands": bad }));
+        let msg = parse_checkpoint(&bytes, Path::new("pb.safetensors"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("pb.safetensors") && msg.contains("position_bands"),
+            "{msg}"
+        );
+    }
+    // A valid count whose first layer was trained for the raw position: a shape error.
+    let bytes = checkpoint_with(None, serde_json::json!({ "position_bands": 1 }));
+    let msg = parse_checkpoint(&bytes, Path::new("pb.safetensors"))
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("deform.trunk.0.weight"), "{msg}");
+    let ok = checkpoint_with(None, serde_json::json!({ "position_bands": 0 }));
+    assert!(parse_checkpoint(&ok, Path::new("pb.safetensors")).is_ok());
 }
 
 proptest! {
