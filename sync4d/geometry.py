@@ -25,16 +25,23 @@ __all__ = [
 ]
 
 
+def _rotation_angle(w: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """For rotation vectors `w` [..., 3]: theta^2, where theta is below 1e-4 rad (there the
+    callers switch to a Taylor series), and theta with those entries set to 1 so the closed
+    forms stay finite (and their gradients zero) where they are not used; each [..., 1]."""
+    theta2 = (w * w).sum(-1, keepdim=True)
+    small = theta2 < 1e-8
+    safe = torch.where(small, torch.ones_like(theta2), theta2.clamp_min(1e-24).sqrt())
+    return theta2, small, safe
+
+
 def axis_angle_to_quat(w: Tensor) -> Tensor:
     """Unit quaternion (w, x, y, z) of rotation vectors `w` [..., 3] (Appendix A's aa2q):
     (cos(theta / 2), w sin(theta / 2) / theta), theta = |w|. A Taylor series below 1e-4 rad
     keeps the derivative right at w = 0 (d q_xyz / d w = I / 2): D_theta's rotation head starts
     at exactly zero, and the axis-times-sine form has a zero gradient there, so before
     2026-12-03 Phase 1 never learnt a rotation."""
-    theta2 = (w * w).sum(-1, keepdim=True)
-    theta = theta2.clamp_min(1e-24).sqrt()
-    small = theta2 < 1e-8
-    safe = torch.where(small, torch.ones_like(theta), theta)
+    theta2, small, safe = _rotation_angle(w)
     half_sinc = torch.where(small, 0.5 - theta2 / 48.0, torch.sin(0.5 * safe) / safe)
     cos_half = torch.where(small, 1.0 - theta2 / 8.0, torch.cos(0.5 * safe))
     q = torch.cat([cos_half, w * half_sinc], dim=-1)
@@ -73,10 +80,7 @@ def quat_to_matrix(q: Tensor) -> Tensor:
 def rotvec_to_matrix(w: Tensor) -> Tensor:
     """Rotation matrices [..., 3, 3] of rotation vectors `w` [..., 3] (Rodrigues; a Taylor
     series below 1e-4 rad keeps the gradient finite at w = 0)."""
-    theta2 = (w * w).sum(-1, keepdim=True)
-    theta = theta2.clamp_min(1e-24).sqrt()
-    small = theta2 < 1e-8
-    safe = torch.where(small, torch.ones_like(theta), theta)
+    theta2, small, safe = _rotation_angle(w)
     a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(safe) / safe)
     b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(safe)) / (safe * safe))
     x, y, z = w.unbind(-1)

@@ -84,3 +84,13 @@ def test_fit_adds_them_to_the_point_cloud_and_refuses_random_init(tmp_path) -> N
     bad = load_config(None, ["phase1.init_dome_points=200", "phase1.init_from=random"])
     with pytest.raises(ConfigError, match="init_dome_points"):
         with_initial_points(scene, bad, quiet=True)
+
+
+def test_a_sphere_no_image_sees_gives_no_points(tmp_path) -> None:
+    eyes = _dome_eyes()
+    scene = _scene(tmp_path, eyes)
+    for f in scene.train:  # turn every camera round: the inner sphere is behind them all
+        away = _look_at(f.camera.center, 2 * f.camera.center - CENTRE)
+        f.camera = dataclasses.replace(f.camera, viewmat=away)
+    pts, cols = dome_points(scene, 200, radius_factor=0.5)
+    assert pts.shape == (0, 3) and cols.shape == (0, 3)

@@ -90,7 +90,6 @@ def run_grid(
                 "ssim": summary["ssim"],
                 "lpips": summary["lpips"],
                 "worst_view": worst,
-                "run_dir": str(run_dir),
             }
         )
     front = pareto_front([(r["train_seconds"], r["psnr"]) for r in rows])
@@ -226,10 +225,8 @@ def main(args: argparse.Namespace) -> int:
         record["worst_view_png"] = str(worst_png)
         written.append(worst_png)
     for r in rows:  # the runs' folders are gone unless --keep-runs
-        if not args.keep_runs:
-            r.pop("run_dir", None)
-            if r["worst_view"]:
-                r["worst_view"]["render"] = None
+        if not args.keep_runs and r["worst_view"]:
+            r["worst_view"]["render"] = None
     write_text_atomic(out, json.dumps(record, indent=2) + "\n")
     print(format_rows(rows))
     print(f"bench fit: wrote {', '.join(str(w) for w in written)}")

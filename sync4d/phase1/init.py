@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from sync4d.data.scene import Scene
+from sync4d.data.triangulate import views_at_one_instant
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 
@@ -76,8 +77,9 @@ def dome_points(
     """Points [M, 3] float64 and colours [M, 3] float32 on the wall of a capture dome: `count`
     directions uniform on the sphere through the cameras (`camera_sphere`), at `radius_factor`
     times its radius (just behind the cameras, which hang on the wall), each coloured by the
-    median of the training images of the first instant it projects into; directions no such
-    image sees are dropped. Raises ValueError when the cameras are not on a sphere."""
+    median of the training images it projects into at the instant triangulation uses
+    (`views_at_one_instant`); directions no such image sees are dropped. Raises ValueError
+    when the cameras are not on a sphere."""
     sphere = camera_sphere(scene)
     if sphere is None:
         raise ValueError(
@@ -89,10 +91,9 @@ def dome_points(
     dirs = rng.normal(size=(count, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     pts = centre + radius_factor * radius * dirs
-    first = min(f.time for f in scene.train)
     samples: list[np.ndarray] = []
     owners: list[np.ndarray] = []
-    for f in (f for f in scene.train if f.time == first):
+    for f in views_at_one_instant(scene.train)[1]:
         cam = f.camera
         uv, z = cam.project(pts)
         u, v = uv[:, 0], uv[:, 1]
@@ -101,10 +102,10 @@ def dome_points(
         img = f.load_image()
         samples.append(img[v[idx].astype(int), u[idx].astype(int)])
         owners.append(idx)
-    if not owners:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
     owner = np.concatenate(owners)
     colour = np.concatenate(samples)
+    if len(owner) == 0:  # no image sees the sphere
+        return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
     order = np.argsort(owner, kind="stable")
     owner, colour = owner[order], colour[order]
     seen, starts = np.unique(owner, return_index=True)
