@@ -174,3 +174,6 @@ def add_bench_fit_options(p: argparse.ArgumentParser) -> None:
                       help="results JSON (default bench-fit-NAME.json; the plot goes beside it)")
     p.add_argument("--keep-runs", metavar="DIR", default=None,
                       help="keep each budget's run folder under DIR")
+    p.add_argument("--runs", nargs="+", metavar="RUN", default=None,
+                      help="train nothing: tabulate these finished fit runs (one per scene, "
+                      "say) and copy each one's worst test view beside --out")

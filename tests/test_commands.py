@@ -225,6 +225,32 @@ def test_bench_fit_writes_json_and_plot(data: Path, tmp_path: Path) -> None:
         assert im.size[0] > im.size[1]
 
 
+def test_bench_fit_tabulates_finished_runs(data: Path, tmp_path: Path, capsys) -> None:
+    run = tmp_path / "run"
+    assert main(["fit", str(data), "--out", str(run), "--iters", "6", *TINY]) == 0
+    capsys.readouterr()
+    out = tmp_path / "table.json"
+    assert main(["bench", "fit", "--runs", str(run), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    rec = json.loads(out.read_text())
+    (row,) = rec["results"]
+    final = json.loads((run / "eval.json").read_text())["mean"]
+    assert row["iterations"] == 6 and row["psnr"] == pytest.approx(final["psnr"])
+    assert row["scene"] in printed and "init_points=300" in " ".join(row["settings"])
+    with Image.open(row["worst_view_png"]) as im:  # render beside ground truth
+        assert im.size == (2 * row["width"], row["height"])
+    # an unfinished run, or a dataset given with --runs, is one clear message
+    (tmp_path / "empty").mkdir()
+    assert main(["bench", "fit", "--runs", str(tmp_path / "empty"), "--out", str(out)]) == 2
+    assert "empty" in capsys.readouterr().err
+    assert main(["bench", "fit", str(data), "--runs", str(run), "--out", str(out)]) == 2
+    assert "trains nothing" in capsys.readouterr().err
+    lines = (run / "metrics.jsonl").read_text().splitlines()
+    (run / "metrics.jsonl").write_text("\n".join(ln for ln in lines if '"final"' not in ln))
+    assert main(["bench", "fit", "--runs", str(run), "--out", str(out)]) == 2
+    assert "no final evaluation" in capsys.readouterr().err
+
+
 def test_pareto_front() -> None:
     from sync4d.bench.fit import pareto_front
 

@@ -6,6 +6,11 @@ test PSNR / SSIM / LPIPS and the worst test view. Writes a JSON, a PNG plot of t
 wall time with the Pareto front (no other budget is both faster and better) marked, so a user
 can pick the budget that fits their time, and the largest budget's worst test view rendered
 beside its ground truth (``<out>-worst.png``).
+
+``bench fit --runs RUN [RUN ...]`` trains nothing: it tabulates finished `fit` runs (one per
+scene, say) in the same JSON and table, a row per run, and copies each run's worst test view
+beside the JSON (``<out>-<scene>-worst.png``), so a table over several scenes comes from the
+runs that produced their numbers.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from sync4d.config import ConfigError, RunConfig, load_config, with_budget
 from sync4d.data import DatasetError, load_scene
 from sync4d.report import align_table
 
-__all__ = ["main", "pareto_front", "plot_pareto", "run_grid"]
+__all__ = ["main", "pareto_front", "plot_pareto", "rows_from_runs", "run_grid"]
 
 
 def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
@@ -128,6 +133,108 @@ def copy_worst_view(rows: list[dict[str, Any]], path: Path) -> Path | None:
     return path
 
 
+def _final_summary(run_dir: Path) -> dict[str, Any]:
+    """The last final-evaluation record of `run_dir`'s metrics log."""
+    from sync4d.runs import METRICS_FILE, RunError
+
+    path = run_dir / METRICS_FILE
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise RunError(f"{run_dir}: not a fit run ({METRICS_FILE} is missing)") from None
+    for line in reversed(lines):
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue  # a line cut short by a kill; earlier lines still count
+        if isinstance(rec, dict) and isinstance(rec.get("final"), dict):
+            return rec["final"]
+    raise RunError(
+        f"{path}: the run has no final evaluation; finish it with "
+        f"`python -m sync4d fit --resume --out {run_dir}`"
+    )
+
+
+def rows_from_runs(run_dirs: list[Path]) -> list[dict[str, Any]]:
+    """One result record per finished `fit` run (scene, budget, time, metrics, worst view),
+    read from its record, metrics log and evaluation; `pareto` is within each scene."""
+    from sync4d.runs import RunError
+    from sync4d.runs.record import read_record
+
+    rows: list[dict[str, Any]] = []
+    for run_dir in run_dirs:
+        run_dir = Path(run_dir)
+        if not run_dir.is_dir():
+            raise RunError(f"{run_dir}: no such run folder")
+        record = read_record(run_dir)
+        final = _final_summary(run_dir)
+        cfg = record["config"]
+        worst = worst_view(run_dir)
+        size = _render_size(worst)
+        rows.append(
+            {
+                "scene": record.get("scene", run_dir.name),
+                "run": str(run_dir),
+                "split": record.get("test_split", "test"),
+                "iterations": final.get("iterations", cfg["phase1"]["iterations"]),
+                "resolution_scale": record.get("resolution_scale", cfg["resolution_scale"]),
+                "max_gaussians": cfg["phase1"]["densify"]["max_gaussians"],
+                "threads": record.get("threads"),
+                "settings": _settings(record),
+                "width": size[0],
+                "height": size[1],
+                "train_seconds": final["train_seconds"],
+                "wall_seconds": final.get("wall_seconds"),
+                "gaussians": final["gaussians"],
+                "psnr": final["psnr"],
+                "ssim": final["ssim"],
+                "lpips": final.get("lpips"),
+                "worst_view": worst,
+            }
+        )
+    for scene in {r["scene"] for r in rows}:
+        same = [r for r in rows if r["scene"] == scene]
+        for r, f in zip(same, pareto_front([(r["train_seconds"], r["psnr"]) for r in same]),
+                        strict=True):  # fmt: skip
+            r["pareto"] = f
+    return rows
+
+
+def _settings(record: dict[str, Any]) -> list[str]:
+    """The config name and `--set` overrides the run was started with."""
+    calls = record.get("command", {}).get("invocations") or [{}]
+    first = calls[0] if isinstance(calls[0], dict) else {}
+    named = [f"config={first['config']}"] if first.get("config") else []
+    return named + [str(s) for s in first.get("set") or []]
+
+
+def _render_size(worst: dict[str, Any] | None) -> tuple[int | None, int | None]:
+    """(width, height) of one view from a side-by-side render (render | ground truth)."""
+    if not worst or not worst["render"]:
+        return None, None
+    from PIL import Image
+
+    with Image.open(worst["render"]) as im:
+        return im.size[0] // 2, im.size[1]
+
+
+def copy_worst_views(rows: list[dict[str, Any]], out: Path) -> list[Path]:
+    """Copy each row's worst test view to ``<out stem>-<scene>-worst.png`` (a row index is
+    added when a scene has several rows); the paths written."""
+    written = []
+    for i, r in enumerate(rows):
+        worst = r["worst_view"]
+        if not worst or not worst["render"] or not Path(worst["render"]).is_file():
+            continue
+        several = sum(q["scene"] == r["scene"] for q in rows) > 1
+        tag = f"{r['scene']}-{i}" if several else r["scene"]
+        path = out.with_name(f"{out.stem}-{tag}-worst.png")
+        shutil.copyfile(worst["render"], path)
+        r["worst_view_png"] = str(path)
+        written.append(path)
+    return written
+
+
 def plot_pareto(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
     """Scatter of test PSNR against training time, the Pareto front as a line."""
     import matplotlib
@@ -186,10 +293,64 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
     return align_table(header, body, left=(1,))
 
 
+def format_run_rows(rows: list[dict[str, Any]]) -> str:
+    """`--runs` results as an aligned table, a row per run in the order given."""
+    body = [
+        [
+            r["scene"], r["split"], str(r["iterations"]),
+            "-" if r["width"] is None else f"{r['width']}x{r['height']}",
+            "-" if r["threads"] is None else str(r["threads"]),
+            f"{r['train_seconds'] / 60:.1f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}",
+            "-" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['gaussians']:,}",
+            _worst_text(r["worst_view"]), " ".join(r["settings"]) or "-",
+        ]
+        for r in rows
+    ]  # fmt: skip
+    header = ["scene", "split", "iters", "res", "threads", "train min", "PSNR", "SSIM", "LPIPS",
+              "#G", "worst", "settings"]  # fmt: skip
+    return align_table(header, body, left=(0, 1, 10, 11))
+
+
+def _tabulate_runs(args: argparse.Namespace) -> int:
+    """`bench fit --runs`: the table, JSON and worst views of finished runs; trains nothing."""
+    from sync4d.runs import RunError
+    from sync4d.runs.files import WriteFailed, check_writable, write_text_atomic
+
+    keys = ("iters", "scales", "caps", "keep_runs", "set", "config")
+    given = [f"--{k.replace('_', '-')}" for k in keys if getattr(args, k, None)]
+    if args.data is not None or given:
+        what = ", ".join(([args.data] if args.data else []) + given)
+        msg = (f"bench fit: --runs tabulates finished runs and trains nothing; {what} would not "
+               "be used: drop it, or train with `bench fit DATA` instead")  # fmt: skip
+        print(msg, file=sys.stderr)
+        return 2
+    out = Path(args.out or "bench-fit-runs.json")
+    try:
+        check_writable(out.parent)
+        rows = rows_from_runs([Path(r) for r in args.runs])
+        written = copy_worst_views(rows, out)
+    except (RunError, WriteFailed, OSError) as e:
+        print(f"bench fit: {e}", file=sys.stderr)
+        return 2
+    record = {
+        "benchmark": "fit",
+        "runs": [r["run"] for r in rows],
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "machine": {"platform": platform.platform(), "processor": platform.processor()},
+        "results": rows,
+    }
+    write_text_atomic(out, json.dumps(record, indent=2) + "\n")
+    print(format_run_rows(rows))
+    print(f"bench fit: wrote {', '.join(str(w) for w in [out, *written])}")
+    return 0
+
+
 def main(args: argparse.Namespace) -> int:
     from sync4d.runs import FitInterrupted, resolve_data
     from sync4d.runs.files import WriteFailed, check_writable, write_text_atomic
 
+    if getattr(args, "runs", None):
+        return _tabulate_runs(args)
     try:
         data, default_cfg = resolve_data(args.data)
         base = load_config(args.config or default_cfg, list(args.set or []))
