@@ -243,6 +243,8 @@ def test_bench_fit_tabulates_finished_runs(data: Path, tmp_path: Path, capsys) -
     (tmp_path / "empty").mkdir()
     assert main(["bench", "fit", "--runs", str(tmp_path / "empty"), "--out", str(out)]) == 2
     assert "empty" in capsys.readouterr().err
+    assert main(["bench", "fit", "--runs", str(tmp_path / "gone"), "--out", str(out)]) == 2
+    assert "no such run folder" in capsys.readouterr().err
     assert main(["bench", "fit", str(data), "--runs", str(run), "--out", str(out)]) == 2
     assert "trains nothing" in capsys.readouterr().err
     lines = (run / "metrics.jsonl").read_text().splitlines()

@@ -126,11 +126,18 @@ def copy_worst_view(rows: list[dict[str, Any]], path: Path) -> Path | None:
     if not rows:
         return None
     largest = max(rows, key=lambda r: (r["iterations"], r["resolution_scale"]))
-    worst = largest["worst_view"]
+    render = _render_path(largest["worst_view"])
+    if render is None:
+        return None
+    shutil.copyfile(render, path)
+    return path
+
+
+def _render_path(worst: dict[str, Any] | None) -> Path | None:
+    """The side-by-side render of a `worst_view` record, None when it has none on disk."""
     if not worst or not worst["render"] or not Path(worst["render"]).is_file():
         return None
-    shutil.copyfile(worst["render"], path)
-    return path
+    return Path(worst["render"])
 
 
 def _final_summary(run_dir: Path) -> dict[str, Any]:
@@ -210,11 +217,12 @@ def _settings(record: dict[str, Any]) -> list[str]:
 
 def _render_size(worst: dict[str, Any] | None) -> tuple[int | None, int | None]:
     """(width, height) of one view from a side-by-side render (render | ground truth)."""
-    if not worst or not worst["render"]:
+    render = _render_path(worst)
+    if render is None:
         return None, None
     from PIL import Image
 
-    with Image.open(worst["render"]) as im:
+    with Image.open(render) as im:
         return im.size[0] // 2, im.size[1]
 
 
@@ -223,13 +231,13 @@ def copy_worst_views(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     added when a scene has several rows); the paths written."""
     written = []
     for i, r in enumerate(rows):
-        worst = r["worst_view"]
-        if not worst or not worst["render"] or not Path(worst["render"]).is_file():
+        render = _render_path(r["worst_view"])
+        if render is None:
             continue
         several = sum(q["scene"] == r["scene"] for q in rows) > 1
         tag = f"{r['scene']}-{i}" if several else r["scene"]
         path = out.with_name(f"{out.stem}-{tag}-worst.png")
-        shutil.copyfile(worst["render"], path)
+        shutil.copyfile(render, path)
         r["worst_view_png"] = str(path)
         written.append(path)
     return written
@@ -349,7 +357,7 @@ def main(args: argparse.Namespace) -> int:
     from sync4d.runs import FitInterrupted, resolve_data
     from sync4d.runs.files import WriteFailed, check_writable, write_text_atomic
 
-    if getattr(args, "runs", None):
+    if args.runs:
         return _tabulate_runs(args)
     try:
         data, default_cfg = resolve_data(args.data)
