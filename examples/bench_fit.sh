@@ -7,5 +7,5 @@
 # each one's worst test view beside the JSON:
 #   examples/bench_fit.sh --runs runs/hook runs/lego --out scenes.json
 set -eu
-PY="${PYTHON:-.venv/bin/python}"
+PY="${PYTHON:-python3}"
 "$PY" -m sync4d bench fit "$@"

@@ -4,6 +4,6 @@
 # export SYNC4D_ENCODER=encoders/siglip.
 set -eu
 OUT="${1:-encoders/siglip}"
-PY="${PYTHON:-.venv/bin/python}"
+PY="${PYTHON:-python3}"
 "$PY" -m sync4d encoder export --model google/siglip-base-patch16-224 --out "$OUT"
 "$PY" -m sync4d encoder info "$OUT"

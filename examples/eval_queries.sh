@@ -4,6 +4,6 @@
 # the embedded scene its ground_truth.json (the default here).
 set -eu
 RUN="${1:-runs/synthetic}"
-PY="${PYTHON:-.venv/bin/python}"
+PY="${PYTHON:-python3}"
 QUERIES="${2:-$("$PY" -c 'from sync4d.data.synthetic import default_scene_dir as d; print(d() / "ground_truth.json")')}"
 "$PY" -m sync4d eval "$RUN" --queries "$QUERIES"

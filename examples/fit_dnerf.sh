@@ -5,5 +5,5 @@
 set -eu
 DATA="${1:?usage: fit_dnerf.sh DNERF_SCENE_DIR [fit options]}"
 shift
-PY="${PYTHON:-.venv/bin/python}"
+PY="${PYTHON:-python3}"
 "$PY" -m sync4d fit "$DATA" --out "runs/$(basename "$DATA")" --config dnerf "$@"

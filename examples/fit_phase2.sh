@@ -5,7 +5,7 @@
 #   examples/fit_phase2.sh runs/synthetic
 # then read RUN/phase2.json (rigid share, residuals, shuffle test) and RUN/eval.json.
 set -eu
-PY="${PYTHON:-.venv/bin/python}"
+PY="${PYTHON:-python3}"
 RUN="${1:-runs/synthetic}"
 shift || true
 "$PY" -m sync4d fit --out "$RUN" --phases 2 --set phase2.motion.kind=affine \

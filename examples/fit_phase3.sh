@@ -5,5 +5,5 @@
 set -eu
 RUN="${1:-runs/synthetic}"
 ENCODER="${ENCODER:-offline}"
-PY="${PYTHON:-.venv/bin/python}"
+PY="${PYTHON:-python3}"
 "$PY" -m sync4d fit "$RUN" --phases 3 --encoder "$ENCODER"

@@ -4,5 +4,5 @@
 # Output: runs/synthetic/{checkpoint.safetensors,phase1.safetensors,eval.json,phase2.json,
 # renders/test/*.png}.
 set -eu
-PY="${PYTHON:-.venv/bin/python}"
+PY="${PYTHON:-python3}"
 "$PY" -m sync4d fit --out runs/synthetic --force "$@"

@@ -3,6 +3,6 @@
 # three chosen times from the second training camera.
 set -eu
 RUN="${1:-runs/synthetic}"
-PY="${PYTHON:-.venv/bin/python}"
+PY="${PYTHON:-python3}"
 "$PY" -m sync4d render "$RUN"
 "$PY" -m sync4d render "$RUN" --camera train:1 --time 0 0.5 1 --no-gif

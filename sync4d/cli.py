@@ -1,4 +1,5 @@
-"""Command-line interface: ``python -m sync4d <command> ...``.
+"""Command-line interface: ``sync4d <command> ...`` (the console script) or, the same,
+``python -m sync4d <command> ...``.
 
 Commands (every option: docs/cli.md):
   fit [DATA]     Phase 1 then Phase 2 into a run folder (the embedded scene without DATA)
@@ -8,6 +9,7 @@ Commands (every option: docs/cli.md):
   bench fit      Phase 1 test PSNR against training time over several budgets
   encoder export write a SigLIP-ONNX encoder directory from a Hugging Face model (internet once)
   encoder info   describe an encoder directory and check its files
+  completion SHELL  print a bash or zsh completion script (shtab)
 
 The command implementations are imported lazily, so ``--help`` stays fast and a missing optional
 module only affects the command that needs it.
@@ -19,6 +21,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from sync4d import __version__
 from sync4d.options import (
@@ -31,9 +34,14 @@ from sync4d.options import (
 )
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _prog() -> str:
+    """The name the user typed: ``sync4d`` (console script) or ``python -m sync4d``."""
+    return "python -m sync4d" if Path(sys.argv[0]).name == "__main__.py" else "sync4d"
+
+
+def build_parser(prog: str = "sync4d") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m sync4d",
+        prog=prog,
         description="sync4d: 4D Synchronized Fields (CPU Gaussian splatting in Rust + PyTorch).",
     )
     parser.add_argument("--version", action="version", version=f"sync4d {__version__}")
@@ -220,12 +228,57 @@ def build_parser() -> argparse.ArgumentParser:
     )
     info.add_argument("dir", metavar="DIR", help="encoder directory written by 'encoder export'")
     info.set_defaults(handler="sync4d.commands.encoder")
+
+    comp = commands.add_parser(
+        "completion",
+        help="print a shell completion script (bash or zsh)",
+        description="Print a completion script for the sync4d command. bash: "
+        "sync4d completion bash > ~/.local/share/bash-completion/completions/sync4d; "
+        "zsh: sync4d completion zsh > ~/.zfunc/_sync4d (with ~/.zfunc on $fpath).",
+    )
+    comp.add_argument("shell", choices=("bash", "zsh"), help="the shell to complete for")
+    comp.set_defaults(handler=None)
+    _complete_paths(parser)
     return parser
 
 
+def _complete_paths(parser: argparse.ArgumentParser) -> None:
+    """Mark path arguments (metavars DATA, RUN, DIR, FILE...) for shtab's completion: folders
+    complete as folders, files as files. Without shtab the parser is unchanged."""
+    try:
+        import shtab
+    except ImportError:
+        return
+    folders = {"DATA", "RUN", "DIR", "RUNS"}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _complete_paths(sub)
+        elif action.metavar in folders:
+            action.complete = shtab.DIRECTORY  # type: ignore[attr-defined]
+        elif isinstance(action.metavar, str) and (
+            action.metavar.startswith("FILE") or action.metavar in ("ANNOTATIONS", "CONFIG")
+        ):
+            action.complete = shtab.FILE  # type: ignore[attr-defined]
+
+
+def _print_completion(parser: argparse.ArgumentParser, shell: str) -> int:
+    try:
+        import shtab
+    except ImportError:
+        print("sync4d completion: needs the shtab package: python -m pip install shtab",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    print(shtab.complete(parser, shell=shell, root_prefix="sync4d"))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(_prog())
     args = parser.parse_args(argv)
+    if args.command == "completion":
+        parser.prog = "sync4d"
+        return _print_completion(parser, args.shell)
     module_name: str = args.handler
     try:
         module = importlib.import_module(module_name)
