@@ -2,15 +2,18 @@
 
 Trains the same scene at several budgets (iterations x resolution scale x Gaussian cap), each a
 full `fit` run with its schedule scaled to the budget, and records training seconds against
-test PSNR / SSIM / LPIPS and the worst test view. Writes a JSON, a PNG plot of test PSNR against
-wall time with the Pareto front (no other budget is both faster and better) marked, so a user
-can pick the budget that fits their time, and the largest budget's worst test view rendered
-beside its ground truth (``<out>-worst.png``).
+test PSNR / SSIM / LPIPS and the worst test view (SSIM: the standard 11x11 Gaussian SSIM; the
+training loss's 3x3 box SSIM is kept as ``ssim_box3``, docs/metrics.md). Writes a JSON, a PNG
+plot of test PSNR against wall time with the Pareto front (no other budget is both faster and
+better) marked, so a user can pick the budget that fits their time, and the largest budget's
+worst test view rendered beside its ground truth (``<out>-worst.png``).
 
 ``bench fit --runs RUN [RUN ...]`` trains nothing: it tabulates finished `fit` runs (one per
 scene, say) in the same JSON and table, a row per run, and copies each run's worst test view
 beside the JSON (``<out>-<scene>-worst.png``), so a table over several scenes comes from the
-runs that produced their numbers.
+runs that produced their numbers. Each row's ``metrics`` says what its metrics are (eval.json's
+record, docs/metrics.md); a run evaluated before the standard SSIM has ``"ssim": null``,
+``"metrics": null`` and its old value under ``ssim_box3``; the table marks it "box".
 """
 
 from __future__ import annotations
@@ -93,7 +96,9 @@ def run_grid(
                 "gaussians": summary["gaussians"],
                 "psnr": summary["psnr"],
                 "ssim": summary["ssim"],
+                "ssim_box3": summary["ssim_box3"],
                 "lpips": summary["lpips"],
+                "metrics": summary["metrics"],
                 "worst_view": worst,
             }
         )
@@ -178,6 +183,8 @@ def rows_from_runs(run_dirs: list[Path]) -> list[dict[str, Any]]:
         cfg = record["config"]
         worst = worst_view(run_dir)
         size = _render_size(worst)
+        # A final record without "ssim_box3" predates the standard SSIM: its "ssim" is the box.
+        standard = "ssim_box3" in final
         rows.append(
             {
                 "scene": record.get("scene", run_dir.name),
@@ -194,8 +201,10 @@ def rows_from_runs(run_dirs: list[Path]) -> list[dict[str, Any]]:
                 "wall_seconds": final.get("wall_seconds"),
                 "gaussians": final["gaussians"],
                 "psnr": final["psnr"],
-                "ssim": final["ssim"],
+                "ssim": final["ssim"] if standard else None,
+                "ssim_box3": final["ssim_box3"] if standard else final["ssim"],
                 "lpips": final.get("lpips"),
+                "metrics": final.get("metrics"),
                 "worst_view": worst,
             }
         )
@@ -285,12 +294,29 @@ def _worst_text(worst: dict[str, Any] | None) -> str:
     return "-" if not worst else f"{worst['name']} {worst['psnr']:.2f}"
 
 
+def _ssim_text(row: dict[str, Any]) -> str:
+    """The standard SSIM of a row, else its 3x3 box SSIM marked "box", else "-"."""
+    if row["ssim"] is not None:
+        return f"{row['ssim']:.4f}"
+    box = row.get("ssim_box3")
+    return "-" if box is None else f"{box:.4f} box"
+
+
+def _ssim_note(rows: list[dict[str, Any]]) -> str:
+    """A line under a table that shows a box SSIM, saying what it is; "" when none does."""
+    if all(r["ssim"] is not None or r.get("ssim_box3") is None for r in rows):
+        return ""
+    return ("\nSSIM 'box': the training loss's 3x3 box SSIM of a run evaluated before the "
+            "standard SSIM (or with images under 11 pixels); not comparable with the others; "
+            "see docs/metrics.md")  # fmt: skip
+
+
 def format_rows(rows: list[dict[str, Any]]) -> str:
     """The results as an aligned table."""
     body = [
         [
             str(r["iterations"]), f"{r['width']}x{r['height']}", f"{r['max_gaussians']:,}",
-            f"{r['train_seconds']:.0f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}",
+            f"{r['train_seconds']:.0f}", f"{r['psnr']:.2f}", _ssim_text(r),
             "-" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['gaussians']:,}",
             "*" if r["pareto"] else "",
             _worst_text(r["worst_view"]),
@@ -298,7 +324,7 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
         for r in sorted(rows, key=lambda r: r["train_seconds"])
     ]  # fmt: skip
     header = ["iters", "res", "cap", "train s", "PSNR", "SSIM", "LPIPS", "#G", "front", "worst"]
-    return align_table(header, body, left=(1,))
+    return align_table(header, body, left=(1,)) + _ssim_note(rows)
 
 
 def format_run_rows(rows: list[dict[str, Any]]) -> str:
@@ -308,7 +334,7 @@ def format_run_rows(rows: list[dict[str, Any]]) -> str:
             r["scene"], r["split"], str(r["iterations"]),
             "-" if r["width"] is None else f"{r['width']}x{r['height']}",
             "-" if r["threads"] is None else str(r["threads"]),
-            f"{r['train_seconds'] / 60:.1f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}",
+            f"{r['train_seconds'] / 60:.1f}", f"{r['psnr']:.2f}", _ssim_text(r),
             "-" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['gaussians']:,}",
             _worst_text(r["worst_view"]), " ".join(r["settings"]) or "-",
         ]
@@ -316,7 +342,7 @@ def format_run_rows(rows: list[dict[str, Any]]) -> str:
     ]  # fmt: skip
     header = ["scene", "split", "iters", "res", "threads", "train min", "PSNR", "SSIM", "LPIPS",
               "#G", "worst", "settings"]  # fmt: skip
-    return align_table(header, body, left=(0, 1, 10, 11))
+    return align_table(header, body, left=(0, 1, 10, 11)) + _ssim_note(rows)
 
 
 def _tabulate_runs(args: argparse.Namespace) -> int:

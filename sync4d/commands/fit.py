@@ -240,7 +240,8 @@ def _fit(args: argparse.Namespace, run_dir: Path, fresh: RunConfig) -> int:
     summary = run_fit(scene, cfg, run_dir, data, args.resume, args.threads, command=command)
     print(
         f"fit: done in {format_duration(summary['train_seconds'])} of training: test PSNR "
-        f"{summary['psnr']:.2f} dB, SSIM {summary['ssim']:.4f}, LPIPS "
+        f"{summary['psnr']:.2f} dB, SSIM "
+        f"{'n/a' if summary['ssim'] is None else format(summary['ssim'], '.4f')}, LPIPS "
         f"{'n/a' if summary['lpips'] is None else format(summary['lpips'], '.4f')}, "
         f"{summary['gaussians']} Gaussians; run in {run_dir}"
     )

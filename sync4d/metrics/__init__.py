@@ -1,6 +1,6 @@
-"""Image metrics: PSNR and SSIM (`image`), LPIPS-Alex (`lpips`). Plain torch and numpy; they
-know nothing of Gaussians or runs."""
+"""Image metrics: PSNR, the standard SSIM and the training loss's 3x3 box SSIM (`image`),
+LPIPS-Alex (`lpips`). Plain torch and numpy; they know nothing of Gaussians or runs."""
 
-from sync4d.metrics.image import dssim, psnr, ssim
+from sync4d.metrics.image import dssim, psnr, ssim, ssim_gaussian
 
-__all__ = ["dssim", "psnr", "ssim"]
+__all__ = ["dssim", "psnr", "ssim", "ssim_gaussian"]

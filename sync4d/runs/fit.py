@@ -132,7 +132,8 @@ def _train_loop(
                          "test": res})  # fmt: skip
                     bar.message(
                         f"[eval @ {it}] test PSNR {res['psnr']:.2f} dB, SSIM "
-                        f"{res['ssim']:.4f} ({res['frames']} frames, "
+                        f"{'n/a' if res['ssim'] is None else format(res['ssim'], '.4f')} "
+                        f"({res['frames']} frames, "
                         f"{trainer.model.num_gaussians} Gaussians, "
                         f"{format_duration(train_seconds)} training)"
                     )

@@ -43,7 +43,8 @@ TRAJECTORY_PLOT = "phase2-trajectories.png"
 RUN_FILE = "run.json"
 #: One JSON record per logged iteration, periodic evaluation and the final summary.
 METRICS_FILE = "metrics.jsonl"
-#: The last evaluation (`eval`, or the end of `fit`): per-frame and mean metrics.
+#: The last evaluation (`eval`, or the end of `fit`): per-frame and mean metrics, and what each
+#: metric is (docs/metrics.md).
 EVAL_FILE = "eval.json"
 #: Folder of the evaluation's side-by-side renders, one subfolder per split.
 RENDERS_DIR = "renders"
