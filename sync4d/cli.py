@@ -3,6 +3,7 @@
 
 Commands (every option: docs/cli.md):
   fit [DATA]     Phase 1 then Phase 2 into a run folder (the embedded scene without DATA)
+  process VIDEO|IMAGE_DIR  your own capture -> a dataset (frames, COLMAP poses, pinhole images)
   eval RUN       PSNR / SSIM / LPIPS of a run on its test split
   render RUN     render a run at chosen times (--time, --sweep) to PNGs and a GIF
   bench raster   time the rasterizer (forward/backward), optionally against the gsplat reference
@@ -85,6 +86,41 @@ def build_parser(prog: str = "sync4d") -> argparse.ArgumentParser:
     fit.add_argument("--force", action="store_true",
                      help="start over in an existing RUN (deletes its results)")
     fit.set_defaults(handler="sync4d.commands.fit")
+
+    pr = commands.add_parser(
+        "process",
+        help="turn your own video or photos into a dataset (camera poses from COLMAP)",
+        description="Extract frames from a video (PyAV) or read a folder of photos (sorted by "
+        "name), recover one shared camera and every frame's pose with COLMAP (pycolmap: SIFT, "
+        "matching, incremental mapping), undistort the frames to a pinhole camera and write a "
+        "nerfstudio dataset (transforms.json with per-frame time, images/, sparse_pc.ply) that "
+        "'fit DATA' reads. Frames COLMAP cannot register are left out and named.",
+    )
+    pr.add_argument("input", metavar="VIDEO|IMAGE_DIR",
+                    help="a video file (mp4, mov, mkv, ...) or a folder of photos")
+    pr.add_argument("--out", required=True, metavar="DATA",
+                    help="dataset folder to write (new or empty)")
+    pr.add_argument("--fps", type=positive_float, default=None, metavar="F",
+                    help="video frames to keep per second of video time (default: every "
+                    "frame, then --max-frames)")  # fmt: skip
+    pr.add_argument("--max-frames", type=positive_int, default=150, metavar="N",
+                    help="keep at most N frames, evenly spaced (default 150)")
+    pr.add_argument("--max-size", type=positive_int, default=960, metavar="PX",
+                    help="downscale frames whose longest side exceeds PX pixels (default 960)")
+    pr.add_argument("--camera-model", choices=("SIMPLE_RADIAL", "OPENCV", "PINHOLE"),
+                    default="SIMPLE_RADIAL",
+                    help="COLMAP model of the one camera all frames share: SIMPLE_RADIAL "
+                    "(default: focal + one radial term), OPENCV (two focals, k1, k2, p1, p2: "
+                    "wide-angle lenses, needs large frames) or PINHOLE")  # fmt: skip
+    pr.add_argument("--matcher", choices=("sequential", "exhaustive"), default="sequential",
+                    help="sequential (default: each frame with its neighbours in time; "
+                    "videos) or exhaustive (every pair; unordered photos, slower)")
+    pr.add_argument("--threads", type=positive_int, default=None, metavar="T",
+                    help="CPU threads for COLMAP (default: all cores)")
+    pr.add_argument("--force", action="store_true",
+                    help="replace what an earlier 'process' wrote in DATA")
+    pr.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
+    pr.set_defaults(handler="sync4d.commands.process")
 
     ev = commands.add_parser(
         "eval",
@@ -257,7 +293,8 @@ def _complete_paths(parser: argparse.ArgumentParser) -> None:
         elif action.metavar in folders:
             action.complete = shtab.DIRECTORY  # type: ignore[attr-defined]
         elif isinstance(action.metavar, str) and (
-            action.metavar.startswith("FILE") or action.metavar in ("ANNOTATIONS", "CONFIG")
+            action.metavar.startswith("FILE")
+            or action.metavar in ("ANNOTATIONS", "CONFIG", "VIDEO|IMAGE_DIR")
         ):
             action.complete = shtab.FILE  # type: ignore[attr-defined]
 

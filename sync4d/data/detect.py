@@ -20,6 +20,11 @@ def load_scene(root: str | Path, resolution_scale: float = 1.0, test_split: str 
 
 
 def _load(root: Path, resolution_scale: float, test_split: str) -> Scene:
+    if root.is_file():
+        raise DatasetError(
+            root, "is a file, not a dataset folder; for a video (or a folder of photos) make a "
+            f"dataset first: sync4d process {root} --out DATA, then sync4d fit DATA",
+        )  # fmt: skip
     if not root.is_dir():
         raise DatasetError(root, "dataset directory does not exist")
     if (root / "transforms_train.json").exists():
@@ -50,5 +55,5 @@ def _load(root: Path, resolution_scale: float, test_split: str) -> Scene:
         root,
         "unrecognised dataset layout: expected transforms_train.json (D-NeRF/Blender), "
         "train_meta.json (Dynamic-3DGS Panoptic), dataset.json + metadata.json (HyperNeRF), "
-        "transforms.json (nerfstudio with time) or sparse/ + images/ (COLMAP)",
+        "transforms.json (nerfstudio, e.g. from sync4d process) or sparse/ + images/ (COLMAP)",
     )

@@ -22,10 +22,18 @@ its shading turns with it: a Gaussian's colour does not change over time in the 
 a world-fixed light a turning Lambertian surface changes colour, which biases any photometric
 estimate of the turn toward less rotation (measured: the ball's recovered roll fell 16 % short).
 The ground plate is lit in the world frame.
+
+Two variants give SIFT something to match, for `write_orbit_video` (one camera moving on an
+arc over the scene's time steps, encoded to a video file with the true cameras: what the
+`sync4d process` test reconstructs): `SyntheticConfig.ground_texture = "blobs"` paints the plate
+with seeded random coloured shapes, and `backdrop_radius` stands a wall painted alike around the
+scene (static structure off the ground plane). The defaults keep the plain scene, and its cache
+fingerprint unchanged.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -44,6 +52,8 @@ __all__ = [
     "ensure_default_scene",
     "load_ground_truth",
     "object_poses",
+    "OrbitVideo",
+    "write_orbit_video",
     "write_synthetic_scene",
 ]
 
@@ -74,6 +84,20 @@ class SyntheticConfig:
     elevation_deg: float = 30.0
     fov_deg: float = 40.0
     supersample: int = 2
+    #: "plain" (the default plate) or "blobs" (seeded random coloured shapes: SIFT texture).
+    ground_texture: str = "plain"
+    #: Radius (metres) of a textured backdrop wall around the scene (a cylinder about the z
+    #: axis, 4 m tall, seen from inside: the cameras must stand within it); 0: none, the sky
+    #: is transparent.
+    backdrop_radius: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.ground_texture not in ("plain", "blobs"):
+            raise ValueError(
+                f"ground_texture must be 'plain' or 'blobs', not {self.ground_texture!r}"
+            )
+        if not self.backdrop_radius >= 0.0:
+            raise ValueError(f"backdrop_radius must be >= 0 (0: none), not {self.backdrop_radius}")
 
 
 @dataclass(frozen=True)
@@ -199,6 +223,90 @@ def _hit_box(o, d, rot, centre, half):
     return np.where(hit, tmin, np.inf), ol, dl
 
 
+#: Texels per metre of the "blobs" ground texture and of the backdrop wall's texture.
+_GROUND_TEXELS, _WALL_TEXELS = 256, 48
+#: Height of the backdrop wall (metres).
+_WALL_HEIGHT = 4.0
+
+
+@functools.cache
+def _blob_texture(width: int, height: int, count: int, size: tuple[float, float], seed: int):
+    """float64 [height, width, 3] albedo in [0, 1], read-only: a grey base under `count`
+    seeded random ellipses, rectangles and triangles of random colours, `size` texels
+    (min, max radius) across, so that every patch looks different (texture SIFT can match)."""
+    from PIL import Image, ImageDraw
+
+    rng = np.random.default_rng(seed)
+    im = Image.new("RGB", (width, height), (150, 150, 150))
+    draw = ImageDraw.Draw(im)
+    for _ in range(count):
+        x, y = rng.uniform(0, width), rng.uniform(0, height)
+        r = rng.uniform(*size)
+        colour = tuple(int(c) for c in rng.integers(20, 246, 3))
+        kind = rng.integers(3)
+        if kind == 0:
+            e = rng.uniform(0.4, 1.0)
+            draw.ellipse([x - r, y - r * e, x + r, y + r * e], fill=colour)
+        elif kind == 1:
+            draw.rectangle([x - r, y - 0.6 * r, x + r, y + 0.6 * r], fill=colour)
+        else:
+            a = rng.uniform(0, 2 * math.pi) + np.array([0.0, 2.1, 4.2])
+            draw.polygon(list(zip(x + r * np.cos(a), y + r * np.sin(a), strict=True)), fill=colour)
+    tex = np.asarray(im, dtype=np.float64) / 255.0
+    tex.flags.writeable = False  # cached: shared by every render
+    return tex
+
+
+def _sample(tex: np.ndarray, u: np.ndarray, v: np.ndarray, wrap: bool) -> np.ndarray:
+    """Bilinear lookup [N, 3] of `tex` [H, W, 3] at texel coordinates `u` (column), `v` (row)
+    [N], texel centres at +0.5; columns wrap around when `wrap`, else clamp."""
+    h, w = tex.shape[:2]
+    u, v = u - 0.5, np.clip(v - 0.5, 0.0, h - 1.001)
+    u = np.mod(u, w) if wrap else np.clip(u, 0.0, w - 1.001)
+    i, j = v.astype(int), u.astype(int)
+    j1 = (j + 1) % w if wrap else j + 1
+    fv, fu = (v - i)[:, None], (u - j)[:, None]
+    top = tex[i, j] * (1 - fu) + tex[i, j1] * fu
+    bottom = tex[i + 1, j] * (1 - fu) + tex[i + 1, j1] * fu
+    return top * (1 - fv) + bottom * fv
+
+
+def _ground_albedo(cfg: SyntheticConfig, p: np.ndarray) -> np.ndarray:
+    """Albedo [N, 3] of the plate at ground points `p` [N, 3]."""
+    if cfg.ground_texture == "plain":
+        return np.full((len(p), 3), GROUND_ALBEDO)
+    n = int(2 * _GROUND_HALF * _GROUND_TEXELS)
+    tex = _blob_texture(n, n, 900, (0.02 * _GROUND_TEXELS, 0.15 * _GROUND_TEXELS), 7)
+    u = (p[:, 0] + _GROUND_HALF) * _GROUND_TEXELS
+    v = (p[:, 1] + _GROUND_HALF) * _GROUND_TEXELS
+    return _sample(tex, u, v, wrap=False)
+
+
+def _hit_wall(o: np.ndarray, d: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distances [...] to the inside of the backdrop wall (the cylinder x^2 + y^2 = radius^2,
+    0 <= z <= _WALL_HEIGHT, seen from inside) and the hit points [..., 3]."""
+    a = d[..., 0] ** 2 + d[..., 1] ** 2
+    b = o[0] * d[..., 0] + o[1] * d[..., 1]
+    c = o[0] ** 2 + o[1] ** 2 - radius**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a
+    t = np.where((a > 1e-12) & (c < 0), t, np.inf)
+    p = o + np.where(np.isfinite(t), t, 0.0)[..., None] * d
+    t = np.where((p[..., 2] >= 0.0) & (p[..., 2] <= _WALL_HEIGHT), t, np.inf)
+    return t, p
+
+
+def _wall_albedo(radius: float, p: np.ndarray) -> np.ndarray:
+    """Albedo [N, 3] of the backdrop wall at points `p` [N, 3]: texture wrapped around it."""
+    width = int(round(2 * math.pi * radius * _WALL_TEXELS))
+    height = int(_WALL_HEIGHT * _WALL_TEXELS)
+    count = int(60 * 2 * math.pi * radius * _WALL_HEIGHT)
+    tex = _blob_texture(width, height, count, (0.08 * _WALL_TEXELS, 0.4 * _WALL_TEXELS), 11)
+    u = np.arctan2(p[:, 1], p[:, 0]) * radius * _WALL_TEXELS
+    v = (_WALL_HEIGHT - p[:, 2]) * _WALL_TEXELS
+    return _sample(tex, u, v, wrap=True)
+
+
 def _shade(base: np.ndarray, normal: np.ndarray) -> np.ndarray:
     lam = np.clip(normal @ _LIGHT, 0.0, 1.0)
     return base * (_AMBIENT + _DIFFUSE * lam)[..., None]
@@ -218,8 +326,13 @@ def _render(cfg: SyntheticConfig, c2w: np.ndarray, t: float) -> tuple[np.ndarray
     p = o + np.where(np.isfinite(tg), tg, 0.0)[..., None] * d
     on = np.isfinite(tg) & (np.abs(p[..., 0]) <= _GROUND_HALF) & (np.abs(p[..., 1]) <= _GROUND_HALF)
     depth[on], label[on] = tg[on], 0
-    ground = np.full((int(on.sum()), 3), GROUND_ALBEDO)
+    ground = _ground_albedo(cfg, p[on])
     rgb[on] = _shade(ground, np.broadcast_to([0.0, 0.0, 1.0], ground.shape))
+    if cfg.backdrop_radius > 0.0:
+        tw, pw = _hit_wall(o, d, cfg.backdrop_radius)
+        wall = tw < depth
+        depth[wall], label[wall] = tw[wall], 0
+        rgb[wall] = 0.9 * _wall_albedo(cfg.backdrop_radius, pw[wall])
     poses = object_poses(t)
     for obj in OBJECTS:
         rot, centre = poses[obj.label]
@@ -263,8 +376,19 @@ def _render(cfg: SyntheticConfig, c2w: np.ndarray, t: float) -> tuple[np.ndarray
     return rgba, np.maximum(centre_sample, 0).astype(np.uint8)
 
 
+def _config_dict(cfg: SyntheticConfig) -> dict:
+    """`cfg` as stored and fingerprinted; the default plain ground and no backdrop are left
+    out, so scenes cached before those fields existed keep their fingerprint."""
+    d = asdict(cfg)
+    if d["ground_texture"] == "plain":
+        del d["ground_texture"]
+    if d["backdrop_radius"] == 0.0:
+        del d["backdrop_radius"]
+    return d
+
+
 def _fingerprint(cfg: SyntheticConfig) -> str:
-    blob = json.dumps({"version": _VERSION, "config": asdict(cfg)}, sort_keys=True)
+    blob = json.dumps({"version": _VERSION, "config": _config_dict(cfg)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -333,7 +457,7 @@ def write_synthetic_scene(out_dir: str | Path, config: SyntheticConfig | None = 
     gt = {
         "version": _VERSION,
         "fingerprint": _fingerprint(cfg),
-        "config": asdict(cfg),
+        "config": _config_dict(cfg),
         "times": times.tolist(),
         "objects": objects,
         "states": [{"object": k, "state": s, "t0": a, "t1": b} for k, s, a, b in STATES],
@@ -343,6 +467,79 @@ def write_synthetic_scene(out_dir: str | Path, config: SyntheticConfig | None = 
     tmp.write_text(json.dumps(gt))
     tmp.replace(root / GROUND_TRUTH)
     return root
+
+
+@dataclass
+class OrbitVideo:
+    """A video of the scene seen by one moving camera: frame k shows time `times[k]` from
+    `c2w[k]` ([N, 4, 4] OpenGL camera-to-world, world z up, metres); square `size`-pixel
+    frames with focal length `focal` (pixels) and the principal point at the centre; `extent`
+    is the diagonal of the scene's bounding box (metres)."""
+
+    path: Path
+    times: np.ndarray
+    c2w: np.ndarray
+    focal: float
+    size: int
+    fps: float
+    extent: float
+
+
+def write_orbit_video(
+    path: str | Path,
+    config: SyntheticConfig | None = None,
+    frames: int = 48,
+    arc_deg: float = 100.0,
+    start_deg: float = -70.0,
+    swing_deg: float = 15.0,
+    fps: float = 24.0,
+    codec: str = "libx264",
+) -> OrbitVideo:
+    """Render `frames` views of the scene, one per time step evenly spaced over [0, 1], from a
+    camera moving on an arc of `arc_deg` degrees of azimuth (from `start_deg`) at `config`'s
+    radius and field of view, looking at the scene's centre, its elevation swinging by
+    +-`swing_deg` over one sine period (an orbit about one fixed axis is a critical motion
+    for self-calibration: it leaves the focal length undetermined), and encode them with PyAV
+    (`codec`, near-lossless) at `fps` frames per second, the sky composited on white. The
+    default config is a 256-pixel variant with the "blobs" ground and a backdrop wall (6 m):
+    the plain default scene is too bare for SIFT. Returns the true cameras."""
+    import av
+
+    cfg = config or SyntheticConfig(
+        size=256, radius=3.6, ground_texture="blobs", backdrop_radius=6.0
+    )
+    if cfg.size % 2:
+        raise ValueError(f"video frames need an even size (yuv420p), got {cfg.size}")
+    path = Path(path)
+    times = np.linspace(0.0, 1.0, frames)
+    azimuths = np.radians(start_deg + arc_deg * times)
+    elevations = np.radians(cfg.elevation_deg + swing_deg * np.sin(2.0 * math.pi * times))
+    eyes = cfg.radius * np.stack(
+        [np.cos(elevations) * np.cos(azimuths), np.cos(elevations) * np.sin(azimuths),
+         np.sin(elevations)], -1,
+    )  # fmt: skip
+    c2w = np.stack([_look_at_gl(eye, np.array([0.0, 0.0, 0.4])) for eye in eyes])
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream(codec, rate=round(fps))
+        stream.width = stream.height = cfg.size
+        stream.pix_fmt = "yuv420p"
+        if codec == "libx264":
+            stream.options = {"crf": "8", "preset": "medium"}
+        else:
+            stream.bit_rate = 20_000_000
+        for t, cam in zip(times, c2w, strict=True):
+            rgba, _ = _render(cfg, cam, float(t))
+            a = rgba[..., 3:4].astype(np.float64) / 255.0
+            rgb = rgba[..., :3] * a + 255.0 * (1.0 - a)
+            image = av.VideoFrame.from_ndarray((rgb + 0.5).astype(np.uint8), format="rgb24")
+            for packet in stream.encode(image):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    focal = 0.5 * cfg.size / math.tan(0.5 * math.radians(cfg.fov_deg))
+    bounds = np.array([[-_GROUND_HALF, -_GROUND_HALF, 0.0], [_GROUND_HALF, _GROUND_HALF, 1.0]])
+    extent = float(np.linalg.norm(bounds[1] - bounds[0]))
+    return OrbitVideo(path, times, c2w, focal, cfg.size, fps, extent)
 
 
 @dataclass

@@ -70,10 +70,19 @@ def is_multiview(scene: Scene) -> bool:
     return bool(scene.train) and len(views_at_one_instant(scene.train)[1]) >= 2
 
 
+def _reads_file_as_is(frame: Frame) -> bool:
+    """Whether `frame`'s image is its file (a plain `Frame`), not a transform of it (e.g. a
+    nerfstudio frame undistorted on load), which must be matched as the loader gives it."""
+    return type(frame) is Frame
+
+
 def _native_intrinsics(frame: Frame) -> tuple[int, int, list[float]]:
-    """(width, height, [fx, fy, cx, cy]) of `frame`'s camera at the image files' own size."""
+    """(width, height, [fx, fy, cx, cy]) of `frame`'s camera at the size its view is matched
+    at: the image file's own size, or the camera's for a frame transformed on load."""
     cam = frame.camera
     w, h = frame.native_size or (cam.width, cam.height)
+    if not _reads_file_as_is(frame):
+        w, h = cam.width, cam.height
     sx, sy = w / cam.width, h / cam.height
     return w, h, [cam.fx * sx, cam.fy * sy, cam.cx * sx, cam.cy * sy]
 
@@ -102,6 +111,11 @@ def _run_pycolmap(
     names = []
     for i, f in enumerate(frames):
         name = f"view{i:04d}.png"
+        if not _reads_file_as_is(f):  # e.g. undistorted on load: match what the loader gives
+            rgb = (f.load_image() * 255.0).round().clip(0, 255).astype(np.uint8)
+            Image.fromarray(rgb).save(images / name)
+            names.append(name)
+            continue
         try:
             with Image.open(f.image_path) as im:
                 if image_depth(im, f.image_path) == 16:  # convert("RGB") would clip at 255
