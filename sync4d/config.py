@@ -222,10 +222,13 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
         interval=scaled(d.interval, 10),
         opacity_reset_interval=scaled(d.opacity_reset_interval),
     )
+    st = cfg.phase1.static
+    static = dataclasses.replace(st, start=scaled(st.start), every=scaled(st.every, 10))
     phase1 = dataclasses.replace(
         cfg.phase1,
         iterations=iterations,
         densify=densify,
+        static=static,
         sh_degree_interval=scaled(cfg.phase1.sh_degree_interval),
         static_warmup=scaled(cfg.phase1.static_warmup, 0),
         lr_deform_warmup=scaled(cfg.phase1.lr_deform_warmup, 0),

@@ -170,6 +170,11 @@ def add_bench_fit_options(p: argparse.ArgumentParser) -> None:
                       help="resolution scales (default: the config's)")
     p.add_argument("--caps", nargs="+", type=positive_int, metavar="N", default=None,
                       help="Gaussian caps (default: the config's max_gaussians)")
+    p.add_argument("--variant", action="append", default=None, metavar="NAME[:KEY=VALUE,...]",
+                      help="a config variant to compare (repeatable): NAME, then the --set "
+                      "overrides it adds, e.g. --variant off --variant "
+                      "skip:phase1.static.enabled=true; every budget trains each variant in "
+                      "turn, so both see the same machine load")  # fmt: skip
     p.add_argument("--out", metavar="FILE.json", default=None,
                       help="results JSON (default bench-fit-NAME.json; the plot goes beside it)")
     p.add_argument("--keep-runs", metavar="DIR", default=None,

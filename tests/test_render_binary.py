@@ -36,17 +36,22 @@ def _binary() -> Path:
     return path
 
 
-@pytest.fixture(scope="module", params=[0, 4], ids=["raw-position", "position-bands-4"])
+@pytest.fixture(scope="module", params=[(0, False), (4, False), (0, True)],
+                ids=["raw-position", "position-bands-4", "half-static"])  # fmt: skip
 def run(tmp_path_factory, request) -> tuple[Path, DeformableGaussians, object]:
     """A checkpoint of a small model whose D_theta is far from the identity, with SH degree 1;
-    D_theta reads the raw position (the paper) or its 4-band encoding."""
+    D_theta reads the raw position (the paper) or its 4-band encoding; in the last variant
+    every other Gaussian is static (its canonical state at every time)."""
+    bands, half_static = request.param
     tmp = tmp_path_factory.mktemp("render")
     scene, _ = _scene(tmp)
     g = torch.Generator().manual_seed(5)
     model = DeformableGaussians(
         torch.randn(60, 3, generator=g) * 0.4, torch.rand(60, 3, generator=g), sh_degree=1,
-        config=DeformConfig(position_bands=request.param), generator=g,
+        config=DeformConfig(position_bands=bands), generator=g,
     )  # fmt: skip
+    if half_static:
+        model.static[::2] = True
     with torch.no_grad():
         model.log_scales.fill_(math.log(0.08))
         model.opacity_logits.fill_(1.0)
@@ -90,6 +95,11 @@ def test_matches_the_python_render_between_frames(run, tmp_path, backend) -> Non
     assert np.abs(rust - py).mean() < 1e-3, np.abs(rust - py).mean()
     # The deformation matters at this time: the canonical (t = 0) view differs.
     assert np.abs(_python_png(model, scene.test[0], 0.0) / 255.0 - py).mean() > 5e-3
+    if model.static.any():  # and so does the static set: all moving renders another image
+        static, model.static = model.static, torch.zeros_like(model.static)
+        moving = _python_png(model, scene.test[0], 0.37) / 255.0
+        model.static = static
+        assert np.abs(moving - py).mean() > 5e-3
     assert "frames per second" in proc.stderr
 
 

@@ -52,33 +52,47 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
     return out
 
 
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """``NAME[:KEY=VALUE,KEY=VALUE...]`` -> (NAME, the overrides); ConfigError when malformed."""
+    name, _, rest = text.partition(":")
+    overrides = [o.strip() for o in rest.split(",") if o.strip()]
+    if not name or any("=" not in o for o in overrides):
+        raise ConfigError(f"--variant {text!r}: expected NAME or NAME:KEY=VALUE[,KEY=VALUE...]")
+    return name, overrides
+
+
 def run_grid(
     data: Path,
-    base: RunConfig,
+    base: RunConfig | dict[str, RunConfig],
     iterations: list[int],
     scales: list[float],
     caps: list[int],
     threads: int | None,
     work_dir: Path,
 ) -> list[dict[str, Any]]:
-    """Train every budget in the grid; one result record per budget."""
+    """Train every budget in the grid; one result record per budget. `base` may map variant
+    names to configs: each budget then trains every variant in turn (interleaved, so a
+    change of machine load hits both alike)."""
     from sync4d.runs import run_fit
 
+    variants = base if isinstance(base, dict) else {"": base}
     rows: list[dict[str, Any]] = []
-    grid = list(product(scales, caps, iterations))
-    for k, (scale, cap, iters) in enumerate(grid):
-        cfg = with_budget(dataclasses.replace(base, resolution_scale=scale), iters)
+    grid = list(product(scales, caps, iterations, variants))
+    for k, (scale, cap, iters, variant) in enumerate(grid):
+        cfg = with_budget(dataclasses.replace(variants[variant], resolution_scale=scale), iters)
         densify = dataclasses.replace(cfg.phase1.densify, max_gaussians=cap)
         cfg = dataclasses.replace(
             cfg, phase1=dataclasses.replace(cfg.phase1, densify=densify), eval_every=0,
             checkpoint_every=0, phases="1",
         )  # fmt: skip
+        label = f", variant {variant}" if variant else ""
         print(
-            f"bench fit: [{k + 1}/{len(grid)}] {iters} iterations, scale {scale}, cap {cap}",
+            f"bench fit: [{k + 1}/{len(grid)}] {iters} iterations, scale {scale}, cap {cap}"
+            f"{label}",
             file=sys.stderr,
         )
         scene = load_scene(data, scale, cfg.test_split)
-        run_dir = work_dir / f"s{scale}_c{cap}_i{iters}"
+        run_dir = work_dir / f"s{scale}_c{cap}_i{iters}{'_' + variant if variant else ''}"
         summary = run_fit(
             scene, cfg, run_dir, data, threads=threads, log_every=max(50, iters // 10), quiet=True
         )
@@ -100,6 +114,8 @@ def run_grid(
                 "lpips": summary["lpips"],
                 "metrics": summary["metrics"],
                 "worst_view": worst,
+                **({"variant": variant} if variant else {}),
+                "skipped": summary.get("skipped"),
             }
         )
     front = pareto_front([(r["train_seconds"], r["psnr"]) for r in rows])
@@ -324,6 +340,14 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
         for r in sorted(rows, key=lambda r: r["train_seconds"])
     ]  # fmt: skip
     header = ["iters", "res", "cap", "train s", "PSNR", "SSIM", "LPIPS", "#G", "front", "worst"]
+    if any("variant" in r for r in rows):
+        order = sorted(rows, key=lambda r: r["train_seconds"])
+        header.insert(0, "variant")
+        for line, r in zip(body, order, strict=True):
+            line.insert(0, r.get("variant", ""))
+            sk = r.get("skipped") or {}
+            line.append(f"{sk['share']:.0%}" if sk.get("share") is not None else "-")
+        header.append("D_theta skipped")
     return align_table(header, body, left=(1,)) + _ssim_note(rows)
 
 
@@ -388,6 +412,15 @@ def main(args: argparse.Namespace) -> int:
     try:
         data, default_cfg = resolve_data(args.data)
         base = load_config(args.config or default_cfg, list(args.set or []))
+        configs: RunConfig | dict[str, RunConfig] = base
+        if args.variant:
+            configs = {}
+            for text in args.variant:
+                name, extra = parse_variant(text)
+                if name in configs:
+                    raise ConfigError(f"--variant {name} is given twice")
+                configs[name] = load_config(args.config or default_cfg,
+                                            list(args.set or []) + extra)  # fmt: skip
         scales = args.scales or [base.resolution_scale]
         caps = args.caps or [base.phase1.densify.max_gaussians]
         n = base.phase1.iterations
@@ -398,7 +431,7 @@ def main(args: argparse.Namespace) -> int:
             check_writable(args.keep_runs)
         with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
             work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
-            rows = run_grid(data, base, iterations, scales, caps, args.threads, work)
+            rows = run_grid(data, configs, iterations, scales, caps, args.threads, work)
             worst_png = copy_worst_view(rows, out.with_name(out.stem + "-worst.png"))
     except (ConfigError, DatasetError, WriteFailed) as e:
         print(f"bench fit: {e}", file=sys.stderr)
@@ -413,6 +446,7 @@ def main(args: argparse.Namespace) -> int:
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
         "threads": args.threads,
         "config": dataclasses.asdict(base),
+        "variants": dict(parse_variant(v) for v in args.variant or []),
         "results": rows,
     }
     written = [out, plot_pareto(rows, out.with_suffix(".png"), f"sync4d fit: {data.name}")]

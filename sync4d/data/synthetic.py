@@ -90,6 +90,9 @@ class SyntheticConfig:
     #: axis, 4 m tall, seen from inside: the cameras must stand within it); 0: none, the sky
     #: is transparent.
     backdrop_radius: float = 0.0
+    #: Every object holds its pose of time 0 at every time: a scene with no motion (tests of
+    #: what sync4d skips when nothing moves; ground_truth.json's named states do not apply).
+    still: bool = False
 
     def __post_init__(self) -> None:
         if self.ground_texture not in ("plain", "blobs"):
@@ -333,7 +336,7 @@ def _render(cfg: SyntheticConfig, c2w: np.ndarray, t: float) -> tuple[np.ndarray
         wall = tw < depth
         depth[wall], label[wall] = tw[wall], 0
         rgb[wall] = 0.9 * _wall_albedo(cfg.backdrop_radius, pw[wall])
-    poses = object_poses(t)
+    poses = object_poses(0.0 if cfg.still else t)
     for obj in OBJECTS:
         rot, centre = poses[obj.label]
         if obj.kind == "sphere":
@@ -384,6 +387,8 @@ def _config_dict(cfg: SyntheticConfig) -> dict:
         del d["ground_texture"]
     if d["backdrop_radius"] == 0.0:
         del d["backdrop_radius"]
+    if not d["still"]:
+        del d["still"]
     return d
 
 
@@ -445,7 +450,7 @@ def write_synthetic_scene(out_dir: str | Path, config: SyntheticConfig | None = 
     (root / "masks" / "labels.json").write_text(json.dumps(labels, indent=1))
     objects = []
     for obj in OBJECTS:
-        poses = [object_poses(float(t))[obj.label] for t in times]
+        poses = [object_poses(0.0 if cfg.still else float(t))[obj.label] for t in times]
         objects.append(
             {
                 "id": obj.label, "name": obj.name, "colour": obj.colour, "kind": obj.kind,

@@ -70,6 +70,8 @@ def _replace_rows(optimizer: torch.optim.Optimizer, model: DeformableGaussians, 
                                 state[k] = fn(name, state[k], True)
                         optimizer.state[new] = state
         setattr(model, name, new)
+    # Per-Gaussian flags follow the same rows (split and cloned children inherit them).
+    model.static = fn("static", model.static, False)
 
 
 class Densifier:

@@ -79,6 +79,13 @@ class DeformableGaussians(nn.Module):
         z = torch.randn(n, self.config.embed_dim, generator=generator, dtype=f32) * embed_std
         self.embeddings = nn.Parameter(z)
         self.deform = DeformationMLP(self.config, generator)
+        #: Static Gaussians [N] bool: their canonical state is their state at every time and
+        #: D_theta is not evaluated for them (`sync4d.phase1.static`); none by default.
+        self.static = torch.zeros(n, dtype=torch.bool)
+        #: Rows D_theta evaluated and rows it skipped (static) in `at_time` calls so far: the
+        #: counters behind `fit`'s "skipped" line and the tests of the skip.
+        self.deform_rows = 0
+        self.deform_rows_skipped = 0
 
     @classmethod
     def random_in_box(
@@ -94,6 +101,8 @@ class DeformableGaussians(nn.Module):
         ``deform.<key>`` D_theta's weights) and JSON-ready settings (SH degree, near plane,
         D_theta's config), for checkpoints; `from_state` rebuilds it."""
         tensors = {f"gaussians.{n}": getattr(self, n).detach() for n in PER_GAUSSIAN}
+        if bool(self.static.any()):  # absent: none static (and files of older versions)
+            tensors["gaussians.static"] = self.static.to(torch.float32)
         tensors.update({f"deform.{k}": v.detach() for k, v in self.deform.state_dict().items()})
         meta = {"sh_degree": self.sh_degree, "near": self.near,
                 "deform_config": dataclasses.asdict(self.config)}  # fmt: skip
@@ -118,6 +127,12 @@ class DeformableGaussians(nn.Module):
                     got = list(src.shape)
                     raise ValueError(f"'gaussians.{n}' has shape {got}, expected {want}")
                 getattr(model, n).copy_(src)
+        static = tensors.get("gaussians.static")
+        if static is not None:
+            if static.shape != (model.num_gaussians,):
+                raise ValueError(f"'gaussians.static' has shape {list(static.shape)}, expected "
+                                 f"[{model.num_gaussians}]")  # fmt: skip
+            model.static = static > 0.5
         deform = {k.removeprefix("deform."): v for k, v in tensors.items()
                   if k.startswith("deform.")}  # fmt: skip
         try:
@@ -137,7 +152,20 @@ class DeformableGaussians(nn.Module):
         q0 = self.quats / self.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         if not deform:
             return self.means, q0, torch.exp(self.log_scales)
-        dx, dw, dl = self.deform(self.means, self.embeddings, t)
+        n = self.num_gaussians
+        if self.static.shape != (n,):
+            raise RuntimeError(f"static mask has {self.static.shape[0]} rows for {n} Gaussians")
+        n_static = int(self.static.sum())
+        self.deform_rows += n - n_static
+        self.deform_rows_skipped += n_static
+        if n_static == 0:
+            dx, dw, dl = self.deform(self.means, self.embeddings, t)
+        elif n_static == n:  # nothing moves: the canonical Gaussians at every time
+            return self.means, q0, torch.exp(self.log_scales)
+        else:  # D_theta on the moving rows only; static rows keep zero offsets
+            rows = (~self.static).nonzero().squeeze(1)
+            part = self.deform(self.means[rows], self.embeddings[rows], t)
+            dx, dw, dl = (torch.zeros(n, 3, dtype=p.dtype).index_put((rows,), p) for p in part)
         return deform_gaussians(self.means, q0, self.log_scales, dx, dw, dl)
 
     def render(

@@ -21,6 +21,7 @@ from sync4d.phase1.densify import Densifier, DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.init import scene_extent
 from sync4d.phase1.losses import photometric_loss
+from sync4d.phase1.static import StaticConfig, StaticUpdate, update_static_set
 from sync4d.settings import choice, ranged
 
 __all__ = ["Phase1Config", "Phase1Trainer"]
@@ -104,6 +105,8 @@ class Phase1Config:
     #: Seed of the initial Gaussians, D_theta's weights, the frame order and densification.
     seed: int = ranged(42, 0, 2**32 - 1)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+    #: Static Gaussians skip D_theta (`sync4d.phase1.static`; off by default).
+    static: StaticConfig = field(default_factory=StaticConfig)
 
 
 class Phase1Trainer:
@@ -132,6 +135,8 @@ class Phase1Trainer:
         self._rng = random.Random(self.config.seed)
         self._images: dict[int, torch.Tensor] = {}
         self._background = torch.tensor(self.config.background, dtype=torch.float32)
+        #: The last check of the static set (None before the first).
+        self.last_static_update: StaticUpdate | None = None
         c = self.config
         m = model
         groups = [
@@ -223,12 +228,40 @@ class Phase1Trainer:
         changed = self.densifier.step(self.model, self.optimizer, self.iteration, self.extent)
         if any(changed.values()):
             self.on_gaussians_changed()
-        return {
+        if self.static_check_due(any(changed.values())):
+            self.update_static()
+        stats = {
             "loss": float(loss.detach()),
             "psnr": psnr(out.features.detach(), target),
             "gaussians": float(self.model.num_gaussians),
             **extra_stats,
         }
+        if c.static.enabled:
+            stats["static"] = float(self.model.static.sum())
+        return stats
+
+    def static_check_due(self, densified: bool) -> bool:
+        """Whether the static set is re-checked after this iteration: from `static.start` on,
+        every `static.every` iterations and after each densification."""
+        s = self.config.static
+        if not s.enabled or self.iteration < s.start or not self.deform_active():
+            return False
+        return densified or (self.iteration - s.start) % s.every == 0
+
+    def static_check_times(self) -> torch.Tensor:
+        """The training times D_theta is evaluated at to find static Gaussians: `static.times`
+        evenly spread over the sorted distinct times of the training frames."""
+        times = sorted({float(f.time) for f in self.scene.train})
+        k = min(len(times), self.config.static.times)
+        picks = torch.linspace(0, len(times) - 1, k).round().long()
+        return torch.tensor(times, dtype=torch.float32)[picks]
+
+    def update_static(self) -> StaticUpdate:
+        """Re-check which Gaussians are static (`sync4d.phase1.static.update_static_set`)."""
+        self.last_static_update = update_static_set(
+            self.model, self.static_check_times(), self.extent, self.config.static
+        )
+        return self.last_static_update
 
     def sh_degree_now(self) -> int:
         """SH degree used at the current iteration: one more every `sh_degree_interval`."""

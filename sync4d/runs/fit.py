@@ -369,6 +369,8 @@ def _run_fit(
             train_seconds, interrupted = _train_loop(
                 trainer, p1.iterations, desc="fit", train_seconds=train_seconds, **loop
             )
+            if p1.static.enabled:
+                print(skip_report(trainer.model, "Phase 1"), file=sys.stderr)
         if not interrupted and 2 in phases:
             if not isinstance(trainer, Phase2Trainer):
                 t0 = time.perf_counter()
@@ -389,12 +391,32 @@ def _run_fit(
         summary.update(
             {"iterations": trainer.iteration, "train_seconds": train_seconds,
              "wall_seconds": time.perf_counter() - wall0,
-             "gaussians": trainer.model.num_gaussians}
+             "gaussians": trainer.model.num_gaussians, "skipped": skip_counts(trainer.model)}
         )  # fmt: skip
         log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
     finally:
         metrics_log.close()
     return summary
+
+
+def skip_counts(model) -> dict[str, int | float]:
+    """D_theta's row counters of `model` in this process and its static set now."""
+    rows, skipped = model.deform_rows, model.deform_rows_skipped
+    return {"deform_rows": rows, "deform_rows_skipped": skipped,
+            "share": skipped / max(1, rows + skipped), "static": int(model.static.sum())}
+
+
+def skip_report(model, phase: str) -> str:
+    """One line: what D_theta skipped on static Gaussians during `phase` in this process
+    (`sync4d.phase1.static`), from the model's row counters."""
+    rows, skipped = model.deform_rows, model.deform_rows_skipped
+    n, n_static = model.num_gaussians, int(model.static.sum())
+    share = skipped / max(1, rows + skipped)
+    line = (f"fit: {phase} skipped D_theta on {share:.0%} of the Gaussian evaluations "
+            f"({skipped} of {rows + skipped}); static at the end: {n_static} of {n} Gaussians")
+    if n_static == n:
+        line += "; no Gaussian moves: a static scene, D_theta no longer evaluated"
+    return line  # fmt: skip
 
 
 def _start_phase2(

@@ -94,6 +94,9 @@ pub struct Checkpoint {
     pub embeddings: Vec<f32>,
     /// Embedding width E.
     pub embed_dim: usize,
+    /// Static Gaussians, N (empty when the checkpoint marks none): their canonical state is
+    /// their state at every time; D_theta is not evaluated for them.
+    pub is_static: Vec<bool>,
     /// The deformation MLP.
     pub mlp: DeformMlp,
     /// Near clipping plane of the run's renders, world units.
@@ -313,6 +316,15 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
     let sh_dc = t.get("gaussians.sh_dc", &[n, 1, 3])?;
     let sh_rest = t.get("gaussians.sh_rest", &[n, k - 1, 3])?;
     let embeddings = t.get("gaussians.embeddings", &[n, embed_dim])?;
+    // Optional: written only when some Gaussian is static (sync4d.phase1.static).
+    let is_static: Vec<bool> = if t.st.tensor("gaussians.static").is_ok() {
+        t.get("gaussians.static", &[n])?
+            .iter()
+            .map(|&v| v > 0.5)
+            .collect()
+    } else {
+        Vec::new()
+    };
     let mut sh = Vec::with_capacity(n * k * 3);
     for i in 0..n {
         sh.extend_from_slice(&sh_dc[3 * i..3 * i + 3]);
@@ -370,6 +382,7 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         sh_degree,
         embeddings,
         embed_dim,
+        is_static,
         mlp: DeformMlp {
             trunk,
             head,

@@ -126,11 +126,15 @@ pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
                 Vec::with_capacity(3 * (1 + 2 * ck.mlp.position_bands) + e + gamma.len());
             for l in 0..m.len() / 3 {
                 let i = c * CHUNK + l;
-                input.clear();
-                push_position_encoding(&ck.means[3 * i..3 * i + 3], &freqs, &mut input);
-                input.extend_from_slice(&ck.embeddings[e * i..e * (i + 1)]);
-                input.extend_from_slice(&gamma);
-                let o = mlp_eval(&ck.mlp, &input, &mut a, &mut b);
+                let o = if ck.is_static.get(i).copied().unwrap_or(false) {
+                    [0.0; 9] // static: the canonical state at every time
+                } else {
+                    input.clear();
+                    push_position_encoding(&ck.means[3 * i..3 * i + 3], &freqs, &mut input);
+                    input.extend_from_slice(&ck.embeddings[e * i..e * (i + 1)]);
+                    input.extend_from_slice(&gamma);
+                    mlp_eval(&ck.mlp, &input, &mut a, &mut b)
+                };
                 for k in 0..3 {
                     m[3 * l + k] = ck.means[3 * i + k] + o[k];
                     s[3 * l + k] = (ck.log_scales[3 * i + k] + o[6 + k]).exp();
