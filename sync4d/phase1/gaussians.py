@@ -153,8 +153,11 @@ class DeformableGaussians(nn.Module):
         if not deform:
             return self.means, q0, torch.exp(self.log_scales)
         n = self.num_gaussians
-        if self.static.shape != (n,):
-            raise RuntimeError(f"static mask has {self.static.shape[0]} rows for {n} Gaussians")
+        if self.static.shape != (n,):  # rows changed outside the densifier
+            if bool(self.static.any()):
+                raise RuntimeError(f"static mask has {self.static.shape[0]} rows for {n} "
+                                   "Gaussians: change rows through the densifier")  # fmt: skip
+            self.static = torch.zeros(n, dtype=torch.bool)
         n_static = int(self.static.sum())
         self.deform_rows += n - n_static
         self.deform_rows_skipped += n_static
