@@ -33,8 +33,9 @@ def _textured_image(size: int = 96, seed: int = 0) -> torch.Tensor:
 
 
 def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of an [H, W, C] image (replicate padding keeps the size)."""
     r = int(3 * sigma) + 1
-    x = torch.arange(-r, r + 1, dtype=torch.float32)
+    x = torch.arange(-r, r + 1, dtype=img.dtype)
     k = torch.exp(-0.5 * (x / sigma) ** 2)
     k = k / k.sum()
     t = img.permute(2, 0, 1)[:, None]

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from skimage.metrics import structural_similarity
 from test_data_blender import _write_scene
+from test_lpips import _blur
 
 from sync4d.data import load_scene
 from sync4d.metrics import dssim, ssim, ssim_gaussian
@@ -32,18 +33,6 @@ def _skimage_ssim(pred: torch.Tensor, target: torch.Tensor) -> float:
         pred.double().numpy(), target.double().numpy(), gaussian_weights=True, sigma=1.5,
         use_sample_covariance=False, data_range=1.0, channel_axis=-1,
     ))  # fmt: skip
-
-
-def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of an [H, W, C] image (replicate padding keeps the size)."""
-    r = int(3 * sigma) + 1
-    x = torch.arange(-r, r + 1, dtype=img.dtype)
-    k = torch.exp(-0.5 * (x / sigma) ** 2)
-    k = k / k.sum()
-    t = img.permute(2, 0, 1)[:, None]
-    t = F.conv2d(F.pad(t, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-    t = F.conv2d(F.pad(t, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
-    return t[:, 0].permute(1, 2, 0)
 
 
 def _structured(h: int, w: int, c: int, seed: int) -> torch.Tensor:

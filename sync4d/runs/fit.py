@@ -408,13 +408,13 @@ def skip_counts(model) -> dict[str, int | float]:
 
 def skip_report(model, phase: str) -> str:
     """One line: what D_theta skipped on static Gaussians during `phase` in this process
-    (`sync4d.phase1.static`), from the model's row counters."""
-    rows, skipped = model.deform_rows, model.deform_rows_skipped
-    n, n_static = model.num_gaussians, int(model.static.sum())
-    share = skipped / max(1, rows + skipped)
-    line = (f"fit: {phase} skipped D_theta on {share:.0%} of the Gaussian evaluations "
-            f"({skipped} of {rows + skipped}); static at the end: {n_static} of {n} Gaussians")
-    if n_static == n:
+    (`sync4d.phase1.static`), from `skip_counts`."""
+    c = skip_counts(model)
+    evaluations = c["deform_rows"] + c["deform_rows_skipped"]
+    line = (f"fit: {phase} skipped D_theta on {c['share']:.0%} of the Gaussian evaluations "
+            f"({c['deform_rows_skipped']} of {evaluations}); static at the end: {c['static']} "
+            f"of {model.num_gaussians} Gaussians")
+    if c["static"] == model.num_gaussians:
         line += "; no Gaussian moves: a static scene, D_theta no longer evaluated"
     return line  # fmt: skip
 
