@@ -432,3 +432,12 @@ def test_fit_on_a_video_says_to_process_it(
     video = _write_video(tmp_path / "clip.mp4", [np.zeros((32, 32, 3), np.uint8)] * 3)
     assert main(["fit", str(video), "--out", str(tmp_path / "run")]) == 2
     _one_line_error(capsys, str(video), "sync4d process")
+
+
+def test_a_file_that_is_no_ply_is_named(tmp_path: Path) -> None:
+    junk = tmp_path / "sparse_pc.ply"
+    junk.write_bytes(b"not a point cloud\n")
+    with pytest.raises(DatasetError, match="sparse_pc.ply: not a readable PLY header"):
+        read_ply_points(junk)
+    with pytest.raises(DatasetError, match="cannot read the point cloud"):
+        read_ply_points(tmp_path / "missing.ply")
