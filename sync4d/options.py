@@ -157,6 +157,34 @@ def add_bench_raster_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="N=10000 at 256x256 only, fewer repeats (smoke run); --sizes/--resolutions win",
     )
+    p.add_argument(
+        "--run",
+        metavar="RUN",
+        default=None,
+        help="time the rasterizer on a trained run's own Gaussians at its test cameras "
+        "instead of the random scenes (one thread count: the first of --thread-counts)",
+    )
+    p.add_argument(
+        "--frames",
+        type=positive_int,
+        metavar="K",
+        default=3,
+        help="with --run: test frames timed, evenly spread over the split (default: 3)",
+    )
+    p.add_argument(
+        "--data",
+        metavar="DIR",
+        default=None,
+        help="with --run: the run's dataset folder, when it moved since the run",
+    )
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=None,
+        metavar="NAME:KEY=VALUE,...",
+        help="with --run: also time rasterize with these keyword arguments (alpha_max, eps2d, "
+        "antialiased, backend), frame by frame beside the default (repeatable)",
+    )
 
 
 def add_bench_fit_options(p: argparse.ArgumentParser) -> None:

@@ -140,3 +140,50 @@ def test_run_job_structure() -> None:
     assert set(t) == set(bench.Timing.__dataclass_fields__)
     assert len(t["times_ms"]) == 2 and t["rss_peak_mb"] > 0
     assert res["counters"]["visible"] > 0  # counters are filled even without a forward mode
+
+
+def test_run_mode_times_a_trained_runs_frames(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`bench raster --run RUN`: the run's own Gaussians at its test cameras, a variant beside
+    the default, counters that match a direct render of the same frame."""
+    from sync4d.bench.raster_run import run_frames
+    from sync4d.data.synthetic import SyntheticConfig, write_synthetic_scene
+    from sync4d.raster import rasterize
+
+    data = write_synthetic_scene(tmp_path / "scene", SyntheticConfig(
+        size=48, frames=6, train_cameras=4, test_cameras=2, test_every=3))  # fmt: skip
+    run = tmp_path / "run"
+    assert cli.main(["fit", str(data), "--out", str(run), "--phases", "1", "--iters", "20",
+                     "--threads", "1", "--set", "eval_every=0",
+                     "--set", "phase1.init_points=300",
+                     "--set", "phase1.init_from=random"]) == 0  # fmt: skip
+    out = tmp_path / "bench.json"
+    argv = ["bench", "raster", "--run", str(run), "--frames", "2", "--repeats", "1",
+            "--thread-counts", "1", "--variant", "aa:antialiased=true", "--out", str(out)]
+    assert cli.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "fwd+bwd ms" in printed and "eval/blend" in printed
+    doc = json.loads(out.read_text())
+    rows = doc["results"]
+    assert [r["variant"] for r in rows] == ["default", "aa"] * 2
+    assert rows[1]["rasterize_kwargs"] == {"antialiased": True}
+    frames = run_frames(run, frames=2)
+    assert [f.name for f in frames] == [r["frame"] for r in rows[::2]]
+    f = frames[0]
+    direct = rasterize(*f.gaussians(), f.viewmat, f.K, f.width, f.height, near=f.near,
+                       background=f.background, threads=1).counters  # fmt: skip
+    assert rows[0]["counters"] == {k: int(v) for k, v in direct.items()}
+    assert rows[0]["counters"]["blended"] > 0
+    for r in rows:
+        assert r["forward_backward"]["median_ms"] > 0 and r["n"] == f.means.shape[0]
+
+
+def test_run_mode_names_a_missing_run_and_a_bad_variant(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert cli.main(["bench", "raster", "--run", str(tmp_path / "nope")]) == 2
+    assert "nope" in capsys.readouterr().err
+    argv = ["bench", "raster", "--run", str(tmp_path), "--variant", "x:speed=fast"]
+    assert cli.main(argv) == 2
+    assert "alpha_max" in capsys.readouterr().err

@@ -1015,7 +1015,12 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     ``args`` is the CLI's namespace (``python -m sync4d bench raster ...``) or a list of that
     command's arguments (e.g. ``["--quick", "--no-reference"]``).
     """
-    plan = _plan(_as_namespace(args))
+    ns = _as_namespace(args)
+    if getattr(ns, "run", None):
+        from sync4d.bench import raster_run
+
+        return raster_run.main(ns)
+    plan = _plan(ns)
     configs = [
         (n, w, h, t) for n in plan.sizes for (w, h) in plan.resolutions for t in plan.threads
     ]
