@@ -97,7 +97,7 @@ class Phase3Config:
     #: Encoder: "offline" (closed-vocabulary default), a SigLIP-ONNX model directory, or ""
     #: for $SYNC4D_ENCODER (else offline).
     encoder: str = choice("", check=_encoder_problem,
-                          text='"", "offline" or a SigLIP-ONNX model folder')
+                          text='"", "offline" or a SigLIP-ONNX model folder')  # fmt: skip
     #: Crop box: lower percentile of the projected Gaussian centres (App. A: 2nd) ...
     crop_low: float = ranged(2.0, 0.0, 50.0)
     #: ... upper percentile (98th) ...
@@ -204,6 +204,7 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     """`cfg` bounded to `iterations` per phase (`fit --iters N`). Phase 1 trains `iterations`
     instead of `cfg.phase1.iterations`, with its iteration-based schedules (densification
     start/stop/interval, opacity reset, SH degree steps, static and learning-rate warm-ups,
+    coarse iterations,
     periodic evaluation and checkpoints) scaled by the same ratio, so a shorter run still
     densifies, resets opacities and reaches full SH degree at the same fractions of training.
     Phase 2 trains at most `iterations` (`phase2_budget`)."""
@@ -231,6 +232,7 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
         static=static,
         sh_degree_interval=scaled(cfg.phase1.sh_degree_interval),
         static_warmup=scaled(cfg.phase1.static_warmup, 0),
+        coarse_iterations=scaled(cfg.phase1.coarse_iterations, 0),
         lr_deform_warmup=scaled(cfg.phase1.lr_deform_warmup, 0),
     )
     return dataclasses.replace(

@@ -19,6 +19,7 @@ from sync4d.settings import ranged
 
 __all__ = ["DensifyConfig", "Densifier", "PER_GAUSSIAN"]
 
+
 @dataclass(frozen=True)
 class DensifyConfig:
     """3DGS densification settings (paper Appendix A values where given)."""
@@ -37,6 +38,11 @@ class DensifyConfig:
     prune_opacity: float = ranged(0.005, 0.0, 1.0)
     #: Gaussians larger than this fraction of the scene extent are split, smaller ones cloned.
     percent_dense: float = ranged(0.01, 0.0)
+    #: Keep pruning Gaussians with opacity below `prune_opacity` every `interval` iterations
+    #: after `stop`, to the end of training (3DGS prunes only while densifying). They draw
+    #: next to nothing (below 1/255 nothing at all, and then get no gradient to come back),
+    #: yet still pay D_theta, projection and binning at every step.
+    prune_after_stop: bool = False
     #: Gaussians a split Gaussian becomes.
     split_count: int = ranged(2, 2)
     #: Densification stops adding Gaussians at this count.
@@ -87,6 +93,8 @@ class Densifier:
         #: Largest projected radius of each Gaussian since the last densification, as a
         #: fraction of the image's larger side.
         self.max_radius = torch.zeros(0)
+        #: Gaussians `prune_transparent` removed after densification (in this process).
+        self.pruned_transparent = 0
 
     def _ensure(self, n: int) -> None:
         if self.grad_accum.shape[0] != n:
@@ -121,7 +129,26 @@ class Densifier:
         if c.start <= iteration < c.stop and iteration % c.interval == 0 and iteration > 0:
             prune_big = iteration > c.opacity_reset_interval
             out = self.densify_and_prune(model, optimizer, scene_extent, prune_big)
+        elif c.prune_after_stop and iteration >= c.stop and iteration % c.interval == 0:
+            out["pruned"] = self.prune_transparent(model, optimizer)
         return out
+
+    @torch.no_grad()
+    def prune_transparent(
+        self, model: DeformableGaussians, optimizer: torch.optim.Optimizer
+    ) -> int:
+        """Remove the Gaussians with opacity below `prune_opacity` (never all of them);
+        returns how many went. The densification statistics follow the rows."""
+        keep = torch.sigmoid(model.opacity_logits.data) >= self.config.prune_opacity
+        n_prune = int((~keep).sum())
+        if n_prune == 0 or n_prune == model.num_gaussians:
+            return 0
+        self.pruned_transparent += n_prune
+        self._ensure(model.num_gaussians)
+        self.grad_accum, self.count = self.grad_accum[keep], self.count[keep]
+        self.max_radius = self.max_radius[keep]
+        self._keep(model, optimizer, keep)
+        return n_prune
 
     def reset_due(self, iteration: int) -> bool:
         """Whether the opacity reset scheduled after `iteration` is due. The trainer applies it

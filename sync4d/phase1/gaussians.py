@@ -86,6 +86,10 @@ class DeformableGaussians(nn.Module):
         #: counters behind `fit`'s "skipped" line and the tests of the skip.
         self.deform_rows = 0
         self.deform_rows_skipped = 0
+        #: D_theta's offsets (dx, dw, dl) of the moving rows at the last deformed `at_time`
+        #: call (None before one, and when every Gaussian is static): the motion-sparsity
+        #: loss reads them (`sync4d.phase1.static.motion_sparsity`).
+        self.last_offsets: tuple[Tensor, Tensor, Tensor] | None = None
 
     @classmethod
     def random_in_box(
@@ -162,12 +166,13 @@ class DeformableGaussians(nn.Module):
         self.deform_rows += n - n_static
         self.deform_rows_skipped += n_static
         if n_static == 0:
-            dx, dw, dl = self.deform(self.means, self.embeddings, t)
+            dx, dw, dl = self.last_offsets = self.deform(self.means, self.embeddings, t)
         elif n_static == n:  # nothing moves: the canonical Gaussians at every time
+            self.last_offsets = None
             return self.means, q0, torch.exp(self.log_scales)
         else:  # D_theta on the moving rows only; static rows keep zero offsets
             rows = (~self.static).nonzero().squeeze(1)
-            part = self.deform(self.means[rows], self.embeddings[rows], t)
+            part = self.last_offsets = self.deform(self.means[rows], self.embeddings[rows], t)
             dx, dw, dl = (torch.zeros(n, 3, dtype=p.dtype).index_put((rows,), p) for p in part)
         return deform_gaussians(self.means, q0, self.log_scales, dx, dw, dl)
 

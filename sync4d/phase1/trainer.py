@@ -13,15 +13,21 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
+import torch.nn.functional as F
 
-from sync4d.data.scene import Frame, Scene
+from sync4d.data.scene import Camera, Frame, Scene
 from sync4d.metrics import psnr
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.densify import Densifier, DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.init import scene_extent
 from sync4d.phase1.losses import photometric_loss
-from sync4d.phase1.static import StaticConfig, StaticUpdate, update_static_set
+from sync4d.phase1.static import (
+    StaticConfig,
+    StaticUpdate,
+    motion_sparsity,
+    update_static_set,
+)
 from sync4d.settings import choice, ranged
 
 __all__ = ["Phase1Config", "Phase1Trainer"]
@@ -104,6 +110,12 @@ class Phase1Config:
     background: tuple[float, float, float] = ranged((1.0, 1.0, 1.0), 0.0, 1.0, length=3)
     #: Seed of the initial Gaussians, D_theta's weights, the frame order and densification.
     seed: int = ranged(42, 0, 2**32 - 1)
+    #: Iterations at the start that train at a reduced resolution (`coarse_scale`): the
+    #: camera and target image shrink, so compositing and the loss cost a fraction while the
+    #: scene is still blurry anyway. 0 (the paper) trains at full resolution throughout.
+    coarse_iterations: int = ranged(0, 0)
+    #: Image scale of those iterations (targets area-averaged).
+    coarse_scale: float = ranged(0.5, 0.0, 1.0, lo_open=True)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     #: Static Gaussians skip D_theta (`sync4d.phase1.static`; off by default).
     static: StaticConfig = field(default_factory=StaticConfig)
@@ -135,6 +147,13 @@ class Phase1Trainer:
         self._rng = random.Random(self.config.seed)
         self._images: dict[int, torch.Tensor] = {}
         self._background = torch.tensor(self.config.background, dtype=torch.float32)
+        self._coarse_images: dict[int, torch.Tensor] = {}
+        #: Full-resolution pixels of the training frames so far; of those, the ones of coarse
+        #: iterations, and the pixels those rendered instead (in this process): `fit`'s
+        #: skip line.
+        self.pixels = 0
+        self.coarse_full_pixels = 0
+        self.coarse_pixels = 0
         #: The last check of the static set (None before the first).
         self.last_static_update: StaticUpdate | None = None
         c = self.config
@@ -159,6 +178,22 @@ class Phase1Trainer:
         if index not in self._images:
             self._images[index] = torch.from_numpy(frame.load_image(self.config.background))
         return self._images[index]
+
+    def coarse(self) -> bool:
+        """Whether the current iteration trains at `coarse_scale` (the first
+        `coarse_iterations`)."""
+        c = self.config
+        return c.coarse_scale < 1.0 and self.iteration <= c.coarse_iterations
+
+    def _coarse_view(self, index: int, frame: Frame) -> tuple[Camera, torch.Tensor]:
+        """`frame`'s camera and target image at `coarse_scale` (the image area-averaged to
+        the camera's size, cached until the coarse iterations end)."""
+        camera = frame.camera.scaled(self.config.coarse_scale)
+        if index not in self._coarse_images:
+            full = self._image(index, frame).permute(2, 0, 1).unsqueeze(0)
+            small = F.interpolate(full, size=(camera.height, camera.width), mode="area")
+            self._coarse_images[index] = small[0].permute(1, 2, 0).contiguous()
+        return camera, self._coarse_images[index]
 
     def _decayed(self, start: float, final: float) -> float:
         """Log-linear interpolation from `start` to `final` over the run."""
@@ -204,13 +239,20 @@ class Phase1Trainer:
         self._update_learning_rates()
         idx = self._rng.randrange(len(self.scene.train))
         frame = self.scene.train[idx]
-        target = self._image(idx, frame)
+        if self.coarse():
+            camera, target = self._coarse_view(idx, frame)
+            self.coarse_pixels += camera.width * camera.height
+            self.coarse_full_pixels += frame.camera.width * frame.camera.height
+        else:
+            camera, target = frame.camera, self._image(idx, frame)
+            self._coarse_images.clear()
+        self.pixels += frame.camera.width * frame.camera.height
         degree = self.sh_degree_now()
         deformed = self.model.at_time(frame.time, deform=self.deform_active())
         out = self.model.render(
-            frame.camera, frame.time, sh_degree=degree, background=self._background,
+            camera, frame.time, sh_degree=degree, background=self._background,
             deformed=deformed, threads=self.threads,
-        )
+        )  # fmt: skip
         out.means2d.retain_grad()
         loss = photometric_loss(
             out.features, target, c.lambda_l1, c.lambda_dssim, threads=self.threads
@@ -218,11 +260,14 @@ class Phase1Trainer:
         extra, extra_stats = self.auxiliary_loss(frame, deformed[0])
         if extra is not None:
             loss = loss + extra
+        s = c.static
+        if s.enabled and s.sparsity > 0 and self.deform_active() and self.model.last_offsets:
+            sparse = motion_sparsity(self.model.last_offsets, self.extent,
+                                     self.model.num_gaussians, s.sparsity_below)  # fmt: skip
+            loss = loss + s.sparsity * sparse
         loss.backward()
         with torch.no_grad():
-            self.densifier.accumulate(
-                out.means2d.grad, out.radii, frame.camera.width, frame.camera.height
-            )
+            self.densifier.accumulate(out.means2d.grad, out.radii, camera.width, camera.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         changed = self.densifier.step(self.model, self.optimizer, self.iteration, self.extent)

@@ -21,7 +21,7 @@ import torch
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
 from sync4d.data import DatasetError, Scene
 from sync4d.phase1.init import initial_model
-from sync4d.phase1.trainer import Phase1Trainer
+from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
 from sync4d.phase2.diagnostics import format_diagnostics
 from sync4d.phase2.trainer import Phase2Trainer
 from sync4d.progress import Progress, format_duration
@@ -160,6 +160,16 @@ def resolve_data(data: str | Path | None) -> tuple[Path, Path | None]:
     return root, cfg if cfg.exists() else None
 
 
+def phase2_loop_config(p1: Phase1Config | None) -> Phase1Config | None:
+    """The Phase 1 settings Phase 2's loop runs with: `p1` without coarse iterations and
+    without pruning after densification (Phase 2 refines a finished reconstruction at full
+    resolution; its rows change only through its own `densify` switch)."""
+    if p1 is None:
+        return None
+    densify = dataclasses.replace(p1.densify, prune_after_stop=False)
+    return dataclasses.replace(p1, coarse_iterations=0, densify=densify)
+
+
 def resume_trainer(
     path: str | Path,
     scene: Scene,
@@ -178,6 +188,7 @@ def resume_trainer(
     kw = dict(config=config, total_iterations=total_iterations, threads=threads, near=near)
     with state_errors(path):
         if meta.get("kind") == "sync4d.phase2":
+            kw["config"] = phase2_loop_config(config)
             return Phase2Trainer.from_state(tensors, meta, scene, phase2=phase2, **kw)
         return Phase1Trainer.from_state(tensors, meta, scene, **kw)
 
@@ -369,8 +380,8 @@ def _run_fit(
             train_seconds, interrupted = _train_loop(
                 trainer, p1.iterations, desc="fit", train_seconds=train_seconds, **loop
             )
-            if p1.static.enabled:
-                print(skip_report(trainer.model, "Phase 1"), file=sys.stderr)
+            for line in phase1_skip_lines(trainer):
+                print(line, file=sys.stderr)
         if not interrupted and 2 in phases:
             if not isinstance(trainer, Phase2Trainer):
                 t0 = time.perf_counter()
@@ -419,6 +430,28 @@ def skip_report(model, phase: str) -> str:
     return line  # fmt: skip
 
 
+def phase1_skip_lines(trainer: Phase1Trainer) -> list[str]:
+    """What Phase 1 skipped in this process, one line per switch that is on: D_theta on static
+    Gaussians (`skip_report`), pixels of the coarse iterations, transparent Gaussians pruned
+    after densification."""
+    c = trainer.config
+    lines = []
+    if c.static.enabled:
+        lines.append(skip_report(trainer.model, "Phase 1"))
+    if c.coarse_iterations > 0 and c.coarse_scale < 1.0 and trainer.pixels:
+        saved = (trainer.coarse_full_pixels - trainer.coarse_pixels) / trainer.pixels
+        lines.append(
+            f"fit: Phase 1 trained its first {c.coarse_iterations} iterations at "
+            f"{c.coarse_scale:g}x resolution: {saved:.0%} fewer pixels rendered in all"
+        )
+    if c.densify.prune_after_stop:
+        lines.append(
+            f"fit: Phase 1 pruned {trainer.densifier.pruned_transparent} transparent Gaussians "
+            f"(opacity < {c.densify.prune_opacity:g}) after densification"
+        )
+    return lines
+
+
 def _start_phase2(
     trainer: Phase1Trainer | None, scene: Scene, cfg: RunConfig, run_dir: Path, n_threads: int
 ) -> Phase2Trainer:
@@ -435,7 +468,8 @@ def _start_phase2(
         file=sys.stderr,
     )
     try:
-        p2 = Phase2Trainer(model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads)
+        p2 = Phase2Trainer(model, scene, phase2_loop_config(p1), cfg.phase2,
+                           cfg.phase2.iterations, n_threads)  # fmt: skip
     except ValueError as e:  # bad Phase 2 settings or assignment input
         raise ConfigError(str(e)) from None
     counts = p2.assignment.counts()
