@@ -109,6 +109,10 @@ class Phase3Config:
     min_visible: float = ranged(0.05, 0.0, 1.0)
     #: ... and its crop box is at least this many pixels on each side.
     min_box: int = ranged(4, 1)
+    #: Crop and encode only the observed object-frames, the only ones the field reads; false
+    #: also crops and encodes the unobserved ones that have a crop box and discards them (the
+    #: same field, at the cost the skip saves: for measuring it).
+    skip_unobserved: bool = True
     #: Ridge regularisation lambda (Eq. 13).
     ridge_lambda: float = ranged(0.01, 0.0, lo_open=True)
     #: Blend weight beta between prediction and observation where observed ...

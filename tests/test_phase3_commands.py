@@ -80,8 +80,9 @@ def test_fit_query_and_eval_with_the_offline_encoder(runs, capsys, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(runs["objects"], run)
     assert main(["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     assert "Phase 3: 3 objects x 6 frames" in out
+    assert "fit: Phase 3 encoded " in err and " of 18 object-frames in " in err
     assert (run / "phase3" / "field.safetensors").is_file()
     assert main(["query", str(run), "the blue box", "a green pillar at rest", "--json"]) == 0
     answers = json.loads(capsys.readouterr().out)

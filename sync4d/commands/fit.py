@@ -101,7 +101,7 @@ def _continued_config(
 
     def allowed(key: str) -> bool:  # Phase 3 rebuilds its field: its settings are free
         return (key in free or key.startswith("phase3.")
-                or (restart and (key == "phases" or key.startswith("phase2."))))
+                or (restart and (key == "phases" or key.startswith("phase2."))))  # fmt: skip
 
     diffs = config_differences(stored, cfg)
     bad = {k: v for k, v in diffs.items() if not allowed(k)}
@@ -177,7 +177,7 @@ def main(args: argparse.Namespace) -> int:
         with RunLock(run_dir, "fit"):
             return _fit(args, run_dir, fresh)
     except (ConfigError, DatasetError, CheckpointError, RunError, RunBusy, WriteFailed,
-            EncoderError, FieldError) as e:
+            EncoderError, FieldError) as e:  # fmt: skip
         print(f"fit: {e}", file=sys.stderr)
         return 2
     except FitInterrupted:
@@ -286,6 +286,7 @@ def _build_phase3(run_dir: Path, cfg3, threads: int | None, data: Path | None) -
     import dataclasses as dc
 
     from sync4d.phase3 import build_field, load_encoder
+    from sync4d.phase3.build import skip_report
     from sync4d.phase3.query import TextCache
     from sync4d.runs import load_run
 
@@ -306,3 +307,4 @@ def _build_phase3(run_dir: Path, cfg3, threads: int | None, data: Path | None) -
         f"{t['total_s']:.1f} s (observe {t['observe_s']:.1f}, encode {t['encode_s']:.1f}); "
         f"field in {out}"
     )
+    print(skip_report(field), file=sys.stderr)

@@ -5,7 +5,14 @@
 anchors, the 28-D kinematics (`kinematics`), per-object standardisation and ridge, prediction,
 blend and temporal EMA (`field`). The result is a `Field`, saved as ``RUN/phase3/field.safetensors``
 (arrays) and ``RUN/phase3/field.json`` (labels, names, times, crop views, the encoder, the
-settings, timings), both written atomically. `load_field(RUN)` reads it back and checks it.
+settings, timings, counts), both written atomically. `load_field(RUN)` reads it back and checks
+it.
+
+What the build skips (issue 40) is counted in `Field.counts`, and `skip_report` says it in one
+line: only observed object-frames are cropped and encoded, all in one `encode_images` call
+(`Phase3Config.skip_unobserved`; off, the unobserved crops that have a box are encoded too, in a
+second call, and discarded); the relational kinematic dims are computed at every frame, see
+`sync4d.phase3.kinematics`.
 """
 
 from __future__ import annotations
@@ -19,12 +26,13 @@ import numpy as np
 from sync4d.config import Phase3Config
 from sync4d.phase3 import field as fm
 from sync4d.phase3.encoder import Encoder
-from sync4d.phase3.kinematics import Tracks, kinematic_features
+from sync4d.phase3.kinematics import Tracks, kinematic_features, relational_counts
 from sync4d.phase3.observe import Observations, observe
 from sync4d.phase3.store import FIELD_DIR, Field, FieldError, load_field
 from sync4d.runs import Run
 
-__all__ = ["FIELD_DIR", "Field", "FieldError", "build_field", "load_field", "up_vector"]
+__all__ = ["FIELD_DIR", "Field", "FieldError", "build_field", "load_field", "skip_report",
+           "up_vector"]  # fmt: skip
 
 
 def up_vector(run: Run, scene_cameras: list, spec: str = "auto") -> np.ndarray:
@@ -78,20 +86,27 @@ def build_field(
     obs = observe(
         run, scene, min_visible=cfg.min_visible, min_box=cfg.min_box, margin=cfg.crop_margin,
         percentiles=(cfg.crop_low, cfg.crop_high), share_eps=share_eps, up=up, threads=threads,
-        progress=progress,
+        progress=progress, skip_unobserved=cfg.skip_unobserved,
     )  # fmt: skip
     if not obs.labels:
-        raise FieldError(f"{run.checkpoint}: the run has no foreground object (every Gaussian "
-                         "is background); Phase 3 needs objects from masks or clustering")
+        raise FieldError(
+            f"{run.checkpoint}: the run has no foreground object (every Gaussian "
+            "is background); Phase 3 needs objects from masks or clustering"
+        )
     timings["observe_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     k, t = obs.observed.shape
     d = encoder.dim
     e_obs = np.zeros((k, t, d), dtype=np.float64)
-    if obs.crops:
+    calls = 0
+    if obs.crops:  # one call: the encoder batches
         emb = encoder.encode_images(obs.crops)
+        calls += 1
         for (a, f), e in zip(obs.crop_index, emb, strict=True):
             e_obs[a, f] = e
+    if obs.extra_crops:  # skip_unobserved off: encoded apart (the batches above unchanged), unused
+        encoder.encode_images(obs.extra_crops)
+        calls += 1
     timings["encode_s"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     names = [run.names.get(j, f"object {j}") for j in obs.labels]
@@ -106,6 +121,8 @@ def build_field(
     timings["field_s"] = time.perf_counter() - t2
     timings["total_s"] = time.perf_counter() - t0
     timings["crops"] = len(obs.crops)
+    counts = {**obs.counts, "crops_encoded": len(obs.crops) + len(obs.extra_crops),
+              "encoder_calls": calls, **relational_counts(obs.observed)}  # fmt: skip
     return Field(
         labels=obs.labels, names=names, times=obs.times, obs=e_obs.astype(np.float32),
         observed=obs.observed, static=static.astype(np.float32), features=feats,
@@ -114,5 +131,37 @@ def build_field(
         centroids=tracks.centroids, gap_labels=obs.gap_labels, views=obs.views,
         up=up, right=np.asarray(cams[0].viewmat[0, :3], float),
         encoder=encoder.describe(),
-        config=dataclasses.asdict(cfg), timings=timings,
+        config=dataclasses.asdict(cfg), timings=timings, counts=counts,
     )  # fmt: skip
+
+
+def skip_report(field: Field) -> str:
+    """One line for `fit` after Phase 3: what was encoded and skipped (`Field.counts`)."""
+    c = field.counts
+    if not c:
+        return "fit: Phase 3 skipped nothing that it counted (a field built before the counters)"
+    calls = c["encoder_calls"]
+    line = (
+        f"fit: Phase 3 encoded {c['crops_encoded']} of {c['object_frames']} object-frames in "
+        f"{calls} encoder call{'' if calls == 1 else 's'}"
+    )
+    if c["extra_crops"]:
+        line += (
+            f" ({c['extra_crops']} unobserved ones encoded and discarded: "
+            f"phase3.skip_unobserved is off; {c['invisible']} invisible, "
+            f"{c['below_threshold']} below min_visible/min_box)"
+        )
+    else:
+        line += (
+            f" ({c['invisible']} invisible and {c['below_threshold']} below "
+            "min_visible/min_box skipped)"
+        )
+    line += f"; relational features on {c['relational']} object-frames"
+    if c["relational_skipped"]:
+        line += f" ({c['relational_skipped']} without another object left at 0)"
+    if c["relational_unobserved"]:
+        line += (
+            f" ({c['relational_unobserved']} at frames with an unobserved object, "
+            "kept: the prediction there reads them)"
+        )
+    return line

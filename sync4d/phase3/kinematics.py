@@ -21,6 +21,16 @@ A's polar decomposition in affine mode; s_ref is the 95th percentile of every ob
 over all frames; the rank (21) is the fraction of other objects slower than k (0 with one
 object); relational distances are between centroids; hand dims (26, 27) are 0 when the scene has
 no hand object or for the hand itself.
+
+Relational dims of unobserved objects: every object of the field has M_phi's transform at every
+stored frame (Phase 2 fits it to D_theta's positions of all the object's Gaussians, seen or
+not), so its centroid, and every distance to it, is defined whether or not a view sees it; a
+label with no Gaussian is no object of the field at all (`observe` leaves it out). The
+relational dims are therefore computed at every frame, also where the object or the other one
+is unobserved: the prediction e_hat at an unobserved frame is all the field has there (Sec. 3.5:
+under occlusion it is the sole embedding), while standardisation and the ridge read the
+observed frames only. Nothing here is skipped for visibility; `relational_counts` says how many
+object-frames that concerns.
 """
 
 from __future__ import annotations
@@ -30,7 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FEATURE_NAMES", "NUM_FEATURES", "Tracks", "kinematic_features", "rotation_angle"]
+__all__ = ["FEATURE_NAMES", "NUM_FEATURES", "RELATIONAL_DIMS", "Tracks", "kinematic_features",
+           "relational_counts", "rotation_angle"]  # fmt: skip
 
 NUM_FEATURES = 28
 #: Short name of each of the 28 dimensions, in order.
@@ -41,6 +52,8 @@ FEATURE_NAMES = (
     "relative_speed", "speed_rank", "is_fastest", "time_fraction", "nearest_distance",
     "nearest_closing_speed", "hand_distance", "hand_closing_speed",
 )  # fmt: skip
+#: The dims that relate an object to another one (rank, nearest, hand): 0 with one object.
+RELATIONAL_DIMS = (21, 24, 25, 26, 27)
 #: Time constant (frames) of the smoothed speed and acceleration (dims 14, 15).
 EMA_FRAMES = 5.0
 
@@ -165,3 +178,17 @@ def kinematic_features(tr: Tracks) -> np.ndarray:
         f[..., 27] = _gradient(dh, times)
         f[tr.hand, :, 27] = 0.0
     return f
+
+
+def relational_counts(observed: np.ndarray) -> dict[str, int]:
+    """Object-frames of `observed` [K, T] whose relational dims (`RELATIONAL_DIMS`) another object
+    makes (``relational``: all K T with two objects or more, none with one), those left at 0
+    for want of another object (``relational_skipped``), and of the computed ones those at a
+    frame where the object or another one is unobserved (``relational_unobserved``: computed
+    all the same, see the module note)."""
+    observed = np.asarray(observed, dtype=bool)
+    k, t = observed.shape
+    if k < 2:
+        return {"relational": 0, "relational_skipped": k * t, "relational_unobserved": 0}
+    return {"relational": k * t, "relational_skipped": 0,
+            "relational_unobserved": k * int((~observed).any(0).sum())}  # fmt: skip

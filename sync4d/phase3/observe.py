@@ -13,7 +13,11 @@ For each stored frame time t of M_phi and each training view at t:
   image; the frame's crop comes from the view with the largest visible fraction (ties: the
   larger box), recorded by name so multi-view runs say where each crop came from. An object is
   *observed* at a frame when that fraction is at least `min_visible` and the box is at least
-  `min_box` pixels on each side;
+  `min_box` pixels on each side. Only observed object-frames are cropped (and so encoded):
+  the field reads e_obs on the observed frames F_k alone, so a crop of an invisible object (no
+  box, or none of its Gaussians visible: the crop would show its occluder) or of a sliver
+  would be encoded for nothing. `skip_unobserved=False` crops those that have a box as well,
+  apart (`extra_crops`), to measure what the skip saves; `counts` says what was cropped;
 * **residuals** r_i = x_i(t) - x~_i(t) (D_theta's position minus M_phi's, Eq. 6) give per object
   the mean and standard deviation of |r_i| and the rigid share rho (Phase 2's own
   `rigid_share`, averaged over the object's Gaussians: dims 3, 4, 18);
@@ -53,7 +57,12 @@ class Observations:
     `radius` [K] median distance of the object's canonical Gaussians from their centroid;
     `gaps` [K, L, T] robust distance from object k to each label in `gap_labels` (L of them:
     0 = background, then the objects); `crops` the crop images [h, w, 3] in [0, 1] of the
-    observed pairs, in the order of `crop_index` [(k, f)].
+    observed pairs, in the order of `crop_index` [(k, f)]; `extra_crops` and `extra_index` the
+    same of the unobserved pairs that have a box (only with `skip_unobserved=False`; the field
+    never reads them). `counts`: ``object_frames`` (K T), ``observed``, ``invisible``
+    (unobserved with no crop box or a visible fraction of 0), ``below_threshold`` (unobserved,
+    partly visible: under `min_visible` or `min_box`), ``crops`` (observed crops made),
+    ``extra_crops``, ``images_loaded`` (training images read for crops).
     """
 
     labels: list[int]
@@ -71,6 +80,9 @@ class Observations:
     gap_labels: list[int]
     crops: list[np.ndarray] = field(default_factory=list)
     crop_index: list[tuple[int, int]] = field(default_factory=list)
+    extra_crops: list[np.ndarray] = field(default_factory=list)
+    extra_index: list[tuple[int, int]] = field(default_factory=list)
+    counts: dict[str, int] = field(default_factory=dict)
 
 
 def crop_box(
@@ -126,16 +138,26 @@ def _subsample(idx: np.ndarray, n: int) -> np.ndarray:
     return idx[np.linspace(0, len(idx) - 1, n).round().astype(np.int64)]
 
 
+def _crop(images: dict[int, np.ndarray], vi: int, scene: Scene, box: tuple[int, int, int, int],
+          background) -> np.ndarray:  # fmt: skip
+    """The `box` of training view `vi`'s image, read into `images` on first use."""
+    if vi not in images:
+        images[vi] = scene.train[vi].load_image(tuple(background))
+    x0, y0, x1, y1 = box
+    return images[vi][y0:y1, x0:x1].copy()
+
+
 @torch.no_grad()
 def observe(
     run: Run, scene: Scene, *, min_visible: float = 0.05, min_box: int = 4,
     margin: float = 0.12, percentiles: tuple[float, float] = (2.0, 98.0),
     share_eps: float = 1e-6, up: np.ndarray | None = None, threads: int | None = None,
-    progress: bool = True,
+    progress: bool = True, skip_unobserved: bool = True,
 ) -> Observations:  # fmt: skip
     """Crops, visibility, residual statistics and gaps of every foreground object of the
     Phase 2 run `run` at each of its stored frames, from the training views of `scene`; `up`
-    [3] is the world's up (default +z) for the gap to the background."""
+    [3] is the world's up (default +z) for the gap to the background. Crops only of the
+    observed object-frames unless `skip_unobserved` is False (then also `extra_crops`)."""
     up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
     if run.motion is None or run.labels is None or run.times is None:
         raise ValueError(f"{run.path}: not a Phase 2 run")
@@ -170,8 +192,9 @@ def observe(
         rigid_share=np.zeros((k, t)), canonical_centroids=cc, radius=radius,
         gaps=np.full((k, len(gap_labels), t), np.inf), gap_labels=gap_labels,
     )  # fmt: skip
+    n_invisible = n_below = n_loaded = 0
     bar = Progress(t, desc="phase3 observe", log_every=max(1, t // 10),
-                   stream=None if progress else io.StringIO())
+                   stream=None if progress else io.StringIO())  # fmt: skip
     for f, tf in enumerate(times):
         means, quats, scales = model.at_time(float(tf))
         r = means - motion(x0, labels, float(tf))
@@ -215,22 +238,34 @@ def observe(
                 area = 0 if box is None else (box[2] - box[0]) * (box[3] - box[1])
                 if (vis, area) > best[a][:2]:
                     best[a] = (vis, area, vi, box)
-        images: dict[int, np.ndarray] = {}
+        images: dict[int, np.ndarray] = {}  # read once per frame and view, only for a crop
         for a in range(k):
             vis, _, vi, box = best[a]
             obs.visible[a, f] = max(vis, 0.0)
-            if vi < 0 or box is None:
+            if vi < 0 or box is None:  # in front of no camera, or outside every image
+                n_invisible += 1
                 continue
             obs.boxes[a, f] = box
             obs.views[a][f] = scene.train[vi].name
             big = min(box[2] - box[0], box[3] - box[1]) >= min_box
             if vis >= min_visible and big:
                 obs.observed[a, f] = True
-                if vi not in images:
-                    images[vi] = scene.train[vi].load_image(tuple(run.background))
-                x0b, y0b, x1b, y1b = box
-                obs.crops.append(images[vi][y0b:y1b, x0b:x1b].copy())
+                obs.crops.append(_crop(images, vi, scene, box, run.background))
                 obs.crop_index.append((a, f))
+                continue
+            if vis > 0:
+                n_below += 1
+            else:
+                n_invisible += 1
+            if not skip_unobserved:
+                obs.extra_crops.append(_crop(images, vi, scene, box, run.background))
+                obs.extra_index.append((a, f))
+        n_loaded += len(images)
         bar.update(f + 1)
     bar.close()
+    obs.counts = {
+        "object_frames": k * t, "observed": int(obs.observed.sum()), "invisible": n_invisible,
+        "below_threshold": n_below, "crops": len(obs.crops), "extra_crops": len(obs.extra_crops),
+        "images_loaded": n_loaded,
+    }  # fmt: skip
     return obs

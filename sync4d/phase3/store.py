@@ -38,7 +38,9 @@ class Field:
     [K, D], `features` [K, T, 28] (Appendix B), `standardised` [K, T, 29], `ridge` [K, 29, D]
     W_k, `pred` [K, T, D] e_hat, `sync` [K, T, D] the blended and smoothed embeddings,
     `visible` [K, T], `boxes` [K, T, 4] crop boxes, `gaps` [K, L, T] robust distances to each
-    of `gap_labels`, `radius` [K], `centroids` [K, T, 3] (M_phi's). `meta`: everything else.
+    of `gap_labels`, `radius` [K], `centroids` [K, T, 3] (M_phi's). `meta`: everything else;
+    `counts` what the build encoded and skipped (`sync4d.phase3.build.skip_report`; empty in a
+    field built before the counters).
     """
 
     labels: list[int]
@@ -64,6 +66,7 @@ class Field:
     encoder: dict
     config: dict
     timings: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
 
     @property
     def dim(self) -> int:
@@ -94,6 +97,7 @@ class Field:
             "gap_labels": self.gap_labels, "views": self.views, "up": self.up.tolist(),
             "right": self.right.tolist(),
             "encoder": self.encoder, "config": self.config, "timings": self.timings,
+            "counts": self.counts,
         }  # fmt: skip
         write_text_atomic(out / FIELD_META, json.dumps(meta, indent=1) + "\n")
         return out
@@ -136,6 +140,6 @@ def load_field(run_dir: str | Path) -> Field:
         times=arrays["times"], gap_labels=[int(x) for x in meta["gap_labels"]],
         views=meta["views"], up=np.asarray(meta["up"], dtype=np.float64),
         right=np.asarray(meta["right"], dtype=np.float64),
-        encoder=meta["encoder"], config=meta["config"], timings=meta.get("timings", {}), **kw,
+        encoder=meta["encoder"], config=meta["config"], timings=meta.get("timings", {}),
+        counts=meta.get("counts", {}), **kw,
     )  # fmt: skip
-
