@@ -145,8 +145,9 @@ def test_training_steps_update_motion_and_keep_the_render(oracle):
         500, torch.tensor([-1.0, -1.0, 0.0]), torch.tensor([1.0, 1.0, 1.0]), generator=g,
         sh_degree=0,
     )  # fmt: skip
+    # A fresh D_theta moves nothing: a still scene, every object held (skip_still_scene).
     p2 = Phase2Config(motion_start=0, velocity_start=0, residual_start=0, warmup_start=0,
-                      warmup_end=2)  # fmt: skip
+                      warmup_end=2, skip_still_scene=False)  # fmt: skip
     tr = Phase2Trainer(model, scene, Phase1Config(), p2, 20, threads=1)
     before = tr.motion.translations.detach().clone()
     frame = scene.train[5]

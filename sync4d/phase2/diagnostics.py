@@ -87,7 +87,8 @@ def diagnostics(trainer: Phase2Trainer, shuffles: int = 5, seed: int = 0) -> dic
         "objects": [
             {
                 "label": j, "name": names.get(j, f"object {j}"), "gaussians": counts[j],
-                "static": bool(trainer.static[j]), "rigid_share": rho_k[j] / nt,
+                "static": bool(trainer.static[j]), "held": bool(trainer.motion.frozen[j]),
+                "rigid_share": rho_k[j] / nt,
                 "residual_mean": res_k[j] / nt, "motion_variance": var_k[j] / nt,
             }
             for j in range(k)
@@ -140,7 +141,8 @@ def motion_export(trainer: Phase2Trainer) -> dict[str, np.ndarray]:
 def format_diagnostics(diag: dict) -> str:
     """Phase 2 diagnostics (Appendix C) as a table plus a summary line."""
     rows = [
-        [str(o["label"]), o["name"], f"{o['gaussians']:,}", "yes" if o["static"] else "",
+        [str(o["label"]), o["name"], f"{o['gaussians']:,}",
+         "held" if o.get("held") else "yes" if o["static"] else "",
          f"{o['rigid_share']:.3f}", f"{o['residual_mean']:.4f}", f"{o['motion_variance']:.2e}"]
         for o in diag["objects"]
     ]  # fmt: skip

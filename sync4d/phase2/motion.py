@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,7 @@ __all__ = [
     "MotionConfig",
     "ObjectMotion",
     "make_motion",
+    "still_objects",
 ]
 
 #: The M_phi parameterisations `make_motion` knows.
@@ -130,12 +132,20 @@ class ObjectMotion(nn.Module, ABC):
     """M_phi for K objects over the stored frame times `times` [T] (sorted, in [0, 1]).
 
     Subclasses provide `params_at(j)` (the raw per-object parameters at stored frame j, [K, P],
-    which the smoothness and identity losses act on) and `linear_at(t)`: the transform at any
-    time as (A [K, 3, 3], b [K, 3]) with x~ = A x0 + b.
+    which the smoothness and identity losses act on; zero is the identity) and `linear_at(t)`:
+    the transform at any time as (A [K, 3, 3], b [K, 3]) with x~ = A x0 + b.
+
+    Objects flagged in the buffer `frozen` [K] (bool; `hold`) are held at a constant transform
+    (buffers `held_linear` [K, 3, 3] and `held_offset` [K, 3]; the identity by default): every
+    transform and loss sees it there, so no gradient reaches their parameters (Phase 2's
+    still objects, `still_objects`, `Phase2Config.freeze_static`).
     """
 
     #: Whether the transform is rigid (SE(3)); the affine ones are not.
     rigid: bool = True
+    #: Parameters with one row per object (first dimension K), whose rows of held objects the
+    #: trainer keeps out of its optimizer step.
+    row_params: tuple[str, ...] = ()
 
     def __init__(self, num_objects: int, times: np.ndarray | list[float]) -> None:
         super().__init__()
@@ -146,6 +156,9 @@ class ObjectMotion(nn.Module, ABC):
             raise ValueError("M_phi frame times must be a non-empty strictly increasing list")
         self.num_objects = num_objects
         self.register_buffer("times", torch.as_tensor(times, dtype=torch.float64))
+        self.register_buffer("frozen", torch.zeros(num_objects, dtype=torch.bool))
+        self.register_buffer("held_linear", torch.eye(3).repeat(num_objects, 1, 1))
+        self.register_buffer("held_offset", torch.zeros(num_objects, 3))
 
     @property
     def num_frames(self) -> int:
@@ -177,10 +190,44 @@ class ObjectMotion(nn.Module, ABC):
     def linear_at(self, t: float) -> tuple[Tensor, Tensor]:
         """(A [K, 3, 3], b [K, 3]) at time `t`: x~ = A x0 + b."""
 
+    def transform_at(self, t: float) -> tuple[Tensor, Tensor]:
+        """`linear_at(t)` with the held objects' rows replaced by their constant transform."""
+        a, b = self.linear_at(t)
+        if bool(self.frozen.any()):
+            f = self.frozen
+            a = torch.where(f[:, None, None], self.held_linear.to(a.dtype), a)
+            b = torch.where(f[:, None], self.held_offset.to(b.dtype), b)
+        return a, b
+
+    def rows_at(self, j: int) -> Tensor:
+        """`params_at(j)` [K, P] with the held objects' rows zero: constant in time and
+        trained by nothing, they are left out of the smoothness and identity losses."""
+        p = self.params_at(j)
+        if bool(self.frozen.any()):
+            p = torch.where(self.frozen[:, None], torch.zeros((), dtype=p.dtype), p)
+        return p
+
+    @torch.no_grad()
+    def hold(
+        self, frozen: Tensor, linear: Tensor | None = None, offset: Tensor | None = None
+    ) -> None:
+        """Hold the objects flagged in `frozen` [K] (bool) at the constant transform
+        x~ = linear[k] x0 + offset[k] (`linear` [K, 3, 3], `offset` [K, 3]; default the
+        identity) from now on, and release the others (their parameters keep their values).
+        The tables also store it in the held objects' rows at every frame."""
+        k = self.num_objects
+        self.frozen.copy_(torch.as_tensor(frozen, dtype=torch.bool))
+        self.held_linear.copy_(torch.eye(3).repeat(k, 1, 1) if linear is None else linear)
+        self.held_offset.copy_(torch.zeros(k, 3) if offset is None else offset)
+        self._store_held()
+
+    def _store_held(self) -> None:
+        """Write the held transforms into the held objects' parameter rows (the tables)."""
+
     def forward(self, x0: Tensor, labels: Tensor, t: float) -> Tensor:
         """Object-predicted positions x~ [N, 3] (Eq. 5) of canonical means `x0` [N, 3] whose
         objects are `labels` [N] (long, in [0, K)) at time `t`."""
-        a, b = self.linear_at(t)
+        a, b = self.transform_at(t)
         a, b = a.to(x0.dtype), b.to(x0.dtype)
         return (a[labels] @ x0.unsqueeze(-1)).squeeze(-1) + b[labels]
 
@@ -189,13 +236,13 @@ class ObjectMotion(nn.Module, ABC):
         before it (0 at the first frame)."""
         if j <= 0:
             return self.params_at(0).sum() * 0.0
-        d = self.params_at(j) - self.params_at(j - 1)
+        d = self.rows_at(j) - self.rows_at(j - 1)
         return (d * d).sum() / self.num_objects
 
     def identity_prior(self, j: int, static: Tensor) -> Tensor:
         """Mean over the objects flagged in `static` [K] (bool) of ||p_k[j]||^2: pulls static
         objects' transforms to the identity (0 when none is static)."""
-        p = self.params_at(j)[static]
+        p = self.rows_at(j)[static]
         if p.shape[0] == 0:
             return p.sum() * 0.0
         return (p * p).sum() / p.shape[0]
@@ -205,7 +252,8 @@ class ObjectMotion(nn.Module, ABC):
 
     def fit_to(self, x0: np.ndarray, positions: list[np.ndarray], labels: np.ndarray) -> None:
         """Set the transforms to the closed-form fit of canonical `x0` [N, 3] onto
-        `positions[j]` [N, 3] (D_theta at stored frame j) per object `labels` [N]."""
+        `positions[j]` [N, 3] (D_theta at stored frame j) per object `labels` [N] (held
+        objects keep their constant transform)."""
         raise ValueError(
             f"{type(self).__name__} has no closed-form initialisation: use "
             "phase2.motion.init=identity with phase2.motion.kind=mlp"
@@ -217,6 +265,11 @@ class ObjectMotion(nn.Module, ABC):
         state = {k.removeprefix("motion."): v for k, v in tensors.items()
                  if k.startswith("motion.")}  # fmt: skip
         state["times"] = self.times
+        # Checkpoints from before objects were held have no flags: none is held.
+        k = self.num_objects
+        state["frozen"] = state.get("frozen", torch.zeros(k)).to(torch.bool)
+        state.setdefault("held_linear", torch.eye(3).repeat(k, 1, 1))
+        state.setdefault("held_offset", torch.zeros(k, 3))
         try:
             self.load_state_dict(state)
         except RuntimeError as e:
@@ -224,10 +277,11 @@ class ObjectMotion(nn.Module, ABC):
 
     @torch.no_grad()
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """(A [K, T, 3, 3], b [K, T, 3]) float64 at every stored frame, for export."""
+        """(A [K, T, 3, 3], b [K, T, 3]) float64 at every stored frame, for export (held
+        objects at their constant transform)."""
         mats, offs = [], []
         for j in range(self.num_frames):
-            a, b = self.linear_at(float(self.times[j]))
+            a, b = self.transform_at(float(self.times[j]))
             mats.append(a.double().numpy())
             offs.append(b.double().numpy())
         return np.stack(mats, 1), np.stack(offs, 1)
@@ -235,6 +289,8 @@ class ObjectMotion(nn.Module, ABC):
 
 class SE3Table(ObjectMotion):
     """Per-frame SE(3) table: rotation vectors w [K, T, 3] and translations t [K, T, 3]."""
+
+    row_params = ("rotvecs", "translations")
 
     def __init__(self, num_objects: int, times, init_std: float = 1e-4, generator=None) -> None:
         super().__init__(num_objects, times)
@@ -249,12 +305,19 @@ class SE3Table(ObjectMotion):
     def fit_to(self, x0: np.ndarray, positions: list[np.ndarray], labels: np.ndarray) -> None:
         for k in range(self.num_objects):
             sel = labels == k
-            if sel.sum() < 3:
+            if sel.sum() < 3 or self.frozen[k]:
                 continue
             fits = robust_fit(kabsch, x0[sel], [pos[sel] for pos in positions])
             for j, (r, t) in enumerate(fits):
                 self.rotvecs[k, j] = torch.as_tensor(matrix_to_rotvec(r))
                 self.translations[k, j] = torch.as_tensor(t)
+
+    @torch.no_grad()
+    def _store_held(self) -> None:
+        for k in torch.nonzero(self.frozen).flatten().tolist():
+            w = matrix_to_rotvec(self.held_linear[k].double().numpy())
+            self.rotvecs[k] = torch.as_tensor(w, dtype=self.rotvecs.dtype)
+            self.translations[k] = self.held_offset[k].to(self.translations.dtype)
 
     def linear_at(self, t: float) -> tuple[Tensor, Tensor]:
         j0, j1, alpha = self.bracket(t)
@@ -271,6 +334,7 @@ class AffineTable(ObjectMotion):
     """Per-frame affine table: deltas dA [K, T, 3, 3] and offsets b [K, T, 3]."""
 
     rigid = False
+    row_params = ("deltas", "offsets")
 
     def __init__(self, num_objects: int, times, init_std: float = 1e-4, generator=None) -> None:
         super().__init__(num_objects, times)
@@ -285,12 +349,18 @@ class AffineTable(ObjectMotion):
     def fit_to(self, x0: np.ndarray, positions: list[np.ndarray], labels: np.ndarray) -> None:
         for k in range(self.num_objects):
             sel = labels == k
-            if sel.sum() < 4:
+            if sel.sum() < 4 or self.frozen[k]:
                 continue
             fits = robust_fit(fit_affine, x0[sel], [pos[sel] for pos in positions])
             for j, (a, b) in enumerate(fits):
                 self.deltas[k, j] = torch.as_tensor(a - np.eye(3))
                 self.offsets[k, j] = torch.as_tensor(b)
+
+    @torch.no_grad()
+    def _store_held(self) -> None:
+        f = self.frozen
+        self.deltas[f] = (self.held_linear[f] - torch.eye(3)).unsqueeze(1).to(self.deltas.dtype)
+        self.offsets[f] = self.held_offset[f].unsqueeze(1).to(self.offsets.dtype)
 
     def linear_at(self, t: float) -> tuple[Tensor, Tensor]:
         j0, j1, alpha = self.bracket(t)
@@ -304,6 +374,7 @@ class MotionMLP(ObjectMotion):
     or 12 (affine delta, offset), zero-initialised output, so it starts at the identity."""
 
     fits_closed_form = False
+    row_params = ("embeddings",)
 
     def __init__(
         self, num_objects: int, times, config: MotionConfig | None = None, generator=None
@@ -353,6 +424,66 @@ def make_motion(
     if config.kind == "mlp":
         return MotionMLP(num_objects, times, config, g)
     raise ValueError(f"unknown M_phi kind {config.kind!r}: expected one of {MOTION_KINDS}")
+
+
+def still_objects(
+    x0: np.ndarray,
+    positions: Iterable[np.ndarray],
+    labels: np.ndarray,
+    num_objects: int,
+    max_spread: float,
+    max_angle: float,
+    rigid: bool = True,
+    all_or_none: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which objects do not move, and the constant transform that holds each.
+
+    `positions`: D_theta's positions [N, 3] at the stored frames (iterated twice: a list, or a
+    re-iterable that evaluates them each time); `x0` [N, 3] the canonical positions; `labels`
+    [N] each Gaussian's object in [0, K). Object k is still when each of its Gaussians stays
+    within `max_spread` (world units) of its mean position over the frames, and the
+    closed-form rotation (Kabsch, 3 or more Gaussians) of its Gaussians from their mean
+    positions onto each frame's turns by at most `max_angle` radians: as Phase 1's static
+    Gaussians, a constant offset is not motion. Returns still [K] (bool; an object without
+    Gaussians is still), and per object the closed-form fit (Kabsch with `rigid`, else least
+    squares) of `x0` onto the mean positions as linear parts [K, 3, 3] and offsets [K, 3]
+    (float64; a shift alone below 3 or 4 Gaussians, the identity without any).
+
+    `all_or_none`: only whether every object is still matters; the first frame that moves a
+    Gaussian by more than twice `max_spread` along an axis from another frame (so more than
+    `max_spread` from its mean) ends the search, with no object still."""
+    rows = [np.nonzero(labels == k)[0] for k in range(num_objects)]
+    linear = np.tile(np.eye(3), (num_objects, 1, 1))
+    offset = np.zeros((num_objects, 3))
+    total, count = np.zeros_like(x0, dtype=np.float64), 0
+    low = high = None
+    for pos in positions:
+        total += pos
+        count += 1
+        if all_or_none:
+            low = pos.copy() if low is None else np.minimum(low, pos, out=low)
+            high = pos.copy() if high is None else np.maximum(high, pos, out=high)
+            if (high - low).max(initial=0.0) > 2.0 * max_spread:
+                return np.zeros(num_objects, dtype=bool), linear, offset
+    mean = total / max(count, 1)
+    spread = np.zeros(len(x0))
+    angle = np.zeros(num_objects)
+    for pos in positions:
+        np.maximum(spread, np.linalg.norm(pos - mean, axis=1), out=spread)
+        for k, sel in enumerate(rows):
+            if len(sel) >= 3:
+                r = kabsch(mean[sel], pos[sel])[0]
+                angle[k] = max(angle[k], float(np.linalg.norm(matrix_to_rotvec(r))))
+    still = np.ones(num_objects, dtype=bool)
+    for k, sel in enumerate(rows):
+        if len(sel) == 0:
+            continue
+        still[k] = spread[sel].max() <= max_spread and angle[k] <= max_angle
+        if len(sel) >= (3 if rigid else 4):
+            linear[k], offset[k] = (kabsch if rigid else fit_affine)(x0[sel], mean[sel])
+        else:
+            offset[k] = (mean[sel] - x0[sel]).mean(0)
+    return still, linear, offset
 
 
 def cosine_lr(start: float, final: float, frac: float) -> float:

@@ -123,8 +123,10 @@ def refine_motion(
     `steps`) from rate `retrack_lr` (default `lr`). D_theta's colours are a texture
     averaged over a morph; seen through the rigid motion it is blurred where the object
     turned most, which pulls the poses there toward the blur. Table entries become the
-    result composed with the first frame's fitted transform; static objects and the model
-    are unchanged."""
+    result composed with the first frame's fitted transform; static objects (the trainer's
+    `static` and held `frozen` ones) and the model are unchanged. Each pass's (object, stored
+    frame) visits are counted on the trainer: `refine_visits` for the moving objects,
+    `refine_visits_skipped` for the static ones."""
     mc = config or trainer.phase2.motion
     steps, lr, views_per_step = mc.refine_steps, mc.refine_lr, mc.refine_views
     lr_final = min(mc.refine_lr_final, lr)
@@ -134,9 +136,17 @@ def refine_motion(
     motion = trainer.motion
     if not isinstance(motion, SE3Table):
         raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
-    moving = [k for k in range(trainer.assignment.num_objects) if not bool(trainer.static[k])]
+    k_all = trainer.assignment.num_objects
+    still = trainer.static | trainer.motion.frozen
+    moving = [k for k in range(k_all) if not bool(still[k])]
     times = trainer.times
-    if not moving or len(times) < 2 or steps <= 0:
+    if len(times) < 2 or steps <= 0:
+        return
+    visited = {motion.frame_index(f.time) for f in trainer.scene.train}
+    pairs = len(visited) * (1 + texture_rounds)  # stored frames tracked, over every pass
+    trainer.refine_visits += pairs * len(moving)
+    trainer.refine_visits_skipped += pairs * (k_all - len(moving))
+    if not moving:
         return
     template = _RigidTemplate.build(trainer, moving)
     with torch.no_grad():

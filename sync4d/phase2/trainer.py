@@ -19,11 +19,22 @@ Before the loop, `MotionConfig.init = "fit"` starts the SE(3) table at the close
 D_theta's motion, and `refine_steps` > 0 refines it photometrically (not in the paper;
 `sync4d.phase2.refine`). The room: `assign` (object labels), `motion` (M_phi), `refine`,
 `diagnostics` (Appendix C and the motion export) and this trainer.
+
+Still objects (not in the paper): after the assignment and every re-assignment, objects whose
+Gaussians D_theta keeps within `still_position` of the extent of their mean positions over the
+training times (and which do not turn by more than `still_rotation`) are still. With
+`freeze_static` they are held at their constant transform (the closed-form fit of their
+canonical Gaussians onto those mean positions): M_phi masks them (no gradient), the optimizer
+step zeroes their rows' gradients, their Adam moments are cleared and the refinement skips
+them. When every object is still the scene has no motion: with `skip_still_scene` (default)
+all are held and `skip_loop` marks Phase 2's iterations done without running them
+(`sync4d.runs.fit` says so). Counters: `skip_counts`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,7 +46,13 @@ from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
 from sync4d.phase2.assign import AssignConfig, Assignment, assign_objects, displacement_curves
 from sync4d.phase2.diagnostics import diagnostics, motion_export, rigid_share
-from sync4d.phase2.motion import MotionConfig, ObjectMotion, cosine_lr, make_motion
+from sync4d.phase2.motion import (
+    MotionConfig,
+    ObjectMotion,
+    cosine_lr,
+    make_motion,
+    still_objects,
+)
 from sync4d.phase2.refine import refine_motion
 from sync4d.settings import ranged
 
@@ -84,6 +101,39 @@ class Phase2Config:
     #: An object whose Gaussians' mean Phase 1 displacement stays below this fraction of the
     #: scene extent is static (it gets the identity prior); background always is.
     static_fraction: float = ranged(0.005, 0.0)
+    #: Hold the objects that do not move (`still_position`, `still_rotation`) at their
+    #: constant transform: their M_phi rows get no update (masked, gradients zeroed, Adam
+    #: moments cleared) and the refinement skips them. Decided after the assignment and on
+    #: every re-assignment. Not in the paper, which trains every object's transform and pulls
+    #: the static ones to the identity (lambda_id). Off by default because it changes moving
+    #: objects too, through Eq. 9 alone: the rigid share is a mean over all Gaussians, where a
+    #: held Gaussian counts its constant transform's share (0 for one D_theta leaves in place)
+    #: while a trained static row, which Adam moves by about its rate per step on noise
+    #: gradients, makes its Gaussians count about 0.5 (oracle scene, init fit: mean rho 0.37
+    #: held vs 0.73; moving rows differ by up to 2e-3 after 10 steps, and are bit-identical
+    #: without the hinge and the modulation: tests/test_phase2_static.py).
+    freeze_static: bool = False
+    #: When no object moves (each passes the test below), hold every object at its constant
+    #: transform and skip Phase 2's loop: its checkpoint is Phase 1's model with those
+    #: transforms. No moving object exists to be changed; the Gaussians miss Phase 2's
+    #: photometric iterations, which a scene without motion can get from a longer Phase 1.
+    #: Not in the paper.
+    skip_still_scene: bool = True
+    #: An object is still when none of its Gaussians strays farther than this fraction of the
+    #: scene extent from its mean D_theta position over the training times (a constant offset
+    #: is not motion; it goes into the held transform, the closed-form fit of the canonical
+    #: positions onto the mean ones). 1e-3 is Phase 1's static threshold
+    #: (`phase1.static.position`): under a pixel at the usual framing (an image spans about the
+    #: extent in a few hundred pixels), so the images cannot tell the held transform from the
+    #: object's D_theta motion. The largest spread, not the mean: one Gaussian that moves keeps
+    #: its object trained. (Measured: a still synthetic scene after 1000 default Phase 1
+    #: iterations spreads at most 0.9e-3 of the extent about offsets of up to 3.3e-2.)
+    still_position: float = ranged(1e-3, 0.0)
+    #: And the closed-form rotation (Kabsch) of its Gaussians from their mean positions to
+    #: those at each training time stays below this (radians): the position test alone lets a
+    #: small object turn by `still_position * extent / radius`. 0.01 is Phase 1's
+    #: `phase1.static.rotation`.
+    still_rotation: float = ranged(0.01, 0.0)
     # Ablation switches.
     #: Ablation: false trains Phase 2 without M_phi and its terms.
     use_motion: bool = True
@@ -105,6 +155,19 @@ def _scale_grad(x: Tensor, scale: float) -> Tensor:
     if scale >= 1.0:
         return x
     return x.detach() + scale * (x - x.detach())
+
+
+class _Positions:
+    """D_theta's positions [N, 3] (float64) of a trainer's model at each stored frame time,
+    evaluated one frame at a time on every pass (no list of T arrays in memory)."""
+
+    def __init__(self, trainer: Phase2Trainer) -> None:
+        self.trainer = trainer
+
+    @torch.no_grad()
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for t in self.trainer.times:
+            yield self.trainer.model.at_time(float(t))[0].double().numpy()
 
 
 class Phase2Trainer(Phase1Trainer):
@@ -155,6 +218,15 @@ class Phase2Trainer(Phase1Trainer):
         self.motion_optimizer = torch.optim.Adam(
             self.motion.parameters(), lr=self.phase2.motion.lr, eps=1e-15, fused=True
         )
+        #: M_phi object-row updates made and skipped (rows of held objects), over the optimizer
+        #: steps of this process; the refinement's (object, stored frame) tracking visits made
+        #: and skipped (static objects; every pass counted); Phase 2 iterations skipped because
+        #: no object moves (`skip_loop`).
+        self.motion_updates = 0
+        self.motion_updates_skipped = 0
+        self.refine_visits = 0
+        self.refine_visits_skipped = 0
+        self.loop_skipped = 0
         self._set_labels(self.assignment.labels)
         self.static = self._static_objects()
         if mc.refine_steps < 0:
@@ -180,8 +252,12 @@ class Phase2Trainer(Phase1Trainer):
                 "phase2.motion.refine_steps refines the fitted SE(3) table: it needs "
                 f"phase2.motion.init=fit and kind=se3 (got init={mc.init!r}, kind={mc.kind!r})"
             )
-        if mc.init == "fit" and start_motion:
-            self.fit_motion()
+        fit = mc.init == "fit" and start_motion
+        positions = self._frame_positions() if fit else None
+        if start_motion:  # else the checkpoint's flags replace the decision (`restore`)
+            self.hold_still_objects(positions)
+        if fit:
+            self.fit_motion(positions)
             if mc.refine_steps > 0:
                 self.refine_motion()
 
@@ -190,12 +266,88 @@ class Phase2Trainer(Phase1Trainer):
         refine_motion(self, config, progress)
 
     @torch.no_grad()
-    def fit_motion(self) -> None:
+    def fit_motion(self, positions: list[np.ndarray] | None = None) -> None:
         """Set M_phi to the closed-form fit of every object's canonical Gaussians onto their
-        D_theta positions at each stored frame (MotionConfig.init = "fit")."""
+        D_theta positions at each stored frame (MotionConfig.init = "fit"; `positions`: those
+        positions [T][N, 3] when the caller has them); held objects keep their transform."""
         x0 = self.model.means.double().numpy()
-        pos = [self.model.at_time(float(t))[0].double().numpy() for t in self.times]
+        pos = self._frame_positions() if positions is None else positions
         self.motion.fit_to(x0, pos, self.labels.numpy())
+
+    def _frame_positions(self) -> list[np.ndarray]:
+        """D_theta's positions [N, 3] (float64) at every stored frame time."""
+        return list(_Positions(self))
+
+    @property
+    def frozen(self) -> Tensor:
+        """[K] bool: the objects held at their constant transform (M_phi's `frozen`)."""
+        return self.motion.frozen
+
+    @property
+    def nothing_moves(self) -> bool:
+        """Whether every object is held at its constant transform: no motion to learn."""
+        return bool(self.motion.frozen.all())
+
+    @torch.no_grad()
+    def hold_still_objects(self, positions: list[np.ndarray] | None = None) -> Tensor:
+        """Decide which objects are still (`still_objects` with `still_position` times the
+        extent and `still_rotation`) and hold them at their constant transform: all of them
+        with `freeze_static`, or with `skip_still_scene` when every object is still; none
+        otherwise. Their rows of M_phi's Adam moments are cleared, so that momentum does not
+        move them either. `positions` [T][N, 3]: D_theta at the stored frames when the caller
+        has them. Returns the flags [K] (bool)."""
+        p = self.phase2
+        k = self.assignment.num_objects
+        frozen = torch.zeros(k, dtype=torch.bool)
+        linear = offset = None
+        if p.freeze_static or p.skip_still_scene:
+            still, lin, off = still_objects(
+                self.model.means.detach().double().numpy(),
+                _Positions(self) if positions is None else positions,
+                self.labels.numpy(), k, p.still_position * self.extent, p.still_rotation,
+                self.motion.rigid, all_or_none=not p.freeze_static,
+            )  # fmt: skip
+            if p.freeze_static or still.all():
+                frozen = torch.as_tensor(still)
+                linear, offset = torch.as_tensor(lin).float(), torch.as_tensor(off).float()
+        self.motion.hold(frozen, linear, offset)
+        self._clear_frozen_moments()
+        return frozen
+
+    @torch.no_grad()
+    def _clear_frozen_moments(self) -> None:
+        frozen = self.motion.frozen
+        if not bool(frozen.any()):
+            return
+        for name in self.motion.row_params:
+            st = self.motion_optimizer.state.get(getattr(self.motion, name))
+            if st:
+                st["exp_avg"][frozen] = 0.0
+                st["exp_avg_sq"][frozen] = 0.0
+
+    def skip_loop(self, total: int) -> bool:
+        """With `skip_still_scene`, when no object moves (every one held, `nothing_moves`):
+        mark the iterations up to `total` done without running them (counted in
+        `loop_skipped`); returns whether it did. The model stays as it is (Phase 1's) and
+        M_phi at the held transforms."""
+        p = self.phase2
+        if not p.skip_still_scene or not self.nothing_moves or self.iteration >= total:
+            return False
+        self.loop_skipped += total - self.iteration
+        self.iteration = total
+        return True
+
+    def skip_counts(self) -> dict[str, int]:
+        """What Phase 2 skipped in this process: held objects (of K), M_phi object-row
+        updates, refinement visits and loop iterations."""
+        return {
+            "objects": self.assignment.num_objects, "held": int(self.motion.frozen.sum()),
+            "motion_updates": self.motion_updates,
+            "motion_updates_skipped": self.motion_updates_skipped,
+            "refine_visits": self.refine_visits,
+            "refine_visits_skipped": self.refine_visits_skipped,
+            "loop_skipped": self.loop_skipped,
+        }  # fmt: skip
 
     # -- assignment state ----------------------------------------------------------------
     def _set_labels(self, labels: np.ndarray) -> None:
@@ -219,13 +371,15 @@ class Phase2Trainer(Phase1Trainer):
         return static
 
     def on_gaussians_changed(self) -> None:
-        """Densification changed N: re-run the assignment and restart the modulation EMA."""
+        """Densification changed N: re-run the assignment, restart the modulation EMA and
+        decide again which objects are held static."""
         a = assign_objects(self.model, self.scene, self.extent, self.phase2.assign)
         if a.num_objects != self.assignment.num_objects:
             a.labels = np.minimum(a.labels, self.assignment.num_objects - 1)
             a.num_objects = self.assignment.num_objects
         self.assignment = a
         self._set_labels(a.labels)
+        self.hold_still_objects()
 
     def sh_degree_now(self) -> int:
         """Phase 1 has reached the full SH degree: Phase 2 renders with it throughout."""
@@ -309,7 +463,16 @@ class Phase2Trainer(Phase1Trainer):
         update once M_phi is active."""
         stats = super().step()
         if self.phase2.use_motion and self._active(self.phase2.motion_start):
+            frozen = self.motion.frozen
+            held = int(frozen.sum())
+            if held:  # their rows' gradients are zero already (M_phi masks them): make sure
+                for name in self.motion.row_params:
+                    g = getattr(self.motion, name).grad
+                    if g is not None:
+                        g[frozen] = 0.0
             self.motion_optimizer.step()
+            self.motion_updates += len(frozen) - held
+            self.motion_updates_skipped += held
         self.motion_optimizer.zero_grad(set_to_none=True)
         return stats
 
@@ -376,7 +539,8 @@ class Phase2Trainer(Phase1Trainer):
         return trainer
 
     def restore(self, tensors: dict[str, Tensor], meta: dict) -> None:
-        """Phase 1's `restore` plus M_phi, its optimizer and the Phase 2 loop state."""
+        """Phase 1's `restore` plus M_phi (with its held objects), its optimizer and the Phase
+        2 loop state."""
         super().restore(tensors, meta)
         info = meta["phase2"]
         self.motion.load_state(tensors)
@@ -391,6 +555,12 @@ class Phase2Trainer(Phase1Trainer):
         self.residual_ema = tensors["phase2.residual_ema"].clone()
         self._ema_started = bool(info["ema_started"])
         self.static = tensors["phase2.static"].to(torch.bool).clone()
+        # The stored flags (``motion.frozen``), unless the switches that set them are now off.
+        p = self.phase2
+        frozen = self.motion.frozen
+        keep = p.freeze_static or (p.skip_still_scene and bool(frozen.all()))
+        self.motion.hold(frozen & keep, self.motion.held_linear, self.motion.held_offset)
+        self._clear_frozen_moments()
 
     # -- diagnostics (Appendix C) and export ---------------------------------------------------
     def diagnostics(self, shuffles: int = 5, seed: int = 0) -> dict:

@@ -387,10 +387,15 @@ def _run_fit(
                 t0 = time.perf_counter()
                 trainer = _start_phase2(trainer, scene, cfg, run_dir, n_threads)
                 train_seconds += time.perf_counter() - t0  # the assignment and refinement
+            if trainer.skip_loop(cfg.phase2.iterations):
+                k = trainer.assignment.num_objects
+                print(f"fit: Phase 2 skipped: no object moves ({k} static objects)",
+                      file=sys.stderr)  # fmt: skip
             train_seconds, interrupted = _train_loop(
                 trainer, cfg.phase2.iterations, desc="phase2", train_seconds=train_seconds,
                 **loop,
             )  # fmt: skip
+            print(phase2_skip_report(trainer), file=sys.stderr)
         if interrupted:
             print(
                 f"fit: interrupted at iteration {trainer.iteration}; checkpoint saved to "
@@ -404,6 +409,8 @@ def _run_fit(
              "wall_seconds": time.perf_counter() - wall0,
              "gaussians": trainer.model.num_gaussians, "skipped": skip_counts(trainer.model)}
         )  # fmt: skip
+        if isinstance(trainer, Phase2Trainer):
+            summary["phase2_skipped"] = trainer.skip_counts()
         log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
     finally:
         metrics_log.close()
@@ -428,6 +435,23 @@ def skip_report(model, phase: str) -> str:
     if c["static"] == model.num_gaussians:
         line += "; no Gaussian moves: a static scene, D_theta no longer evaluated"
     return line  # fmt: skip
+
+
+def phase2_skip_report(trainer: Phase2Trainer) -> str:
+    """One line: what Phase 2 skipped in this process on objects that do not move
+    (`Phase2Trainer.skip_counts`): held objects, M_phi object-row updates, refinement visits,
+    and whether its loop was skipped."""
+    c = trainer.skip_counts()
+    updates = c["motion_updates"] + c["motion_updates_skipped"]
+    visits = c["refine_visits"] + c["refine_visits_skipped"]
+    line = (
+        f"fit: Phase 2 held {c['held']} of {c['objects']} objects at a constant transform: "
+        f"skipped {c['motion_updates_skipped']} of {updates} M_phi object updates and "
+        f"{c['refine_visits_skipped']} of {visits} refinement visits (static objects)"
+    )
+    if c["loop_skipped"]:
+        line += f"; its loop of {c['loop_skipped']} iterations skipped: no object moves"
+    return line
 
 
 def phase1_skip_lines(trainer: Phase1Trainer) -> list[str]:
