@@ -202,7 +202,9 @@ def add_bench_fit_options(p: argparse.ArgumentParser) -> None:
                       help="a config variant to compare (repeatable): NAME, then the --set "
                       "overrides it adds, e.g. --variant off --variant "
                       "skip:phase1.static.enabled=true; every budget trains each variant in "
-                      "turn, so both see the same machine load")  # fmt: skip
+                      "turn, so both see the same machine load. budget=F among them trains that "
+                      "variant F times the iterations (schedules scaled alike): equal-time "
+                      "comparisons")  # fmt: skip
     p.add_argument("--out", metavar="FILE.json", default=None,
                       help="results JSON (default bench-fit-NAME.json; the plot goes beside it)")
     p.add_argument("--keep-runs", metavar="DIR", default=None,

@@ -243,6 +243,18 @@ def test_bench_fit_variants_train_side_by_side(data: Path, tmp_path: Path, capsy
     assert "variant" in table and "D_theta skipped" in table
     assert main(args[:-1] + ["skip:phase1.static.enabled"]) == 2
     assert "--variant" in capsys.readouterr().err
+    assert main(args[:-1] + ["more:budget=-2"]) == 2
+    assert "budget" in capsys.readouterr().err
+
+
+def test_bench_fit_budget_factor_trains_a_variant_longer(data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "budget.json"
+    args = ["bench", "fit", str(data), "--iters", "10", "--out", str(out), *TINY,
+            "--variant", "base", "--variant", "more:budget=1.5"]  # fmt: skip
+    assert main(args) == 0
+    by = {r["variant"]: r for r in json.loads(out.read_text())["results"]}
+    assert by["base"]["iterations"] == 10 and "budget" not in by["base"]
+    assert by["more"]["iterations"] == 15 and by["more"]["budget"] == 10
 
 
 def test_bench_fit_tabulates_finished_runs(data: Path, tmp_path: Path, capsys) -> None:

@@ -53,12 +53,32 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
 
 
 def parse_variant(text: str) -> tuple[str, list[str]]:
-    """``NAME[:KEY=VALUE,KEY=VALUE...]`` -> (NAME, the overrides); ConfigError when malformed."""
+    """``NAME[:KEY=VALUE,KEY=VALUE...]`` -> (NAME, the overrides); ConfigError when malformed.
+    The pseudo-key ``budget=F`` (see `split_budget`) stays among the overrides."""
     name, _, rest = text.partition(":")
     overrides = [o.strip() for o in rest.split(",") if o.strip()]
     if not name or any("=" not in o for o in overrides):
         raise ConfigError(f"--variant {text!r}: expected NAME or NAME:KEY=VALUE[,KEY=VALUE...]")
     return name, overrides
+
+
+def split_budget(name: str, overrides: list[str]) -> tuple[float, list[str]]:
+    """A variant's ``budget=F`` pseudo-key and the config overrides without it: F multiplies
+    every iteration budget of that variant (1.0 when absent), so a variant whose steps are
+    cheaper can be given the iterations that fill the same time."""
+    factor, rest = 1.0, []
+    for o in overrides:
+        key, _, value = o.partition("=")
+        if key.strip() != "budget":
+            rest.append(o)
+            continue
+        try:
+            factor = float(value)
+        except ValueError:
+            factor = -1.0
+        if not (factor > 0 and factor < 1e3):
+            raise ConfigError(f"--variant {name}: budget={value!r} must be a positive factor")
+    return factor, rest
 
 
 def run_grid(
@@ -69,16 +89,20 @@ def run_grid(
     caps: list[int],
     threads: int | None,
     work_dir: Path,
+    budget_factors: dict[str, float] | None = None,
 ) -> list[dict[str, Any]]:
     """Train every budget in the grid; one result record per budget. `base` may map variant
     names to configs: each budget then trains every variant in turn (interleaved, so a
-    change of machine load hits both alike)."""
+    change of machine load hits both alike). `budget_factors` multiplies a variant's
+    iterations (its schedules scaled alike), to compare variants at equal time."""
     from sync4d.runs import run_fit
 
     variants = base if isinstance(base, dict) else {"": base}
+    factors = budget_factors or {}
     rows: list[dict[str, Any]] = []
     grid = list(product(scales, caps, iterations, variants))
-    for k, (scale, cap, iters, variant) in enumerate(grid):
+    for k, (scale, cap, budget, variant) in enumerate(grid):
+        iters = max(1, round(budget * factors.get(variant, 1.0)))
         cfg = with_budget(dataclasses.replace(variants[variant], resolution_scale=scale), iters)
         densify = dataclasses.replace(cfg.phase1.densify, max_gaussians=cap)
         cfg = dataclasses.replace(
@@ -100,6 +124,7 @@ def run_grid(
         rows.append(
             {
                 "iterations": iters,
+                **({"budget": budget} if iters != budget else {}),
                 "resolution_scale": scale,
                 "max_gaussians": cap,
                 "backend": raster.resolve_backend(),
@@ -413,12 +438,14 @@ def main(args: argparse.Namespace) -> int:
         data, default_cfg = resolve_data(args.data)
         base = load_config(args.config or default_cfg, list(args.set or []))
         configs: RunConfig | dict[str, RunConfig] = base
+        factors: dict[str, float] = {}
         if args.variant:
             configs = {}
             for text in args.variant:
                 name, extra = parse_variant(text)
                 if name in configs:
                     raise ConfigError(f"--variant {name} is given twice")
+                factors[name], extra = split_budget(name, extra)
                 configs[name] = load_config(args.config or default_cfg,
                                             list(args.set or []) + extra)  # fmt: skip
         scales = args.scales or [base.resolution_scale]
@@ -431,7 +458,8 @@ def main(args: argparse.Namespace) -> int:
             check_writable(args.keep_runs)
         with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
             work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
-            rows = run_grid(data, configs, iterations, scales, caps, args.threads, work)
+            rows = run_grid(data, configs, iterations, scales, caps, args.threads, work,
+                            factors)  # fmt: skip
             worst_png = copy_worst_view(rows, out.with_name(out.stem + "-worst.png"))
     except (ConfigError, DatasetError, WriteFailed) as e:
         print(f"bench fit: {e}", file=sys.stderr)
