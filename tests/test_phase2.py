@@ -50,26 +50,34 @@ class OracleGaussians(DeformableGaussians):
         return torch.as_tensor(pos, dtype=torch.float32), quats, scales
 
 
-@pytest.fixture(scope="module")
-def oracle(tmp_path_factory):
-    root = syn.write_synthetic_scene(tmp_path_factory.mktemp("synthetic"), SMALL)
-    scene = load_scene(root)
+def oracle_points(
+    per_object: int = 300, fill: float = 0.8, ground: int = 400, ground_z: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points [N, 3] on the embedded scene's objects at time 0 (`per_object` drawn uniformly
+    in each object's box shrunk by `fill`, spheres cut to the ellipsoid) and `ground` points on
+    the plate at height `ground_z`, with their true labels [N] (0: the plate). Seeded (0)."""
     rng = np.random.default_rng(0)
     poses0 = syn.object_poses(0.0)
     pts, truth = [], []
     for obj in syn.OBJECTS:
-        half = np.asarray(obj.size) * 0.8
-        local = rng.uniform(-1, 1, (300, 3)) * half
+        half = np.asarray(obj.size) * fill
+        local = rng.uniform(-1, 1, (per_object, 3)) * half
         if obj.kind == "sphere":
             local = local[np.linalg.norm(local / half, axis=1) <= 1.0]
         r, t = poses0[obj.label]
         pts.append(local @ r.T + t)
         truth.append(np.full(len(local), obj.label))
-    ground = np.c_[rng.uniform(-1.2, 1.2, (400, 2)), np.full(400, 0.01)]
-    pts.append(ground)
-    truth.append(np.zeros(400, dtype=int))
-    truth_arr = np.concatenate(truth)
-    model = OracleGaussians(np.concatenate(pts), truth_arr)
+    pts.append(np.c_[rng.uniform(-1.2, 1.2, (ground, 2)), np.full(ground, ground_z)])
+    truth.append(np.zeros(ground, dtype=int))
+    return np.concatenate(pts), np.concatenate(truth)
+
+
+@pytest.fixture(scope="module")
+def oracle(tmp_path_factory):
+    root = syn.write_synthetic_scene(tmp_path_factory.mktemp("synthetic"), SMALL)
+    scene = load_scene(root)
+    points, truth_arr = oracle_points()
+    model = OracleGaussians(points, truth_arr)
     gt = syn.load_ground_truth(root)
     return scene, model, truth_arr, gt
 

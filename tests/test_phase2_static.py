@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_phase2 import SMALL, OracleGaussians
+from test_phase2 import SMALL, OracleGaussians, oracle_points
 
 from sync4d.cli import main
 from sync4d.data import synthetic as syn
@@ -127,20 +127,7 @@ def oracle(tmp_path_factory: pytest.TempPathFactory):
     """The scene and the Gaussians of `test_phase2`'s oracle (ball and box move, the pillar and
     the ground do not)."""
     scene = load_scene(syn.write_synthetic_scene(tmp_path_factory.mktemp("oracle"), SMALL))
-    rng = np.random.default_rng(0)
-    poses0 = syn.object_poses(0.0)
-    pts, truth = [], []
-    for obj in syn.OBJECTS:
-        half = np.asarray(obj.size) * 0.8
-        local = rng.uniform(-1, 1, (300, 3)) * half
-        if obj.kind == "sphere":
-            local = local[np.linalg.norm(local / half, axis=1) <= 1.0]
-        r, t = poses0[obj.label]
-        pts.append(local @ r.T + t)
-        truth.append(np.full(len(local), obj.label))
-    pts.append(np.c_[rng.uniform(-1.2, 1.2, (400, 2)), np.full(400, 0.01)])
-    truth.append(np.zeros(400, dtype=int))
-    return scene, np.concatenate(pts), np.concatenate(truth)
+    return (scene, *oracle_points())
 
 
 def _trainer(oracle, iterations: int = 20, **phase2) -> Phase2Trainer:

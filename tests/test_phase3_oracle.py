@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from test_phase2 import OracleGaussians
+from test_phase2 import OracleGaussians, oracle_points
 
 from sync4d.config import Phase3Config
 from sync4d.data import synthetic as syn
@@ -74,27 +75,17 @@ class ColourEncoder(Encoder):
         return normalise_rows(np.stack(out))
 
 
-@pytest.fixture(scope="module")
-def oracle_run(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("phase3")
-    root = syn.write_synthetic_scene(tmp / "scene", SCENE)
+def oracle_phase2_run(
+    tmp: Path, model_cls: type[OracleGaussians] = OracleGaussians,
+    scene_config: syn.SyntheticConfig = SCENE,
+):  # fmt: skip
+    """An oracle Phase 2 run of the embedded scene (`scene_config`) written under `tmp` (no
+    checkpoint): Gaussians on the objects and the plate (`oracle_points`) moved by
+    `model_cls`, M_phi fitted to them. Returns (run, scene root)."""
+    root = syn.write_synthetic_scene(tmp / "scene", scene_config)
     scene = load_scene(root)
-    rng = np.random.default_rng(0)
-    poses0 = syn.object_poses(0.0)
-    pts, truth = [], []
-    for obj in syn.OBJECTS:
-        half = np.asarray(obj.size) * 0.95
-        local = rng.uniform(-1, 1, (400, 3)) * half
-        if obj.kind == "sphere":
-            local = local[np.linalg.norm(local / half, axis=1) <= 1.0]
-        r, t = poses0[obj.label]
-        pts.append(local @ r.T + t)
-        truth.append(np.full(len(local), obj.label))
-    plate = np.c_[rng.uniform(-1.2, 1.2, (1500, 2)), np.zeros(1500)]
-    pts.append(plate)
-    truth.append(np.zeros(1500, dtype=int))
-    labels = np.concatenate(truth)
-    model = OracleGaussians(np.concatenate(pts), labels)
+    points, labels = oracle_points(per_object=400, fill=0.95, ground=1500, ground_z=0.0)
+    model = model_cls(points, labels)
     with torch.no_grad():
         model.log_scales.fill_(float(np.log(0.04)))
         model.opacity_logits.fill_(3.0)
@@ -107,6 +98,13 @@ def oracle_run(tmp_path_factory):
               model=model, meta={}, background=[1.0, 1.0, 1.0], cameras=[],
               settings={"data": str(root)}, motion=tr.motion, labels=labels, names=names,
               times=tr.times)  # fmt: skip
+    return run, root
+
+
+@pytest.fixture(scope="module")
+def oracle_run(tmp_path_factory):
+    run, root = oracle_phase2_run(tmp_path_factory.mktemp("phase3"))
+    run_dir = run.path
     enc = ColourEncoder()
     field = build_field(run, Phase3Config(), enc, threads=1, progress=False)
     field.save(run_dir)

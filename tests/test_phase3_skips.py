@@ -14,19 +14,15 @@ import numpy as np
 import pytest
 import torch
 from test_phase2 import OracleGaussians
+from test_phase3_oracle import oracle_phase2_run
 
 from sync4d.config import Phase3Config
 from sync4d.data import synthetic as syn
-from sync4d.data.detect import load_scene
-from sync4d.phase1.trainer import Phase1Config
-from sync4d.phase2.motion import MotionConfig
-from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 from sync4d.phase3.build import build_field, load_field, skip_report
 from sync4d.phase3.encoder import Encoder
 from sync4d.phase3.kinematics import RELATIONAL_DIMS, relational_counts
 from sync4d.phase3.offline import OfflineEncoder
 from sync4d.phase3.query import TextCache, answer
-from sync4d.runs import Run
 
 SCENE = syn.SyntheticConfig(size=48, frames=13, train_cameras=3, test_cameras=1, test_every=4,
                             supersample=1)  # fmt: skip
@@ -83,35 +79,7 @@ class Counting(Encoder):
 def hiding(tmp_path_factory):
     """(run, scene root, offline encoder, fields and counting encoders with the skip on, off)."""
     tmp = tmp_path_factory.mktemp("phase3_skips")
-    root = syn.write_synthetic_scene(tmp / "scene", SCENE)
-    scene = load_scene(root)
-    rng = np.random.default_rng(0)
-    poses0 = syn.object_poses(0.0)
-    pts, truth = [], []
-    for obj in syn.OBJECTS:
-        half = np.asarray(obj.size) * 0.95
-        local = rng.uniform(-1, 1, (400, 3)) * half
-        if obj.kind == "sphere":
-            local = local[np.linalg.norm(local / half, axis=1) <= 1.0]
-        r, t = poses0[obj.label]
-        pts.append(local @ r.T + t)
-        truth.append(np.full(len(local), obj.label))
-    pts.append(np.c_[rng.uniform(-1.2, 1.2, (1500, 2)), np.zeros(1500)])
-    truth.append(np.zeros(1500, dtype=int))
-    labels = np.concatenate(truth)
-    model = HidingGaussians(np.concatenate(pts), labels)
-    with torch.no_grad():
-        model.log_scales.fill_(float(np.log(0.04)))
-        model.opacity_logits.fill_(3.0)
-    tr = Phase2Trainer(model, scene, Phase1Config(),
-                       Phase2Config(motion=MotionConfig(init="fit")), 100, threads=1)  # fmt: skip
-    run_dir = tmp / "run"
-    run_dir.mkdir()
-    names = {0: "background", 1: "red ball", 2: "blue box", 3: "green pillar"}
-    run = Run(path=run_dir, checkpoint=run_dir / "checkpoint.safetensors", kind="sync4d.phase2",
-              model=model, meta={}, background=[1.0, 1.0, 1.0], cameras=[],
-              settings={"data": str(root)}, motion=tr.motion, labels=labels, names=names,
-              times=tr.times)  # fmt: skip
+    run, root = oracle_phase2_run(tmp, HidingGaussians, SCENE)
     offline = OfflineEncoder()
     built = {}
     for skip in (True, False):
