@@ -187,3 +187,24 @@ def test_run_mode_names_a_missing_run_and_a_bad_variant(
     argv = ["bench", "raster", "--run", str(tmp_path), "--variant", "x:speed=fast"]
     assert cli.main(argv) == 2
     assert "alpha_max" in capsys.readouterr().err
+
+
+def test_run_mode_names_a_moved_dataset(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run whose dataset folder is gone: one line naming it and --data, no traceback."""
+    from sync4d.data.synthetic import SyntheticConfig, write_synthetic_scene
+
+    data = write_synthetic_scene(tmp_path / "scene", SyntheticConfig(
+        size=32, frames=4, train_cameras=2, test_cameras=1, test_every=2))  # fmt: skip
+    run = tmp_path / "run"
+    assert cli.main(["fit", str(data), "--out", str(run), "--phases", "1", "--iters", "5",
+                     "--threads", "1", "--set", "eval_every=0",
+                     "--set", "phase1.init_points=100",
+                     "--set", "phase1.init_from=random"]) == 0  # fmt: skip
+    data.rename(tmp_path / "moved")
+    capsys.readouterr()
+    assert cli.main(["bench", "raster", "--run", str(run), "--repeats", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "is not there any more" in err and "--data" in err and "Traceback" not in err
+    argv = ["bench", "raster", "--run", str(run), "--data", str(tmp_path / "moved"),
+            "--frames", "1", "--repeats", "1", "--out", str(tmp_path / "b.json")]
+    assert cli.main(argv) == 0

@@ -21,10 +21,8 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
-import statistics
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,6 +32,13 @@ from torch import Tensor
 
 import sync4d
 from sync4d import raster
+from sync4d.bench.raster import (
+    METHOD_CLEAR_REFS,
+    METHOD_SUBPROCESS,
+    _measure,
+    clear_refs_available,
+    machine_info,
+)
 from sync4d.data import DatasetError
 from sync4d.report import align_table
 from sync4d.runs import CheckpointError, RunError
@@ -139,22 +144,14 @@ def run_frames(run_dir: str | Path, frames: int = 3, data: str | None = None) ->
     return out
 
 
-def _median_ms(fn: Callable[[], None], warmup: int, repeats: int) -> tuple[float, list[float]]:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return round(statistics.median(times), 3), [round(t, 3) for t in times]
-
-
 def time_frame(
     frame: RunFrame, threads: int, kwargs: dict[str, Any], repeats: int, warmup: int = 2
 ) -> dict[str, Any]:
-    """Times (ms, medians and every call) of projection, forward and forward+backward of
-    `frame` with `rasterize` keyword arguments `kwargs`, and the forward's work counters."""
+    """Times (ms, medians and every call; `sync4d.bench.raster`'s measurement) and peak RSS
+    (MB; the process's lifetime peak where the high-water mark cannot be reset) of projection,
+    forward and forward+backward of `frame` with `rasterize` keyword arguments `kwargs`, and
+    the forward's work counters."""
+    memory = METHOD_CLEAR_REFS if clear_refs_available() else METHOD_SUBPROCESS
     kw = {"near": frame.near, "background": frame.background, "threads": threads, **kwargs}
     cam = (frame.viewmat, frame.K, frame.width, frame.height)
     leaves = [t.detach().clone().requires_grad_(True) for t in frame.gaussians()]
@@ -177,8 +174,9 @@ def time_frame(
     result: dict[str, Any] = {}
     for name, fn in (("project", project), ("forward", forward),
                      ("forward_backward", forward_backward)):  # fmt: skip
-        med, times = _median_ms(fn, warmup, repeats)
-        result[name] = {"median_ms": med, "times_ms": times}
+        t = _measure(fn, warmup, repeats, memory)
+        result[name] = {"median_ms": t.median_ms, "times_ms": t.times_ms,
+                        "rss_peak_mb": t.rss_peak_mb}  # fmt: skip
     fwd = result["forward"]["median_ms"]
     result["composite_ms"] = round(fwd - result["project"]["median_ms"], 3)
     result["backward_ms"] = round(
@@ -253,8 +251,6 @@ def main(args: Any) -> int:
                       f"({time.monotonic() - t0:.1f} s)", flush=True)  # fmt: skip
     finally:
         torch.set_num_threads(saved)
-    from sync4d.bench.raster import machine_info
-
     doc = {
         "schema": SCHEMA,
         "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
