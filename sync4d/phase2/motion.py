@@ -143,8 +143,8 @@ class ObjectMotion(nn.Module, ABC):
 
     #: Whether the transform is rigid (SE(3)); the affine ones are not.
     rigid: bool = True
-    #: Parameters with one row per object (first dimension K), whose rows of held objects the
-    #: trainer keeps out of its optimizer step.
+    #: Parameters with one row per object (first dimension K), whose held rows' Adam moments
+    #: the trainer clears when it holds them.
     row_params: tuple[str, ...] = ()
 
     def __init__(self, num_objects: int, times: np.ndarray | list[float]) -> None:

@@ -24,11 +24,10 @@ Still objects (not in the paper): after the assignment and every re-assignment, 
 Gaussians D_theta keeps within `still_position` of the extent of their mean positions over the
 training times (and which do not turn by more than `still_rotation`) are still. With
 `freeze_static` they are held at their constant transform (the closed-form fit of their
-canonical Gaussians onto those mean positions): M_phi masks them (no gradient), the optimizer
-step zeroes their rows' gradients, their Adam moments are cleared and the refinement skips
-them. When every object is still the scene has no motion: with `skip_still_scene` (default)
-all are held and `skip_loop` marks Phase 2's iterations done without running them
-(`sync4d.runs.fit` says so). Counters: `skip_counts`.
+canonical Gaussians onto those mean positions): M_phi masks them (no gradient), their Adam
+moments are cleared and the refinement skips them. When every object is still the scene has
+no motion: with `skip_still_scene` (default) all are held and `skip_loop` marks Phase 2's
+iterations done without running them (`sync4d.runs.fit` says so). Counters: `skip_counts`.
 """
 
 from __future__ import annotations
@@ -102,7 +101,7 @@ class Phase2Config:
     #: scene extent is static (it gets the identity prior); background always is.
     static_fraction: float = ranged(0.005, 0.0)
     #: Hold the objects that do not move (`still_position`, `still_rotation`) at their
-    #: constant transform: their M_phi rows get no update (masked, gradients zeroed, Adam
+    #: constant transform: their M_phi rows get no update (masked: zero gradients; Adam
     #: moments cleared) and the refinement skips them. Decided after the assignment and on
     #: every re-assignment. Not in the paper, which trains every object's transform and pulls
     #: the static ones to the identity (lambda_id). Off by default because it changes moving
@@ -463,13 +462,11 @@ class Phase2Trainer(Phase1Trainer):
         update once M_phi is active."""
         stats = super().step()
         if self.phase2.use_motion and self._active(self.phase2.motion_start):
+            # Held rows get exact zero gradients (every path to M_phi's parameters goes
+            # through `transform_at` or `rows_at`) and their Adam moments were cleared when
+            # they were held, so the step leaves them as they are.
             frozen = self.motion.frozen
             held = int(frozen.sum())
-            if held:  # their rows' gradients are zero already (M_phi masks them): make sure
-                for name in self.motion.row_params:
-                    g = getattr(self.motion, name).grad
-                    if g is not None:
-                        g[frozen] = 0.0
             self.motion_optimizer.step()
             self.motion_updates += len(frozen) - held
             self.motion_updates_skipped += held
