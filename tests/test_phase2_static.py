@@ -278,3 +278,16 @@ def test_without_the_switch_the_still_scene_trains_phase2(
     assert skipped["motion_updates"] > 0 and skipped["motion_updates"] % 4 == 0  # K = 4 rows
     r = load_run(run)
     assert r.iteration == 10 and not r.motion.frozen.any()
+
+
+def test_phase2_ignores_phase1s_coarse_iterations_and_late_pruning(oracle) -> None:
+    """Phase 2 refines at full resolution and changes rows only through its own `densify`,
+    whatever Phase 1's coarse and pruning switches say."""
+    scene, points, truth = oracle
+    densify = dataclasses.replace(Phase1Config().densify, prune_after_stop=True)
+    p1 = Phase1Config(coarse_iterations=100, densify=densify)
+    p2 = Phase2Config(motion=MotionConfig(init="fit"), **EARLY)
+    tr = Phase2Trainer(OracleGaussians(points, truth), scene, p1, p2, 5, threads=1)
+    assert not tr.coarse() and not tr.densifier.config.prune_after_stop
+    tr.step()
+    assert tr.coarse_pixels == 0 and tr.pixels > 0

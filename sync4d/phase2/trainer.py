@@ -192,6 +192,9 @@ class Phase2Trainer(Phase1Trainer):
         total = phase2.iterations if total_iterations is None else total_iterations
         super().__init__(model, scene, config, total, threads)
         self.phase2 = phase2
+        # Phase 2 refines a finished reconstruction: its rows change only through its own
+        # `densify` switch (never by Phase 1's pruning after densification).
+        self.densifier.config = dataclasses.replace(self.densifier.config, prune_after_stop=False)
         if not self.phase2.densify:
             never = 2**62
             self.densifier.config = dataclasses.replace(
@@ -383,6 +386,10 @@ class Phase2Trainer(Phase1Trainer):
     def sh_degree_now(self) -> int:
         """Phase 1 has reached the full SH degree: Phase 2 renders with it throughout."""
         return self.model.sh_degree
+
+    def coarse(self) -> bool:
+        """Phase 2 trains at full resolution throughout (Phase 1's coarse iterations are over)."""
+        return False
 
     # -- schedule --------------------------------------------------------------------------
     def _active(self, start: int) -> bool:

@@ -21,7 +21,7 @@ import torch
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
 from sync4d.data import DatasetError, Scene
 from sync4d.phase1.init import initial_model
-from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.diagnostics import format_diagnostics
 from sync4d.phase2.trainer import Phase2Trainer
 from sync4d.progress import Progress, format_duration
@@ -160,16 +160,6 @@ def resolve_data(data: str | Path | None) -> tuple[Path, Path | None]:
     return root, cfg if cfg.exists() else None
 
 
-def phase2_loop_config(p1: Phase1Config | None) -> Phase1Config | None:
-    """The Phase 1 settings Phase 2's loop runs with: `p1` without coarse iterations and
-    without pruning after densification (Phase 2 refines a finished reconstruction at full
-    resolution; its rows change only through its own `densify` switch)."""
-    if p1 is None:
-        return None
-    densify = dataclasses.replace(p1.densify, prune_after_stop=False)
-    return dataclasses.replace(p1, coarse_iterations=0, densify=densify)
-
-
 def resume_trainer(
     path: str | Path,
     scene: Scene,
@@ -188,7 +178,6 @@ def resume_trainer(
     kw = dict(config=config, total_iterations=total_iterations, threads=threads, near=near)
     with state_errors(path):
         if meta.get("kind") == "sync4d.phase2":
-            kw["config"] = phase2_loop_config(config)
             return Phase2Trainer.from_state(tensors, meta, scene, phase2=phase2, **kw)
         return Phase1Trainer.from_state(tensors, meta, scene, **kw)
 
@@ -492,8 +481,7 @@ def _start_phase2(
         file=sys.stderr,
     )
     try:
-        p2 = Phase2Trainer(model, scene, phase2_loop_config(p1), cfg.phase2,
-                           cfg.phase2.iterations, n_threads)  # fmt: skip
+        p2 = Phase2Trainer(model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads)
     except ValueError as e:  # bad Phase 2 settings or assignment input
         raise ConfigError(str(e)) from None
     counts = p2.assignment.counts()
