@@ -115,3 +115,18 @@ def test_motion_sparsity_below_leaves_large_motions_alone() -> None:
     assert math.isclose(loss.item(), 0.05 / 0.1 / 2, rel_tol=1e-6)  # row 1 (score 50) is free
     loss.backward()
     assert (dx.grad[1] == 0).all() and dx.grad[0, 0] > 0
+
+
+def test_static_checks_follow_the_schedule_and_the_last_densification(tmp_path: Path) -> None:
+    """Checks from `start` every `every` iterations, and once after the last densification;
+    not after the others (children inherit their parent's flag)."""
+    static = StaticConfig(enabled=True, start=4, every=10)
+    trainer = _trainer(tmp_path, static=static, lr_deform_warmup=1)
+    trainer.densifier.config = DensifyConfig(start=2, stop=12, interval=3)
+    due = []
+    for it in range(1, 26):
+        trainer.iteration = it
+        densified = 2 <= it < 12 and it % 3 == 0
+        if trainer.static_check_due(densified):
+            due.append(it)
+    assert due == [4, 9, 14, 24]  # 9 is the last densification (9 + 3 >= 12)

@@ -3,7 +3,7 @@ need").
 
 Design. Every Gaussian pays D_theta's forward and backward at every iteration, yet in most
 dynamic scenes most Gaussians never move (bouncingballs: the plate and floor, 11.2k of 17.8k).
-On a schedule (`StaticConfig.start`, then every `every` iterations and after each
+On a schedule (`StaticConfig.start`, then every `every` iterations and after the last
 densification), D_theta is evaluated without gradients for every Gaussian at `times` training
 times spread over the run's frames. A Gaussian whose offsets vary over time by less than the
 thresholds (position: `position` times the scene extent; rotation vector: `rotation`
@@ -54,7 +54,8 @@ class StaticConfig:
     #: Iteration of the first check (scaled with `fit --iters`); D_theta must have learnt
     #: the motion by then, or moving Gaussians look static.
     start: int = ranged(3_000, 1)
-    #: Iterations between checks (scaled with `fit --iters`); densification also triggers one.
+    #: Iterations between checks (scaled with `fit --iters`); the last densification also
+    #: triggers one.
     every: int = ranged(1_000, 1)
     #: Training times at which D_theta is evaluated per check (evenly spread over the frames).
     times: int = ranged(16, 2, 1_000)
