@@ -17,7 +17,8 @@ from sync4d.config import load_config, repo_configs
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.phase2.trainer import Phase2Trainer
-from sync4d.runs import load_model, set_threads
+from sync4d.pipeline import set_threads
+from sync4d.runs import load_model
 
 
 def main() -> None:

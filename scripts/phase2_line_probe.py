@@ -21,7 +21,8 @@ from sync4d.data.detect import load_scene
 from sync4d.geometry import matrix_to_rotvec, rotvec_to_matrix
 from sync4d.phase2.refine import _RigidTemplate, _template_loss
 from sync4d.phase2.trainer import Phase2Trainer
-from sync4d.runs import load_model, set_threads
+from sync4d.pipeline import set_threads
+from sync4d.runs import load_model
 
 ck = sys.argv[1]
 root = syn.default_scene_dir()

@@ -41,7 +41,8 @@ import numpy as np, safetensors.numpy
 from sync4d.config import load_config, repo_configs
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
-from sync4d.runs import CHECKPOINT_NAME, PHASE2_FILE, run_fit
+from sync4d.runs import CHECKPOINT_NAME, PHASE2_FILE
+from sync4d.pipeline import run_fit
 
 scene_kind, seed, threads, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4])
 phase1 = Path(sys.argv[5]) if sys.argv[5] else None

@@ -1,6 +1,7 @@
 """Hyperparameters: dataclass defaults hold the paper's values; a TOML file (the shipped ones
 are in `sync4d/configs/`) and `section.key=value` overrides from the command line replace them.
-Sections mirror the phases (`phase1`, `phase2`); the run's own settings stand at the top."""
+Sections mirror the phases (`phase1`, `phase2`, `phase3`: each phase defines its own section
+class); the run's own settings stand at the top."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from typing import Any
 
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.trainer import Phase2Config
+from sync4d.phase3.config import Phase3Config
 from sync4d.settings import allowed, choice, ranged
 
 __all__ = [
@@ -71,90 +73,6 @@ def _phases_problem(text: str) -> str | None:
     except ConfigError:
         return f"expected {_PHASES_TEXT}, got {text!r}"
     return None
-
-
-def _encoder_problem(text: str) -> str | None:
-    """What is wrong with a `phase3.encoder` value, None if nothing."""
-    if text in ("", "offline"):
-        return None
-    if Path(text).is_file():
-        return f"expected a model folder (vision.onnx, text.onnx, ...), got the file {text!r}"
-    return None
-
-
-def _name_problem(text: str) -> str | None:
-    """A name must not be empty."""
-    return None if text.strip() else "expected a non-empty object name"
-
-
-@dataclasses.dataclass(frozen=True)
-class Phase3Config:
-    """The language field (Sec. 3.5, Appendices A, B, F): the paper's values as defaults.
-
-    It lives here rather than in `sync4d.phase3` because Phase 3 reads runs (`sync4d.runs`),
-    which sit above this module; `sync4d.phase3` reads its settings from this class."""
-
-    #: Encoder: "offline" (closed-vocabulary default), a SigLIP-ONNX model directory, or ""
-    #: for $SYNC4D_ENCODER (else offline).
-    encoder: str = choice("", check=_encoder_problem,
-                          text='"", "offline" or a SigLIP-ONNX model folder')  # fmt: skip
-    #: Crop box: lower percentile of the projected Gaussian centres (App. A: 2nd) ...
-    crop_low: float = ranged(2.0, 0.0, 50.0)
-    #: ... upper percentile (98th) ...
-    crop_high: float = ranged(98.0, 50.0, 100.0)
-    #: ... and the margin added on each side, as a fraction of the box's size (12 %).
-    crop_margin: float = ranged(0.12, 0.0, 1.0)
-    #: An object is observed in a frame when at least this fraction of its Gaussians is visible
-    #: (beyond the paper, which leaves the threshold open; docs/phase3.md) ...
-    min_visible: float = ranged(0.05, 0.0, 1.0)
-    #: ... and its crop box is at least this many pixels on each side.
-    min_box: int = ranged(4, 1)
-    #: Crop and encode only the observed object-frames, the only ones the field reads; false
-    #: also crops and encodes the unobserved ones that have a crop box and discards them (the
-    #: same field, at the cost the skip saves: for measuring it).
-    skip_unobserved: bool = True
-    #: Ridge regularisation lambda (Eq. 13).
-    ridge_lambda: float = ranged(0.01, 0.0, lo_open=True)
-    #: Blend weight beta between prediction and observation where observed ...
-    beta: float = ranged(0.65, 0.0, 1.0)
-    #: ... and which side takes it (docs/phase3.md).
-    beta_on: str = choice("prediction", ("prediction", "observation"))
-    #: Temporal EMA gamma: the weight of the neighbouring smoothed frame (zero phase).
-    ema_gamma: float = ranged(0.15, 0.0, 1.0, hi_open=True)
-    #: Query score weight w_s of the static similarity (Eq. 15) ...
-    w_static: float = ranged(0.35, 0.0)
-    #: ... and w_t of the peak temporal similarity.
-    w_temporal: float = ranged(0.65, 0.0)
-    #: Temporal activation: "half-peak" (Appendix F: above 0.5 of the peak) or "mean" (4D
-    #: LangSplat's: at least the query's mean).
-    activation: str = choice("half-peak", ("half-peak", "mean"))
-    #: Static-only ablation: e_sync = e_static at every frame in every scorer (Table 5's
-    #: "static only"; `query --scorer static` gives it for one query).
-    static_only: bool = False
-    #: Name of the hand object for Appendix B dims 26-27 (zero when no object has this name).
-    hand_object: str = choice("hand", check=_name_problem, text="an object name")
-    #: World up for the motion phrases: "auto" (mean of the training cameras' up vectors) or
-    #: an axis "+x", "-x", "+y", "-y", "+z", "-z".
-    up: str = choice("auto", ("auto", "+x", "-x", "+y", "-y", "+z", "-z"))
-    #: Motion phrases (beyond the paper): "moving" above this fraction of the scene's
-    #: reference speed (the 95th percentile of every object's speed) ...
-    moving_speed: float = ranged(0.15, 0.0)
-    #: ... "at rest" below this fraction ...
-    rest_speed: float = ranged(0.08, 0.0)
-    #: ... "rising" / "falling" above this fraction along the up vector ...
-    vertical_speed: float = ranged(0.15, 0.0)
-    #: ... "approaching" / "moving away" above this fraction of closing speed ...
-    closing_speed: float = ranged(0.1, 0.0)
-    #: ... touching when the gap is below this fraction of the object's radius, ...
-    contact_gap: float = ranged(0.6, 0.0)
-    #: ... with motion read from centroids smoothed by a Gaussian of this sigma (normalised
-    #: time) ...
-    phrase_smooth: float = ranged(0.015, 0.0)
-    #: ... and states lasting at least this many frames ...
-    phrase_min_frames: int = ranged(3, 1)
-    #: ... and a predicate matches a query when a phrase occurs in it or the text encoder's
-    #: similarity of a query n-gram to a phrase reaches this.
-    phrase_match: float = ranged(0.8, -1.0, 1.0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,7 +12,8 @@ from test_train_phase1 import _scene
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
-from sync4d.runs import CheckpointError, load_model, resume_trainer, save_checkpoint
+from sync4d.pipeline import resume_trainer
+from sync4d.runs import CheckpointError, load_model, save_checkpoint
 
 
 def _trainer(tmp_path: Path) -> tuple[Phase1Trainer, object, Phase1Config]:

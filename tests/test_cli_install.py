@@ -14,7 +14,7 @@ from readme_blocks import ROOT, user_install_lines
 
 from sync4d.cli import build_parser, main
 from sync4d.metrics.lpips import INSTALL_HINT as LPIPS_HINT
-from sync4d.phase3.minilm import INSTALL_HINT as MINILM_HINT
+from sync4d.phase3.encoders.minilm import INSTALL_HINT as MINILM_HINT
 
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
 

@@ -20,7 +20,7 @@ from sync4d.data.triangulate import (
     triangulate_scene,
     views_at_one_instant,
 )
-from sync4d.runs import with_initial_points
+from sync4d.pipeline import with_initial_points
 
 SCENE = syn.SyntheticConfig(size=256, frames=2, train_cameras=24, test_cameras=1, test_every=2,
                             supersample=1)  # fmt: skip

@@ -12,7 +12,7 @@ from PIL import Image
 from sync4d.config import ConfigError, load_config
 from sync4d.data.scene import Camera, Frame, Scene
 from sync4d.phase1.init import camera_sphere, dome_points
-from sync4d.runs.fit import with_dome_points
+from sync4d.pipeline.fit import with_dome_points
 
 CENTRE = np.array([0.5, -1.0, 0.2])
 RADIUS = 2.0
@@ -79,7 +79,7 @@ def test_fit_adds_them_to_the_point_cloud_and_refuses_random_init(tmp_path) -> N
     assert len(out.points) > 3 and np.array_equal(out.points[:3], base)
     assert len(out.point_colors) == len(out.points)
     assert with_dome_points(scene, load_config(None, []), quiet=True) is scene
-    from sync4d.runs.fit import with_initial_points
+    from sync4d.pipeline.fit import with_initial_points
 
     bad = load_config(None, ["phase1.init_dome_points=200", "phase1.init_from=random"])
     with pytest.raises(ConfigError, match="init_dome_points"):

@@ -21,8 +21,8 @@ from sync4d.data import load_scene
 from sync4d.metrics import dssim, ssim, ssim_gaussian
 from sync4d.metrics import lpips as lp
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.runs import evaluate
-from sync4d.runs.evaluate import METRIC_DEFINITIONS, evaluate_run
+from sync4d.pipeline import evaluate
+from sync4d.pipeline.evaluate import METRIC_DEFINITIONS, evaluate_run
 
 DNERF = Path(__file__).resolve().parents[2] / "shared" / "data" / "dnerf"
 

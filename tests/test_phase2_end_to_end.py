@@ -20,7 +20,8 @@ import safetensors.numpy
 from sync4d.config import load_config, repo_configs
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
-from sync4d.runs import CHECKPOINT_NAME, PHASE2_FILE, run_fit
+from sync4d.pipeline import run_fit
+from sync4d.runs import CHECKPOINT_NAME, PHASE2_FILE
 
 pytestmark = pytest.mark.slow
 

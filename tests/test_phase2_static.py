@@ -25,8 +25,8 @@ from sync4d.geometry import rotvec_to_matrix
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.motion import MotionConfig, make_motion, still_objects
 from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
+from sync4d.pipeline.fit import resume_trainer
 from sync4d.runs import load_run
-from sync4d.runs.fit import resume_trainer
 
 #: A small scene where nothing moves.
 STILL = syn.SyntheticConfig(size=48, frames=6, train_cameras=4, test_cameras=1, test_every=3,

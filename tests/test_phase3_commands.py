@@ -112,3 +112,48 @@ def test_fit_query_and_eval_with_the_offline_encoder(runs, capsys, tmp_path):
     res = json.loads((tmp_path / "b.json").read_text())["results"][0]
     built = json.loads((run / "phase3" / "field.json").read_text())["timings"]
     assert res["query_warm_ms"] > 0 and res["crops"] == built["crops"]  # same field, same crops
+
+
+def test_a_field_of_another_model_is_refused_and_refits_clear_it(runs, capsys, tmp_path):
+    """The field records the checkpoint it was built from: `query` and `eval` refuse it once
+    the run's checkpoint changed, naming the command that rebuilds it; `--phases 2` and
+    `--force` remove it with the model it described."""
+    run = tmp_path / "run"
+    shutil.copytree(runs["objects"], run)
+    build = ["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]
+    assert main(build) == 0
+    meta = json.loads((run / "phase3" / "field.json").read_text())
+    assert meta["checkpoint"]["file"] == "checkpoint.safetensors"
+    assert len(meta["checkpoint"]["sha256"]) == 64
+    assert main(["query", str(run), "the blue box"]) == 0
+    capsys.readouterr()
+    # another model under the same name: the Phase 1 checkpoint copied over the Phase 2 one
+    shutil.copyfile(run / "phase1.safetensors", run / "checkpoint.safetensors")
+    queries = tmp_path / "queries.json"
+    queries.write_text(json.dumps({"queries": [
+        {"query": "the red ball", "object": "red ball", "frames": [[0, 5]]}]}))  # fmt: skip
+    for command in (["query", str(run), "the blue box"], ["eval", str(run), "--queries",
+                                                          str(queries)]):  # fmt: skip
+        assert main(command) == 2
+        err = capsys.readouterr().err
+        assert "built from another model" in err and f"fit {run} --phases 3" in err
+    # a field that does not say what it was built from (an older sync4d) is refused too
+    shutil.copyfile(runs["objects"] / "checkpoint.safetensors", run / "checkpoint.safetensors")
+    assert main(["query", str(run), "the blue box"]) == 0
+    del meta["checkpoint"]
+    (run / "phase3" / "field.json").write_text(json.dumps(meta))
+    capsys.readouterr()
+    assert main(["query", str(run), "the blue box"]) == 2
+    assert "does not record the checkpoint" in capsys.readouterr().err
+    # redoing Phase 2 removes the field of the old Phase 2 ...
+    assert main(build) == 0
+    assert main(["fit", str(run), "--phases", "2", "--threads", "1"]) == 0
+    assert not (run / "phase3").exists()
+    capsys.readouterr()
+    assert main(["query", str(run), "the blue box"]) == 2
+    assert "no language field" in capsys.readouterr().err
+    # ... and so does starting over with --force, even with Phase 1 alone
+    assert main(build) == 0
+    assert main(["fit", str(runs["objects"].parent / "objects"), "--out", str(run), "--force",
+                 *SETTINGS, "--phases", "1"]) == 0  # fmt: skip
+    assert not (run / "phase3").exists()

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sync4d.phase3.annotations import (
+from sync4d.phase3.evaluation.annotations import (
     AnnotationError,
     Query,
     frame_number,
@@ -22,7 +22,7 @@ from sync4d.phase3.annotations import (
     read_4dlangsplat,
     read_queries,
 )
-from sync4d.phase3.metrics import (
+from sync4d.phase3.evaluation.metrics import (
     QueryResult,
     activate,
     evaluate_query,

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from sync4d.phase3 import minilm as ml
-from sync4d.phase3 import offline as off
-from sync4d.phase3 import shapes
-from sync4d.phase3.encoder import EncoderError, load_encoder
+from sync4d.phase3.encoders import minilm as ml
+from sync4d.phase3.encoders import offline as off
+from sync4d.phase3.encoders import shapes
+from sync4d.phase3.encoders.encoder import EncoderError, load_encoder
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: A tiny fit (1 image per pair) for the cache tests.

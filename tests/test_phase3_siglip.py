@@ -18,8 +18,8 @@ import torch.nn.functional as F
 import transformers  # the test extra: make setup installs it with onnx and sentencepiece
 
 from sync4d.cli import main
-from sync4d.phase3.encoder import ENCODER_ENV, EncoderError, load_encoder
-from sync4d.phase3.siglip import (
+from sync4d.phase3.encoders.encoder import ENCODER_ENV, EncoderError, load_encoder
+from sync4d.phase3.encoders.siglip import (
     MANIFEST,
     SiglipOnnxEncoder,
     export_pretrained,

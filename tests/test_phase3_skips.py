@@ -16,12 +16,12 @@ import torch
 from test_phase2 import OracleGaussians
 from test_phase3_oracle import oracle_phase2_run
 
-from sync4d.config import Phase3Config
 from sync4d.data import synthetic as syn
 from sync4d.phase3.build import build_field, load_field, skip_report
-from sync4d.phase3.encoder import Encoder
+from sync4d.phase3.config import Phase3Config
+from sync4d.phase3.encoders.encoder import Encoder
+from sync4d.phase3.encoders.offline import OfflineEncoder
 from sync4d.phase3.kinematics import RELATIONAL_DIMS, relational_counts
-from sync4d.phase3.offline import OfflineEncoder
 from sync4d.phase3.query import TextCache, answer
 
 SCENE = syn.SyntheticConfig(size=48, frames=13, train_cameras=3, test_cameras=1, test_every=4,

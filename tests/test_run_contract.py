@@ -113,7 +113,7 @@ def test_a_second_writer_is_told_who_holds_the_run(data: Path, tmp_path: Path, c
     run = tmp_path / "run"
     assert main(["fit", str(data), "--out", str(run), "--iters", "3", *TINY]) == 0
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from sync4d.runs.files import RunLock; "
+        [sys.executable, "-c", "import sys, time; from sync4d.files import RunLock; "
          "RunLock(sys.argv[1], 'fit').acquire(); print('held', flush=True); time.sleep(120)",
          str(run)],
         stdout=subprocess.PIPE, text=True, env=ENV,

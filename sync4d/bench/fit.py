@@ -95,7 +95,7 @@ def run_grid(
     names to configs: each budget then trains every variant in turn (interleaved, so a
     change of machine load hits both alike). `budget_factors` multiplies a variant's
     iterations (its schedules scaled alike), to compare variants at equal time."""
-    from sync4d.runs import run_fit
+    from sync4d.pipeline import run_fit
 
     variants = base if isinstance(base, dict) else {"": base}
     factors = budget_factors or {}
@@ -211,8 +211,8 @@ def _final_summary(run_dir: Path) -> dict[str, Any]:
 def rows_from_runs(run_dirs: list[Path]) -> list[dict[str, Any]]:
     """One result record per finished `fit` run (scene, budget, time, metrics, worst view),
     read from its record, metrics log and evaluation; `pareto` is within each scene."""
+    from sync4d.pipeline.record import read_record
     from sync4d.runs import RunError
-    from sync4d.runs.record import read_record
 
     rows: list[dict[str, Any]] = []
     for run_dir in run_dirs:
@@ -396,8 +396,8 @@ def format_run_rows(rows: list[dict[str, Any]]) -> str:
 
 def _tabulate_runs(args: argparse.Namespace) -> int:
     """`bench fit --runs`: the table, JSON and worst views of finished runs; trains nothing."""
+    from sync4d.files import WriteFailed, check_writable, write_text_atomic
     from sync4d.runs import RunError
-    from sync4d.runs.files import WriteFailed, check_writable, write_text_atomic
 
     keys = ("iters", "scales", "caps", "keep_runs", "set", "config")
     given = [f"--{k.replace('_', '-')}" for k in keys if getattr(args, k, None)]
@@ -429,8 +429,8 @@ def _tabulate_runs(args: argparse.Namespace) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sync4d.runs import FitInterrupted, resolve_data
-    from sync4d.runs.files import WriteFailed, check_writable, write_text_atomic
+    from sync4d.files import WriteFailed, check_writable, write_text_atomic
+    from sync4d.pipeline import FitInterrupted, resolve_data
 
     if args.runs:
         return _tabulate_runs(args)

@@ -1,16 +1,18 @@
 """``python -m sync4d bench phase3 RUN [RUN ...]``: Phase 3's cost on finished Phase 2 runs.
 
-For each run: the encoder's load time, the field's build time split into its steps (observe:
-crops, visibility, residuals and gaps; encode: the crops through the image encoder; field:
-kinematics, ridge, blend and EMA) and the latency of text queries, cold (the query's texts
-encoded) and warm (read from the text cache, as a repeated query is). The run folders are not
-touched: the field and its text cache live in a temporary folder. Writes a JSON and prints a
-table.
+For each run, with the Phase 3 settings the run recorded (built through
+`sync4d.pipeline.phase3`, as `fit` builds it; `--encoder` replaces the encoder): the encoder's
+load time, the field's build time split into its steps (observe: crops, visibility, residuals
+and gaps; encode: the crops through the image encoder; field: kinematics, ridge, blend and
+EMA) and the latency of text queries, cold (the query's texts encoded) and warm (read from the
+text cache, as a repeated query is). The run folders are not touched: the field and its text
+cache live in a temporary folder. Writes a JSON and prints a table.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as _dt
 import json
 import platform
@@ -20,7 +22,6 @@ import tempfile
 import time
 from pathlib import Path
 
-from sync4d.config import Phase3Config
 from sync4d.report import align_table
 
 __all__ = ["DEFAULT_QUERIES", "bench_run", "main"]
@@ -35,17 +36,21 @@ def bench_run(run_dir: Path, encoder_spec: str | None, queries: list[str], repea
     """Timings of one run (see the module notes) as a dict."""
     import torch
 
-    from sync4d.phase3 import build_field, load_encoder
+    from sync4d.phase3 import load_encoder
     from sync4d.phase3.query import TextCache, answer
-    from sync4d.runs import load_run
+    from sync4d.pipeline.phase3 import build_phase3, phase3_config
 
     if threads:
         torch.set_num_threads(threads)
-    run = load_run(run_dir)
+    cfg3 = phase3_config(run_dir)
+    if encoder_spec is not None:
+        cfg3 = dataclasses.replace(cfg3, encoder=encoder_spec)
     t0 = time.perf_counter()
-    encoder = load_encoder(encoder_spec)
+    encoder = load_encoder(cfg3.encoder or None)
     load_s = time.perf_counter() - t0
-    field = build_field(run, Phase3Config(), encoder, threads=threads, progress=False)
+    built = build_phase3(run_dir, cfg3, threads=threads, save=False, progress=False,
+                         encoder=encoder)  # fmt: skip
+    field, run_gaussians = built.field, built.gaussians
     cold, warm = [], []
     with tempfile.TemporaryDirectory(prefix="sync4d-bench-phase3-") as tmp:
         (Path(tmp) / "phase3").mkdir()
@@ -61,7 +66,7 @@ def bench_run(run_dir: Path, encoder_spec: str | None, queries: list[str], repea
                 warm.append(time.perf_counter() - t2)
     return {
         "run": str(run_dir), "encoder": encoder.describe(), "objects": len(field.labels),
-        "frames": len(field.times), "gaussians": int(run.model.num_gaussians),
+        "frames": len(field.times), "gaussians": run_gaussians,
         "encoder_load_s": load_s, **{k: v for k, v in field.timings.items()},
         "query_cold_ms": 1e3 * statistics.median(cold),
         "query_warm_ms": 1e3 * statistics.median(warm), "queries": queries, "repeat": repeat,

@@ -2,7 +2,7 @@
 Face model (once, with internet and the ``export`` extra), and describe and check one.
 
 The directory is what ``--encoder DIR`` (or ``$SYNC4D_ENCODER``) names in Phase 3; its layout is
-documented in `sync4d.phase3.siglip`."""
+documented in `sync4d.phase3.encoders.siglip`."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import sys
 import time
 from pathlib import Path
 
-from sync4d.phase3.encoder import EncoderError
-from sync4d.runs.files import WriteFailed
+from sync4d.files import WriteFailed
+from sync4d.phase3.encoders.encoder import EncoderError
 
 __all__ = ["main"]
 
@@ -23,7 +23,7 @@ def _size(path: Path) -> str:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from sync4d.phase3.siglip import FILES, MANIFEST, export_pretrained
+    from sync4d.phase3.encoders.siglip import FILES, MANIFEST, export_pretrained
 
     out = Path(args.out)
     if (out / MANIFEST).exists() and not args.force:
@@ -41,7 +41,7 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from sync4d.phase3.siglip import FILES, MANIFEST, SiglipOnnxEncoder
+    from sync4d.phase3.encoders.siglip import FILES, MANIFEST, SiglipOnnxEncoder
 
     enc = SiglipOnnxEncoder(args.dir, threads=1)  # checks every digest and both graphs
     m = enc.manifest

@@ -12,18 +12,19 @@ from pathlib import Path
 import torch
 
 from sync4d.data import DatasetError
-from sync4d.runs import CheckpointError, RunError, evaluate_run, load_run
-from sync4d.runs.files import RunBusy, RunLock, WriteFailed
-from sync4d.runs.record import dataset_differences
+from sync4d.files import RunBusy, RunLock, WriteFailed
+from sync4d.pipeline import evaluate_run
+from sync4d.pipeline.record import dataset_differences
+from sync4d.runs import CheckpointError, RunError, load_run
 
 __all__ = ["main"]
 
 
 def _queries(args: argparse.Namespace) -> int:
     """`eval RUN --queries ANNOTATIONS`: Acc / vIoU / tIoU per scorer, printed as a table."""
-    from sync4d.phase3.annotations import AnnotationError
-    from sync4d.phase3.encoder import EncoderError
-    from sync4d.phase3.evaluate import EVAL_SCORERS, evaluate_queries
+    from sync4d.phase3.encoders.encoder import EncoderError
+    from sync4d.phase3.evaluation.annotations import AnnotationError
+    from sync4d.phase3.evaluation.evaluate import EVAL_SCORERS, evaluate_queries
     from sync4d.phase3.query import QueryError
     from sync4d.phase3.store import FieldError
     from sync4d.report import align_table

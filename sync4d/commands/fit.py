@@ -25,29 +25,32 @@ from sync4d.config import (
 )
 from sync4d.data import DatasetError, load_scene
 from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
-from sync4d.phase3.encoder import EncoderError
+from sync4d.files import LOCK_FILE, RunBusy, RunLock, WriteFailed
+from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.store import FieldError
-from sync4d.progress import format_duration
-from sync4d.runs import (
-    CHECKPOINT_NAME,
-    METRICS_FILE,
-    PHASE1_CHECKPOINT_NAME,
-    PHASE2_FILE,
-    TRAJECTORY_PLOT,
-    CheckpointError,
-    FitInterrupted,
-    RunError,
-    checkpoint_kind,
-    restart_phase2,
-    run_fit,
-)
-from sync4d.runs.files import LOCK_FILE, RunBusy, RunLock, WriteFailed
-from sync4d.runs.record import (
+from sync4d.pipeline import FitInterrupted, restart_phase2, run_fit
+from sync4d.pipeline.phase3 import build_phase3, phase3_config
+from sync4d.pipeline.record import (
     CADENCE_KEYS,
     config_differences,
     dataset_differences,
     read_record,
     recorded_config,
+)
+from sync4d.progress import format_duration
+from sync4d.runs import (
+    CHECKPOINT_NAME,
+    EVAL_FILE,
+    FIELD_DIR,
+    METRICS_FILE,
+    PHASE1_CHECKPOINT_NAME,
+    PHASE2_FILE,
+    RENDERS_DIR,
+    RUN_FILE,
+    TRAJECTORY_PLOT,
+    CheckpointError,
+    RunError,
+    checkpoint_kind,
 )
 
 __all__ = ["main"]
@@ -141,16 +144,17 @@ def _continued_data(args: argparse.Namespace, record: dict, run_dir: Path) -> tu
 def _clear(run_dir: Path) -> None:
     """Remove a run's results (--force)."""
     for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE,
-                 TRAJECTORY_PLOT, "eval.json", "run.json"):  # fmt: skip
+                 TRAJECTORY_PLOT, EVAL_FILE, RUN_FILE):  # fmt: skip
         (run_dir / name).unlink(missing_ok=True)
     for extra in run_dir.glob("eval-*.json"):
         extra.unlink()
-    shutil.rmtree(run_dir / "renders", ignore_errors=True)
+    shutil.rmtree(run_dir / RENDERS_DIR, ignore_errors=True)
+    shutil.rmtree(run_dir / FIELD_DIR, ignore_errors=True)
 
 
 def _is_run(path: Path) -> bool:
     """Whether `path` is a run folder (it holds a run record or a checkpoint)."""
-    return (path / "run.json").is_file() or (path / CHECKPOINT_NAME).is_file()
+    return (path / RUN_FILE).is_file() or (path / CHECKPOINT_NAME).is_file()
 
 
 def _phase3_only_asked(args: argparse.Namespace) -> bool:
@@ -207,7 +211,7 @@ def _fit(args: argparse.Namespace, run_dir: Path, fresh: RunConfig) -> int:
                   "phases": args.phases, "resume": args.resume, "force": args.force}  # fmt: skip
     if kind is not None and not args.force:  # continue the recorded run
         record = read_record(run_dir)
-        source = run_dir / "run.json"
+        source = run_dir / RUN_FILE
         data, embedded = _continued_data(args, record, run_dir)
         cfg = _continued_config(args, recorded_config(record, run_dir), kind, restart, source)
         scene = load_scene(data, cfg.resolution_scale, cfg.test_split)
@@ -273,38 +277,28 @@ def _phase3_only(args: argparse.Namespace, run_dir: Path, kind: str | None) -> i
             f"--phases 3 only builds the language field: settings other than phase3.* do not "
             f"apply ({', '.join(others) or '--resolution-scale'}); drop them"
         )
-    record = read_record(run_dir)
-    cfg = load_config(args.config) if args.config else recorded_config(record, run_dir)
-    cfg = apply_overrides(cfg, [s for s in _overrides(args) if not s.startswith("phases=")])
+    overrides = [s for s in _overrides(args) if not s.startswith("phases=")]
+    cfg3 = phase3_config(run_dir, args.config, overrides)
     data = Path(args.data) if args.data else None
-    _build_phase3(run_dir, cfg.phase3, args.threads, data)
+    _build_phase3(run_dir, cfg3, args.threads, data)
     return 0
 
 
 def _build_phase3(run_dir: Path, cfg3, threads: int | None, data: Path | None) -> None:
     """Build and save the language field of the Phase 2 run in `run_dir`; print a summary."""
-    import dataclasses as dc
-
-    from sync4d.phase3 import build_field, load_encoder
+    from sync4d.phase3 import load_encoder
     from sync4d.phase3.build import skip_report
-    from sync4d.phase3.query import TextCache
-    from sync4d.runs import load_run
 
-    run = load_run(run_dir)
     encoder = load_encoder(cfg3.encoder or None)
-    spec = cfg3.encoder or os.environ.get("SYNC4D_ENCODER") or "offline"
-    cfg3 = dc.replace(cfg3, encoder=str(Path(spec).resolve()) if spec != "offline" else spec)
     print(f"fit: Phase 3 (language field) with the {encoder.kind} encoder ({encoder.dim}-d"
           f"{', closed-vocabulary' if encoder.closed_vocabulary else ''}) ...",
           file=sys.stderr)  # fmt: skip
-    field = build_field(run, cfg3, encoder, data=data, threads=threads)
-    out = field.save(run_dir)
-    TextCache(run_dir, field, encoder).get(field.names)
-    t = field.timings
+    built = build_phase3(run_dir, cfg3, threads=threads, data=data, encoder=encoder)
+    field, t = built.field, built.field.timings
     print(
         f"fit: Phase 3: {len(field.labels)} objects x {len(field.times)} frames, "
         f"{int(t['crops'])} crops ({100 * field.observed.mean():.0f} % observed), built in "
         f"{t['total_s']:.1f} s (observe {t['observe_s']:.1f}, encode {t['encode_s']:.1f}); "
-        f"field in {out}"
+        f"field in {built.folder}"
     )
     print(skip_report(field), file=sys.stderr)

@@ -11,10 +11,11 @@ import re
 import sys
 from pathlib import Path
 
-from sync4d.phase3.encoder import EncoderError
+from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.query import QueryError, TextCache, answer
-from sync4d.phase3.store import FIELD_DIR, FieldError, load_field
+from sync4d.phase3.store import FieldError, load_field
 from sync4d.report import align_table, plot_query_timeline
+from sync4d.runs.names import FIELD_DIR, query_plot
 
 __all__ = ["main", "slug"]
 
@@ -48,7 +49,7 @@ def main(args: argparse.Namespace) -> int:
             if not args.no_plot:
                 out = Path(args.plot) if args.plot else run_dir / FIELD_DIR
                 out.mkdir(parents=True, exist_ok=True)
-                ans["plot"] = str(plot_query_timeline(ans, out / f"query-{slug(text)}.png"))
+                ans["plot"] = str(plot_query_timeline(ans, out / query_plot(slug(text))))
             answers.append(ans)
     except (FieldError, EncoderError, QueryError, OSError) as e:  # OSError: a failed write
         print(f"query: {e}", file=sys.stderr)

@@ -27,7 +27,7 @@ training times (and which do not turn by more than `still_rotation`) are still. 
 canonical Gaussians onto those mean positions): M_phi masks them (no gradient), their Adam
 moments are cleared and the refinement skips them. When every object is still the scene has
 no motion: with `skip_still_scene` (default) all are held and `skip_loop` marks Phase 2's
-iterations done without running them (`sync4d.runs.fit` says so). Counters: `skip_counts`.
+iterations done without running them (`sync4d.pipeline.fit` says so). Counters: `skip_counts`.
 """
 
 from __future__ import annotations

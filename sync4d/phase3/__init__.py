@@ -11,7 +11,8 @@ from importlib import import_module
 #: Public names and the module that defines each, imported on first use (a query needs neither
 #: torch nor the rasterizer, so `sync4d.phase3.query` stays light).
 _EXPORTS = {
-    "Encoder": "encoder", "EncoderError": "encoder", "load_encoder": "encoder",
+    "Encoder": "encoders.encoder", "EncoderError": "encoders.encoder",
+    "load_encoder": "encoders.encoder",
     "Field": "store", "FieldError": "store", "load_field": "store",
     "build_field": "build", "QueryError": "query", "answer": "query", "query": "query",
 }  # fmt: skip

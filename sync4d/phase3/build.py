@@ -5,8 +5,9 @@
 anchors, the 28-D kinematics (`kinematics`), per-object standardisation and ridge, prediction,
 blend and temporal EMA (`field`). The result is a `Field`, saved as ``RUN/phase3/field.safetensors``
 (arrays) and ``RUN/phase3/field.json`` (labels, names, times, crop views, the encoder, the
-settings, timings, counts), both written atomically. `load_field(RUN)` reads it back and checks
-it.
+settings, timings, counts, and the SHA-256 of the checkpoint it was built from), both written
+atomically. `load_field(RUN)` reads it back and checks it, and refuses a field whose checkpoint
+has changed since (a refit run), naming the command that rebuilds it.
 
 What the build skips (issue 40) is counted in `Field.counts`, and `skip_report` says it in one
 line: only observed object-frames are cropped and encoded, all in one `encode_images` call
@@ -23,15 +24,15 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.config import Phase3Config
 from sync4d.phase3 import field as fm
-from sync4d.phase3.encoder import Encoder
+from sync4d.phase3.config import Phase3Config
+from sync4d.phase3.encoders.encoder import Encoder
 from sync4d.phase3.kinematics import Tracks, kinematic_features, relational_counts
 from sync4d.phase3.observe import Observations, observe
-from sync4d.phase3.store import FIELD_DIR, Field, FieldError, load_field
+from sync4d.phase3.store import Field, FieldError, checkpoint_record, load_field
 from sync4d.runs import Run
 
-__all__ = ["FIELD_DIR", "Field", "FieldError", "build_field", "load_field", "skip_report",
+__all__ = ["Field", "FieldError", "build_field", "load_field", "skip_report",
            "up_vector"]  # fmt: skip
 
 
@@ -132,6 +133,7 @@ def build_field(
         up=up, right=np.asarray(cams[0].viewmat[0, :3], float),
         encoder=encoder.describe(),
         config=dataclasses.asdict(cfg), timings=timings, counts=counts,
+        checkpoint=checkpoint_record(run.checkpoint),
     )  # fmt: skip
 
 

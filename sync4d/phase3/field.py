@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sync4d.phase3.encoder import normalise_rows
+from sync4d.phase3.encoders.encoder import normalise_rows
 
 __all__ = [
     "blend",

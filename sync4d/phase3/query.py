@@ -29,18 +29,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sync4d.phase3 import motion_phrases as mp
-from sync4d.phase3.encoder import Encoder, EncoderError, load_encoder
+from sync4d.phase3.encoders.encoder import Encoder, EncoderError, load_encoder
+from sync4d.phase3.evaluation.metrics import activate, intervals
 from sync4d.phase3.field import query_scores
-from sync4d.phase3.metrics import activate, intervals
-from sync4d.phase3.store import FIELD_DIR, Field, FieldError, load_field
+from sync4d.phase3.store import Field, FieldError, load_field
+from sync4d.runs.names import FIELD_DIR, TEXT_CACHE
 
 if TYPE_CHECKING:
-    from sync4d.config import Phase3Config
+    from sync4d.phase3.config import Phase3Config
 
 __all__ = ["SCORERS", "QueryError", "TextCache", "answer", "query"]
 
 SCORERS = ("full", "paper", "static", "names", "motion")
-TEXT_CACHE = "texts.json"
 
 
 class QueryError(ValueError):
@@ -98,7 +98,7 @@ class TextCache:
 
     def save(self) -> None:
         """Write the cache atomically (beside the field)."""
-        from sync4d.runs.files import write_text_atomic
+        from sync4d.files import write_text_atomic
 
         if self.path.parent.is_dir():
             write_text_atomic(self.path, json.dumps(

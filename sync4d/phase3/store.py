@@ -12,12 +12,11 @@ from pathlib import Path
 import numpy as np
 from safetensors.numpy import load_file, save_file
 
-__all__ = ["FIELD_DIR", "FIELD_FILE", "FIELD_META", "Field", "FieldError", "load_field"]
+from sync4d.files import file_sha256, write_atomic, write_text_atomic
+from sync4d.runs.names import CHECKPOINT_NAME, FIELD_DIR, FIELD_FILE, FIELD_META
 
-#: The field's folder inside the run folder.
-FIELD_DIR = "phase3"
-FIELD_FILE = "field.safetensors"
-FIELD_META = "field.json"
+__all__ = ["Field", "FieldError", "checkpoint_record", "load_field"]
+
 _VERSION = 1
 _ARRAYS = (
     "obs", "observed", "static", "features", "standardised", "ridge", "pred", "sync",
@@ -40,7 +39,8 @@ class Field:
     `visible` [K, T], `boxes` [K, T, 4] crop boxes, `gaps` [K, L, T] robust distances to each
     of `gap_labels`, `radius` [K], `centroids` [K, T, 3] (M_phi's). `meta`: everything else;
     `counts` what the build encoded and skipped (`sync4d.phase3.build.skip_report`; empty in a
-    field built before the counters).
+    field built before the counters); `checkpoint` the run checkpoint it was built from
+    (`checkpoint_record`), which `load_field` checks.
     """
 
     labels: list[int]
@@ -67,6 +67,7 @@ class Field:
     config: dict
     timings: dict = field(default_factory=dict)
     counts: dict = field(default_factory=dict)
+    checkpoint: dict = field(default_factory=dict)
 
     @property
     def dim(self) -> int:
@@ -82,8 +83,6 @@ class Field:
 
     def save(self, run_dir: str | Path) -> Path:
         """Write the field into ``run_dir/phase3`` atomically; returns the folder."""
-        from sync4d.runs.files import write_atomic, write_text_atomic
-
         out = Path(run_dir) / FIELD_DIR
         out.mkdir(parents=True, exist_ok=True)
         arrays = {}
@@ -97,15 +96,38 @@ class Field:
             "gap_labels": self.gap_labels, "views": self.views, "up": self.up.tolist(),
             "right": self.right.tolist(),
             "encoder": self.encoder, "config": self.config, "timings": self.timings,
-            "counts": self.counts,
+            "counts": self.counts, "checkpoint": self.checkpoint,
         }  # fmt: skip
         write_text_atomic(out / FIELD_META, json.dumps(meta, indent=1) + "\n")
         return out
 
 
+def checkpoint_record(path: str | Path) -> dict:
+    """What a field records of the checkpoint at `path` it is built from: its file name and
+    SHA-256 (None when there is no such file: a field of a run held in memory)."""
+    path = Path(path)
+    return {"file": path.name, "sha256": file_sha256(path) if path.is_file() else None}
+
+
+def _check_checkpoint(run_dir: Path, meta_path: Path, meta: dict) -> None:
+    """FieldError unless the field in `meta` was built from the run's current checkpoint."""
+    rebuild = f"rebuild it with `python -m sync4d fit {run_dir} --phases 3`"
+    built = meta.get("checkpoint")
+    if not isinstance(built, dict) or "sha256" not in built:
+        raise FieldError(f"{meta_path}: this field does not record the checkpoint it was built "
+                         f"from (a field of an older sync4d); {rebuild}")  # fmt: skip
+    now = checkpoint_record(run_dir / str(built.get("file") or CHECKPOINT_NAME))
+    if now["sha256"] != built["sha256"]:
+        was, is_ = (str(d)[:12] if d else "none" for d in (built["sha256"], now["sha256"]))
+        raise FieldError(
+            f"{meta_path}: the field was built from another model (checkpoint sha256 {was}, "
+            f"the run's {now['file']} is now {is_}: the run was refit since); {rebuild}"
+        )
+
+
 def load_field(run_dir: str | Path) -> Field:
     """The field saved in ``run_dir/phase3``; FieldError naming the file when it is missing,
-    unreadable or inconsistent."""
+    unreadable, inconsistent, or built from another checkpoint than the run's current one."""
     folder = Path(run_dir) / FIELD_DIR
     meta_path, arr_path = folder / FIELD_META, folder / FIELD_FILE
     if not meta_path.is_file() or not arr_path.is_file():
@@ -122,6 +144,7 @@ def load_field(run_dir: str | Path) -> Field:
         arrays = load_file(str(arr_path))
     except Exception as e:  # noqa: BLE001 - safetensors raises several kinds
         raise FieldError(f"{arr_path}: not a readable safetensors file ({e})") from None
+    _check_checkpoint(Path(run_dir), meta_path, meta)
     missing = [n for n in (*_ARRAYS, "times") if n not in arrays]
     if missing or meta.get("version") != _VERSION:
         raise FieldError(f"{arr_path}: field of another version or missing {missing}; "
@@ -141,5 +164,5 @@ def load_field(run_dir: str | Path) -> Field:
         views=meta["views"], up=np.asarray(meta["up"], dtype=np.float64),
         right=np.asarray(meta["right"], dtype=np.float64),
         encoder=meta["encoder"], config=meta["config"], timings=meta.get("timings", {}),
-        counts=meta.get("counts", {}), **kw,
+        counts=meta.get("counts", {}), checkpoint=meta["checkpoint"], **kw,
     )  # fmt: skip

@@ -1,69 +1,27 @@
-"""Runs: the run folder (`folder`: every file name and `load_run`, the read-only view later
-stages use), the checkpoint format (`checkpoint`), the fit loop (`fit`) and evaluation
-(`evaluate`). Above the phases and below the command line: `commands` parse arguments, call
-these and print.
+"""Runs: the run folder alone. `names` holds every file name in it (Phase 3's included),
+`folder` gives `load_run`, the read-only view later stages use, and `checkpoint` the
+checkpoint format. Above the phases 1 and 2 (a run holds their models) and below Phase 3 and
+the pipeline, which fill it. Names are imported on first use, so `sync4d.runs.names` loads
+without torch (a query needs none).
 """
 
-from sync4d.runs.checkpoint import (
-    CheckpointError,
-    camera_records,
-    checkpoint_kind,
-    load_model,
-    read_checkpoint,
-    save_checkpoint,
-    write_checkpoint,
-)
-from sync4d.runs.evaluate import evaluate_frames, evaluate_run, summarize
-from sync4d.runs.fit import (
-    FitInterrupted,
-    resolve_data,
-    restart_phase2,
-    resume_trainer,
-    run_fit,
-    set_threads,
-    with_initial_points,
-)
-from sync4d.runs.folder import (
-    CHECKPOINT_NAME,
-    EVAL_FILE,
-    METRICS_FILE,
-    PHASE1_CHECKPOINT_NAME,
-    PHASE2_FILE,
-    RENDERS_DIR,
-    RUN_FILE,
-    TRAJECTORY_PLOT,
-    Run,
-    RunError,
-    load_run,
-)
+from importlib import import_module
 
-__all__ = [
-    "CHECKPOINT_NAME",
-    "CheckpointError",
-    "EVAL_FILE",
-    "FitInterrupted",
-    "METRICS_FILE",
-    "PHASE1_CHECKPOINT_NAME",
-    "PHASE2_FILE",
-    "RENDERS_DIR",
-    "RUN_FILE",
-    "Run",
-    "RunError",
-    "TRAJECTORY_PLOT",
-    "camera_records",
-    "checkpoint_kind",
-    "evaluate_frames",
-    "evaluate_run",
-    "load_model",
-    "load_run",
-    "read_checkpoint",
-    "resolve_data",
-    "restart_phase2",
-    "resume_trainer",
-    "run_fit",
-    "save_checkpoint",
-    "set_threads",
-    "summarize",
-    "with_initial_points",
-    "write_checkpoint",
-]
+#: Public names and the module that defines each.
+_EXPORTS = {
+    **dict.fromkeys(
+        ("CheckpointError", "camera_records", "checkpoint_kind", "load_model",
+         "read_checkpoint", "save_checkpoint", "write_checkpoint"), "checkpoint"),
+    **dict.fromkeys(
+        ("CHECKPOINT_NAME", "EVAL_FILE", "FIELD_DIR", "METRICS_FILE", "PHASE1_CHECKPOINT_NAME",
+         "PHASE2_FILE", "RENDERS_DIR", "RUN_FILE", "TRAJECTORY_PLOT"), "names"),
+    **dict.fromkeys(("Run", "RunError", "load_run"), "folder"),
+}  # fmt: skip
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):  # noqa: ANN202 - PEP 562 module attribute
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'sync4d.runs' has no attribute {name!r}")
+    return getattr(import_module(f"sync4d.runs.{_EXPORTS[name]}"), name)

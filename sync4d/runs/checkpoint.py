@@ -24,8 +24,8 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from sync4d.data.scene import Scene
+from sync4d.files import write_atomic
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.runs.files import write_atomic
 
 __all__ = [
     "CheckpointError",
@@ -80,7 +80,7 @@ def write_checkpoint(
     path: str | Path, tensors: dict[str, torch.Tensor], meta: dict, extra: dict | None = None
 ) -> Path:
     """Write `tensors` and the JSON header `meta` (with the format version, and `extra` under
-    "run") to `path` atomically (`sync4d.runs.files.write_atomic`: a failed write raises
+    "run") to `path` atomically (`sync4d.files.write_atomic`: a failed write raises
     `WriteFailed` and leaves the previous checkpoint in place)."""
     path = Path(path)
     header = {"format_version": FORMAT_VERSION, **meta}

@@ -16,6 +16,16 @@ from sync4d.data import Scene, load_scene
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase2.motion import MotionConfig, ObjectMotion, make_motion
 from sync4d.runs.checkpoint import CheckpointError, read_checkpoint, state_errors
+from sync4d.runs.names import (
+    CHECKPOINT_NAME,
+    EVAL_FILE,
+    METRICS_FILE,
+    PHASE1_CHECKPOINT_NAME,
+    PHASE2_FILE,
+    RENDERS_DIR,
+    RUN_FILE,
+    TRAJECTORY_PLOT,
+)
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -31,23 +41,6 @@ __all__ = [
     "load_run",
 ]
 
-#: The latest checkpoint (Phase 1's, then Phase 2's once it runs).
-CHECKPOINT_NAME = "checkpoint.safetensors"
-#: Copy of the Phase 1 checkpoint kept when Phase 2 starts (Phase 2 can restart from it).
-PHASE1_CHECKPOINT_NAME = "phase1.safetensors"
-#: Phase 2 diagnostics (Appendix C) of the final model.
-PHASE2_FILE = "phase2.json"
-#: Phase 2's per-object centroid curves (x, y, z against time).
-TRAJECTORY_PLOT = "phase2-trajectories.png"
-#: The run's settings: dataset, resolution, split, the whole config, threads.
-RUN_FILE = "run.json"
-#: One JSON record per logged iteration, periodic evaluation and the final summary.
-METRICS_FILE = "metrics.jsonl"
-#: The last evaluation (`eval`, or the end of `fit`): per-frame and mean metrics, and what each
-#: metric is (docs/metrics.md).
-EVAL_FILE = "eval.json"
-#: Folder of the evaluation's side-by-side renders, one subfolder per split.
-RENDERS_DIR = "renders"
 
 
 class RunError(ValueError):

@@ -24,13 +24,24 @@ import torch
 from sync4d import raster
 from sync4d.data import Scene
 from sync4d.data.synthetic import GROUND_TRUTH, load_ground_truth
-from sync4d.phase3.annotations import AnnotationError, Query, read_4dlangsplat, read_queries
-from sync4d.phase3.build import FIELD_DIR, Field, load_field
-from sync4d.phase3.encoder import Encoder
-from sync4d.phase3.metrics import evaluate_query, write_rows
+from sync4d.files import write_text_atomic
+from sync4d.phase3.encoders.encoder import Encoder
+from sync4d.phase3.evaluation.annotations import (
+    AnnotationError,
+    Query,
+    read_4dlangsplat,
+    read_queries,
+)
+from sync4d.phase3.evaluation.metrics import evaluate_query, write_rows
 from sync4d.phase3.query import TextCache, answer
+from sync4d.phase3.store import Field, load_field
 from sync4d.runs import Run, load_run
-from sync4d.runs.files import write_text_atomic
+from sync4d.runs.names import (
+    EMBEDDED_QUERIES_FILE,
+    FIELD_DIR,
+    query_eval_files,
+    query_eval_summary,
+)
 
 __all__ = ["EVAL_SCORERS", "evaluate_queries", "label_masks", "state_queries"]
 
@@ -120,7 +131,7 @@ def _read(path: Path, field: Field, run: Run, scene: Scene | None) -> list[Query
     names = [run.names.get(j, f"object {j}") for j in range(num)]
     t = len(field.times)
     if _is_ground_truth(path):
-        path = write_text_atomic(run.path / FIELD_DIR / "queries-embedded.json",
+        path = write_text_atomic(run.path / FIELD_DIR / EMBEDDED_QUERIES_FILE,
                                  json.dumps(state_queries(path), indent=1) + "\n")  # fmt: skip
     video = path / "video_annotations.json" if path.is_dir() else None
     if (video is not None and video.exists()) or (path.is_dir() and
@@ -183,12 +194,12 @@ def evaluate_queries(
             rows.append(evaluate_query(
                 qq, ans["timeline"][top["name"]], ans["rule"], object=top["label"],
                 pred_masks=pred, active=np.asarray(ans["active"][top["name"]], bool)))
-        mean = write_rows(rows, out_dir / f"eval-{name}-{scorer}.csv",
-                          out_dir / f"eval-{name}-{scorer}.json")  # fmt: skip
+        csv_name, json_name = query_eval_files(name, scorer)
+        mean = write_rows(rows, out_dir / csv_name, out_dir / json_name)
         judged = [r.object_correct for r in rows if r.object_correct is not None]
         mean["object_accuracy"] = float(np.mean(judged)) if judged else None
         summary[scorer] = mean
-    write_text_atomic(out_dir / f"eval-{name}.json", json.dumps(
+    write_text_atomic(out_dir / query_eval_summary(name), json.dumps(
         {"annotations": str(path), "queries": len(queries), "scorers": summary,
          "encoder": field.encoder}, indent=1) + "\n")  # fmt: skip
     return summary

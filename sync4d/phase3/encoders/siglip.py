@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from sync4d.phase3.encoder import Encoder, EncoderError, file_sha256, normalise_rows
+from sync4d.phase3.encoders.encoder import Encoder, EncoderError, file_sha256, normalise_rows
 
 __all__ = [
     "FILES",
@@ -187,7 +187,7 @@ def export_siglip(
     Every file is written atomically; the manifest goes last."""
     import torch
 
-    from sync4d.runs.files import write_atomic, write_text_atomic
+    from sync4d.files import write_atomic, write_text_atomic
 
     out = Path(out_dir)
     image_size, max_length, mean, std = _check_preprocessing(image_size, max_length, mean, std,

@@ -4,10 +4,11 @@ Every encoder maps images and texts into one embedding space of `dim` dimensions
 the loaded model, never assumed) and returns L2-normalised float32 rows. Two kinds exist:
 
 * ``siglip``: a SigLIP model exported to ONNX (vision and text graphs plus tokenizer files) in a
-  local directory, run with onnxruntime (`sync4d.phase3.siglip`). The paper's encoder.
-* ``offline``: the closed-vocabulary default that needs no download (`sync4d.phase3.offline`):
-  ImageNet AlexNet features mapped linearly into MiniLM's sentence space, the map fitted on
-  generated renders of coloured shapes. It knows colours and shapes, not the open world.
+  local directory, run with onnxruntime (`sync4d.phase3.encoders.siglip`). The paper's encoder.
+* ``offline``: the closed-vocabulary default that needs no download
+  (`sync4d.phase3.encoders.offline`): ImageNet AlexNet features mapped linearly into MiniLM's
+  sentence space, the map fitted on generated renders of coloured shapes. It knows
+  colours and shapes, not the open world.
 
 `load_encoder(spec)` picks one: a directory path means SigLIP-ONNX from that directory,
 ``"offline"`` (or nothing, with ``$SYNC4D_ENCODER`` unset) the offline default.
@@ -16,11 +17,12 @@ the loaded model, never assumed) and returns L2-normalised float32 rows. Two kin
 from __future__ import annotations
 
 import abc
-import hashlib
 import os
 from pathlib import Path
 
 import numpy as np
+
+from sync4d.files import file_sha256
 
 __all__ = ["ENCODER_ENV", "Encoder", "EncoderError", "file_sha256", "load_encoder",
            "normalise_rows"]
@@ -31,15 +33,6 @@ ENCODER_ENV = "SYNC4D_ENCODER"
 
 class EncoderError(RuntimeError):
     """An encoder that cannot be loaded or used; the message names the file and what to do."""
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex SHA-256 of the file at `path`, read in 1 MiB blocks (model-file digests)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def normalise_rows(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
@@ -88,7 +81,7 @@ def load_encoder(spec: str | Path | None = None) -> Encoder:
     if spec is None or str(spec) == "":
         spec = os.environ.get(ENCODER_ENV) or "offline"
     if str(spec) == "offline":
-        from sync4d.phase3.offline import OfflineEncoder
+        from sync4d.phase3.encoders.offline import OfflineEncoder
 
         return OfflineEncoder()
     path = Path(spec)
@@ -97,6 +90,6 @@ def load_encoder(spec: str | Path | None = None) -> Encoder:
             f"{path}: no such encoder directory; give a folder written by "
             "`python -m sync4d encoder export --out DIR`, or --encoder offline"
         )
-    from sync4d.phase3.siglip import SiglipOnnxEncoder
+    from sync4d.phase3.encoders.siglip import SiglipOnnxEncoder
 
     return SiglipOnnxEncoder(path)

@@ -23,7 +23,7 @@ Design notes
   the form 4D LangSplat's `video_annotations.json` and our query files use.
 * `write_rows` writes one row per query plus a mean row as CSV and JSON, each atomically (a
   unique temporary in the target folder, fsync, rename, fsync of the folder: the contract of
-  `sync4d.runs.files.write_atomic`, re-implemented here because importing `sync4d.runs` loads
+  `sync4d.files.write_atomic`, re-implemented here because importing `sync4d.runs` loads
   torch and the compiled extension, and these functions need only numpy).
 """
 
@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 if TYPE_CHECKING:
-    from sync4d.phase3.annotations import Query
+    from sync4d.phase3.evaluation.annotations import Query
 
 __all__ = [
     "RULES",
@@ -378,7 +378,7 @@ def write_rows(
     """Write the per-query `rows` and their mean row as CSV (columns `CSV_COLUMNS`, intervals
     as JSON lists, None as an empty cell, the last row's query "mean") and as JSON
     ({"queries": [...], "mean": {...}}), each file atomically. Returns the mean row."""
-    from sync4d.runs.files import write_text_atomic  # lazy: metrics needs no torch
+    from sync4d.files import write_text_atomic  # lazy: metrics needs no torch
 
     mean = mean_row(rows)
     buf = io.StringIO()

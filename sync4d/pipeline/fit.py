@@ -20,10 +20,14 @@ import torch
 
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
 from sync4d.data import DatasetError, Scene
+from sync4d.files import RunLock, write_atomic, write_text_atomic
 from sync4d.phase1.init import initial_model
 from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.diagnostics import format_diagnostics
 from sync4d.phase2.trainer import Phase2Trainer
+from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
+from sync4d.pipeline.record import continue_command, dataset_fingerprint
+from sync4d.pipeline.stop import StopSignals
 from sync4d.progress import Progress, format_duration
 from sync4d.report import plot_object_trajectories
 from sync4d.runs.checkpoint import (
@@ -34,18 +38,15 @@ from sync4d.runs.checkpoint import (
     save_checkpoint,
     state_errors,
 )
-from sync4d.runs.evaluate import evaluate_frames, evaluate_run, summarize
-from sync4d.runs.files import RunLock, write_atomic, write_text_atomic
-from sync4d.runs.folder import (
+from sync4d.runs.names import (
     CHECKPOINT_NAME,
+    FIELD_DIR,
     METRICS_FILE,
     PHASE1_CHECKPOINT_NAME,
     PHASE2_FILE,
     RUN_FILE,
     TRAJECTORY_PLOT,
 )
-from sync4d.runs.record import continue_command, dataset_fingerprint
-from sync4d.runs.stop import StopSignals
 
 __all__ = [
     "FitInterrupted",
@@ -269,7 +270,7 @@ def run_fit(
     """Train (or resume) the phases `cfg.phases` on `scene` into `run_dir`: Phase 1, then Phase 2
     from its model (the Phase 1 checkpoint is kept as ``phase1.safetensors``); returns the final
     summary (test metrics, and Phase 2's diagnostics when it ran). Holds the run folder's lock
-    throughout; `command` (the command-line settings behind `cfg`, see `sync4d.runs.record`)
+    throughout; `command` (the command-line settings behind `cfg`, see `sync4d.pipeline.record`)
     goes into the run record. Raises `FitInterrupted` after Ctrl-C, SIGTERM or SIGHUP, with
     the last state saved."""
     phases = parse_phases(cfg.phases)
@@ -523,7 +524,8 @@ def _finish(
 
 
 def restart_phase2(run_dir: Path) -> None:
-    """Put the run's Phase 1 checkpoint back in place so Phase 2 starts over from it."""
+    """Put the run's Phase 1 checkpoint back in place so Phase 2 starts over from it; the
+    language field of the old Phase 2 goes (it describes a model that will not exist)."""
     ckpt = run_dir / CHECKPOINT_NAME
     kept = run_dir / PHASE1_CHECKPOINT_NAME
     if kept.exists():
@@ -533,3 +535,4 @@ def restart_phase2(run_dir: Path) -> None:
             f"{run_dir}: --phases 2 needs a Phase 1 checkpoint ({CHECKPOINT_NAME} or "
             f"{PHASE1_CHECKPOINT_NAME}); fit Phase 1 first"
         )
+    shutil.rmtree(run_dir / FIELD_DIR, ignore_errors=True)

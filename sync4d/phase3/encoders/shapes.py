@@ -1,5 +1,5 @@
 """Generated renders of single coloured shapes with captions: the training data of the offline
-encoder's image-to-text map (`sync4d.phase3.offline`).
+encoder's image-to-text map (`sync4d.phase3.encoders.offline`).
 
 Design note (closed-vocabulary): the vocabulary is `COLOURS` x `SHAPES` ("a red ball"); nothing
 outside it is drawn or named. Each image shows ONE named shape, framed as Phase 3 frames its object

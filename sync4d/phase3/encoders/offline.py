@@ -2,11 +2,12 @@
 all-MiniLM-L6-v2's sentence space, the map fitted on generated renders of coloured shapes.
 
 Design note (closed-vocabulary): nothing here is downloaded, and the only visual concepts the
-image side has been taught are the colours and shapes of `sync4d.phase3.shapes` ("a red
+image side has been taught are the colours and shapes of `sync4d.phase3.encoders.shapes` ("a red
 ball"); a query outside that vocabulary gets an answer, but not a meaningful one. Use the
-SigLIP encoder (`sync4d.phase3.siglip`) for open-vocabulary queries.
+SigLIP encoder (`sync4d.phase3.encoders.siglip`) for open-vocabulary queries.
 
-* Texts: MiniLM sentence embeddings (`sync4d.phase3.minilm`), unit rows of its ``dim`` (384).
+* Texts: MiniLM sentence embeddings (`sync4d.phase3.encoders.minilm`), unit rows of its
+  ``dim`` (384).
 * Images: padded to a square with their border colour, resized to 128x128 and passed through
   the AlexNet of `sync4d.metrics.lpips` (ImageNet weights; its input scaling is ImageNet's
   mean/std normalisation), on the image's contrast-normalised luminance (the "grey pass"):
@@ -43,9 +44,9 @@ import torch
 import torch.nn.functional as F
 
 from sync4d.data.scene import cache_dir
-from sync4d.phase3 import shapes
-from sync4d.phase3.encoder import Encoder, EncoderError, normalise_rows
-from sync4d.phase3.minilm import MiniLM, load_minilm
+from sync4d.phase3.encoders import shapes
+from sync4d.phase3.encoders.encoder import Encoder, EncoderError, normalise_rows
+from sync4d.phase3.encoders.minilm import MiniLM, load_minilm
 
 __all__ = [
     "DEFAULT_SETTINGS",
@@ -376,7 +377,7 @@ class OfflineEncoder(Encoder):
         return m if stored == _digest(m) else None  # a damaged file is refitted
 
     def _save(self, m: dict[str, np.ndarray]) -> None:
-        from sync4d.runs.files import WriteFailed, write_atomic
+        from sync4d.files import WriteFailed, write_atomic
 
         def write(tmp: Path) -> None:
             with open(tmp, "wb") as f:
@@ -490,7 +491,7 @@ def zero_shot_report(encoder: OfflineEncoder | None = None, per_pair: int = 20, 
     return out
 
 
-if __name__ == "__main__":  # python -m sync4d.phase3.offline: fit (or load) and report
+if __name__ == "__main__":  # python -m sync4d.phase3.encoders.offline: fit (or load) and report
     torch.set_num_threads(1)
     t = time.perf_counter()
     e = OfflineEncoder()

@@ -16,13 +16,13 @@ import numpy as np
 import torch
 
 from sync4d.data.scene import Frame, Scene
+from sync4d.files import write_text_atomic
 from sync4d.metrics import psnr, ssim, ssim_gaussian
 from sync4d.metrics.image import GAUSSIAN_WINDOW
 from sync4d.metrics.lpips import INSTALL_HINT, MIN_SIZE, LPIPSAlex, LPIPSWeightsMissing, load_lpips
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.progress import Progress
 from sync4d.report import align_table
-from sync4d.runs.files import write_text_atomic
 from sync4d.runs.folder import EVAL_FILE, RENDERS_DIR, RunError
 
 __all__ = [

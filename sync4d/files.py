@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import hashlib
 import json
 import os
 import socket
@@ -26,6 +27,7 @@ __all__ = [
     "RunLock",
     "WriteFailed",
     "check_writable",
+    "file_sha256",
     "write_atomic",
     "write_text_atomic",
 ]
@@ -185,3 +187,13 @@ def locked(run_dir: str | Path, command: str) -> Iterator[RunLock]:
     """`with locked(run, "fit"):` hold the run's lock for the block."""
     with RunLock(run_dir, command) as lock:
         yield lock
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of the file at `path`, read in 1 MiB blocks (model and checkpoint
+    digests)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

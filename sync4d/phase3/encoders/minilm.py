@@ -1,8 +1,8 @@
 """The all-MiniLM-L6-v2 sentence encoder (sentence-transformers) in plain torch.
 
 Design note (closed-vocabulary): this is the text side of the offline encoder
-(`sync4d.phase3.offline`), whose image side only knows colours and shapes; MiniLM itself is a
-general sentence encoder, but in that pairing only colour-shape phrases are meaningful.
+(`sync4d.phase3.encoders.offline`), whose image side only knows colours and shapes; MiniLM
+itself is a general sentence encoder, but in that pairing only colour-shape phrases are meaningful.
 
 The model is a 6-layer BERT (hidden size, heads and vocabulary read from ``config.json``),
 followed, as the model's ``modules.json`` says, by mean pooling over the attention mask and L2
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sync4d.phase3.encoder import EncoderError, file_sha256, normalise_rows
+from sync4d.phase3.encoders.encoder import EncoderError, file_sha256, normalise_rows
 
 __all__ = [
     "MINILM_ENV",
