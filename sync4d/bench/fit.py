@@ -34,6 +34,7 @@ from sync4d import raster
 from sync4d.config import ConfigError, RunConfig, load_config, with_budget
 from sync4d.data import DatasetError, load_scene
 from sync4d.report import align_table
+from sync4d.runs.names import EVAL_FILE, RENDERS_DIR
 
 __all__ = ["main", "pareto_front", "plot_pareto", "rows_from_runs", "run_grid"]
 
@@ -153,13 +154,13 @@ def worst_view(run_dir: Path) -> dict[str, Any] | None:
     """The test frame with the lowest PSNR in `run_dir/eval.json` (name, time, PSNR, and the
     path of its render beside the ground truth), or None when the run has no evaluation."""
     try:
-        frames = json.loads((run_dir / "eval.json").read_text())["frames"]
+        frames = json.loads((run_dir / EVAL_FILE).read_text())["frames"]
     except (OSError, ValueError, KeyError):
         return None
     if not frames:
         return None
     f = min(frames, key=lambda f: f["psnr"])
-    render = run_dir / "renders" / "test" / f["name"]
+    render = run_dir / RENDERS_DIR / "test" / f["name"]
     return {
         "name": f["name"], "time": f["time"], "psnr": f["psnr"],
         "render": str(render) if render.is_file() else None,

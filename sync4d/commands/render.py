@@ -17,6 +17,7 @@ from sync4d.data.scene import Camera
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.progress import Progress
 from sync4d.runs import RENDERS_DIR, CheckpointError, RunError, load_run
+from sync4d.runs.names import render_frame, render_sweep
 
 __all__ = ["main", "camera_from_record", "pick_camera", "render_times", "save_gif"]
 
@@ -106,10 +107,10 @@ def main(args: argparse.Namespace) -> int:
     frames = render_times(run.model, cam, times, run.background, args.threads)
     stem = Path(rec["name"]).stem
     for t, f in zip(times, frames, strict=True):
-        Image.fromarray(f).save(out_dir / f"{stem}_t{t:.3f}.png")
+        Image.fromarray(f).save(out_dir / render_frame(stem, t))
     msg = f"render: {len(frames)} PNGs of camera {rec['split']}:{stem}"
     if len(frames) > 1 and not args.no_gif:
-        gif = save_gif(frames, out_dir / f"{stem}_sweep.gif", args.fps)
+        gif = save_gif(frames, out_dir / render_sweep(stem), args.fps)
         msg += f" and {gif.name}"
     print(f"{msg} in {out_dir}")
     return 0

@@ -23,7 +23,8 @@ from sync4d.metrics.lpips import INSTALL_HINT, MIN_SIZE, LPIPSAlex, LPIPSWeights
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.progress import Progress
 from sync4d.report import align_table
-from sync4d.runs.folder import EVAL_FILE, RENDERS_DIR, RunError
+from sync4d.runs.folder import RunError
+from sync4d.runs.names import RENDERS_DIR, eval_file
 
 __all__ = [
     "METRIC_DEFINITIONS",
@@ -252,7 +253,7 @@ def evaluate_run(
         "frames": [asdict(m) for m in metrics],
         "gaussians": model.num_gaussians,
     }
-    path = run_dir / (EVAL_FILE if tag is None else f"eval-{tag}.json")
+    path = run_dir / eval_file(tag)
     write_text_atomic(path, json.dumps(out, indent=2) + "\n")
     if not quiet:
         print(format_metrics(metrics, summary))

@@ -23,9 +23,12 @@ __all__ = [
     "RUN_FILE",
     "TEXT_CACHE",
     "TRAJECTORY_PLOT",
+    "eval_file",
     "query_eval_files",
     "query_eval_summary",
     "query_plot",
+    "render_frame",
+    "render_sweep",
 ]
 
 #: The latest checkpoint (Phase 1's, then Phase 2's once it runs).
@@ -56,6 +59,22 @@ FIELD_META = "field.json"
 TEXT_CACHE = "texts.json"
 #: The embedded synthetic scene's queries, written for `eval --queries` of a synthetic run.
 EMBEDDED_QUERIES_FILE = "queries-embedded.json"
+
+
+def eval_file(tag: str | None = None) -> str:
+    """The evaluation's file: `EVAL_FILE` for the run's test split, ``eval-<tag>.json`` for
+    another split or dataset (``train``, ``<dataset>-<split>``)."""
+    return EVAL_FILE if tag is None else f"eval-{tag}.json"
+
+
+def render_frame(stem: str, time: float) -> str:
+    """PNG name (inside `RENDERS_DIR` or `render --out`) of camera `stem` at `time`."""
+    return f"{stem}_t{time:.3f}.png"
+
+
+def render_sweep(stem: str) -> str:
+    """GIF name of camera `stem`'s time sweep."""
+    return f"{stem}_sweep.gif"
 
 
 def query_plot(slug: str) -> str:
