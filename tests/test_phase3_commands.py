@@ -147,7 +147,7 @@ def test_a_field_of_another_model_is_refused_and_refits_clear_it(runs, capsys, t
     assert "does not record the checkpoint" in capsys.readouterr().err
     # redoing Phase 2 removes the field of the old Phase 2 ...
     assert main(build) == 0
-    assert main(["fit", str(run), "--phases", "2", "--threads", "1"]) == 0
+    assert main(["fit", "--out", str(run), "--phases", "2", "--threads", "1"]) == 0
     assert not (run / "phase3").exists()
     capsys.readouterr()
     assert main(["query", str(run), "the blue box"]) == 2
@@ -155,5 +155,5 @@ def test_a_field_of_another_model_is_refused_and_refits_clear_it(runs, capsys, t
     # ... and so does starting over with --force, even with Phase 1 alone
     assert main(build) == 0
     assert main(["fit", str(runs["objects"].parent / "objects"), "--out", str(run), "--force",
-                 *SETTINGS, "--phases", "1"]) == 0  # fmt: skip
+                 *SETTINGS, "--set", "init_from=random", "--phases", "1"]) == 0  # fmt: skip
     assert not (run / "phase3").exists()
