@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from sync4d import __version__
+from sync4d.data import loaders
 from sync4d.options import (
     add_bench_fit_options,
     add_bench_raster_options,
@@ -52,9 +53,9 @@ def build_parser(prog: str = "sync4d") -> argparse.ArgumentParser:
     fit = commands.add_parser(
         "fit",
         help="train a deformable 4D Gaussian scene (Phase 1) and decompose its motion (Phase 2)",
-        description="Train Phase 1, then Phase 2, on a dataset folder (D-NeRF/Blender, "
-        "nerfstudio, HyperNeRF, COLMAP, Dynamic-3DGS Panoptic) or, without DATA, on the "
-        "embedded synthetic scene. Ctrl-C saves a checkpoint; --resume continues it.",
+        description=f"Train Phase 1, then Phase 2, on a dataset folder ({loaders.titles()}) "
+        "or, without DATA, on the embedded synthetic scene. Ctrl-C saves a checkpoint; --resume "
+        "continues it.",
     )
     fit.add_argument("data", nargs="?", default=None, metavar="DATA", help="dataset folder")
     fit.add_argument("--out", metavar="RUN", default=None, help="run folder (default runs/NAME)")

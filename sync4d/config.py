@@ -10,6 +10,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from sync4d.data.loaders import offered_splits
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.trainer import Phase2Config
 from sync4d.phase3.config import Phase3Config
@@ -88,8 +89,9 @@ class RunConfig:
     phases: str = choice("1,2", check=_phases_problem, text=_PHASES_TEXT)
     #: Image downsampling factor of the dataset (0.5: half width and height).
     resolution_scale: float = ranged(1.0, 0.0, 1.0, lo_open=True)
-    #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames.
-    test_split: str = choice("test", ("test", "val"))
+    #: Which split `fit`/`eval` report on: "test", or "val" for D-NeRF's validation frames
+    #: (the splits the dataset loaders offer, `sync4d.data.loaders`).
+    test_split: str = choice("test", offered_splits())
     #: Test-split PSNR/SSIM every this many iterations during `fit` (0: only at the end).
     eval_every: int = ranged(1_000, 0)
     #: Test frames used by the periodic evaluation (0: all); the final evaluation uses all.

@@ -4,10 +4,10 @@ indexed instance masks in `masks/{split}/<name>.png` with `masks/labels.json`.""
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
+from sync4d.data.loaders import get
 from sync4d.data.scene import (
     Camera,
     DatasetError,
@@ -17,33 +17,11 @@ from sync4d.data.scene import (
     as_number_array,
     as_string,
     check_pose,
+    image_size,
     opengl_c2w_to_opencv_w2c,
+    read_json,
+    read_labels,
 )
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except FileNotFoundError:
-        raise DatasetError(path, "file is missing") from None
-    except json.JSONDecodeError as e:
-        raise DatasetError(path, f"invalid JSON ({e.msg} at line {e.lineno})") from None
-    if not isinstance(data, dict):
-        raise DatasetError(path, "expected a JSON object at the top level")
-    return data
-
-
-def _image_size(path: Path) -> tuple[int, int]:
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except FileNotFoundError:
-        raise DatasetError(path, "image file is missing") from None
-    except (UnidentifiedImageError, OSError) as e:
-        raise DatasetError(path, f"cannot read image ({e})") from None
 
 
 def _resolve_image(root: Path, file_path: str, json_path: Path, index: int) -> Path:
@@ -61,7 +39,7 @@ def load_split(
     """Frames of `transforms_{split}.json` under `root`, cameras converted to OpenCV
     world-to-camera and scaled by `resolution_scale`."""
     path = root / f"transforms_{split}.json"
-    data = _read_json(path)
+    data = read_json(path)
     if "camera_angle_x" not in data:
         raise DatasetError(path, "missing 'camera_angle_x'")
     frames = data.get("frames")
@@ -93,7 +71,7 @@ def load_split(
         check_pose(m, path, f"{label} 'transform_matrix'")
         img = _resolve_image(root, file_path, path, i)
         if native is None:
-            native = _image_size(img)
+            native = image_size(img)
         w, h = native
         fx = 0.5 * w / math.tan(0.5 * angle)
         cam = Camera(opengl_c2w_to_opencv_w2c(m), fx, fx, 0.5 * w, 0.5 * h, w, h)
@@ -112,11 +90,11 @@ def load_blender(
     root: str | Path, resolution_scale: float = 1.0, test_split: str = "test"
 ) -> Scene:
     """Load a D-NeRF / Blender scene directory (`test_split` = "test" or "val")."""
-    root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(root, "dataset directory does not exist")
-    if not (0.0 < resolution_scale <= 1.0):
-        raise DatasetError(root, f"resolution scale must be in (0, 1], got {resolution_scale}")
+    return get("blender").load(root, resolution_scale, test_split)
+
+
+def read(root: Path, resolution_scale: float, test_split: str) -> Scene:
+    """The scene in folder `root`, whose arguments the registry checked (`prepare`)."""
     train = load_split(root, "train", resolution_scale)
     test = load_split(root, test_split, resolution_scale)
     labels = None
@@ -124,16 +102,3 @@ def load_blender(
     if labels_path.exists():
         labels = read_labels(labels_path)
     return Scene(root.name, train, test, labels)
-
-
-def read_labels(path: Path) -> dict[int, str]:
-    """`labels.json`: an object of integer mask label (as a string key) -> name string."""
-    raw = _read_json(path)
-    labels: dict[int, str] = {}
-    for k, v in raw.items():
-        try:
-            label = int(k)
-        except ValueError:
-            raise DatasetError(path, f"key {k!r} is not an integer mask label") from None
-        labels[label] = as_string(v, path, f"the name of label {k}")
-    return labels

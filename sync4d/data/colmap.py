@@ -16,8 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.data.blender import _read_json, read_labels
-from sync4d.data.scene import Camera, DatasetError, Frame, Scene, as_number, check_pose
+from sync4d.data.loaders import get
+from sync4d.data.scene import (
+    Camera,
+    DatasetError,
+    Frame,
+    Scene,
+    as_number,
+    check_pose,
+    read_json,
+    read_labels,
+)
 
 #: COLMAP camera models read as pinholes; the radial / OpenCV ones only with zero distortion.
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
@@ -117,7 +126,7 @@ def _read_times(root: Path, names: list[str]) -> list[float]:
     if not path.exists():
         n = len(names)
         return [i / max(1, n - 1) for i in range(n)]
-    data = _read_json(path)
+    data = read_json(path)
     raw: list[float] = []
     for name in names:
         if name not in data:
@@ -151,11 +160,11 @@ def _read_test_names(root: Path, names: list[str]) -> set[str]:
 def load_colmap(root: str | Path, resolution_scale: float = 1.0) -> Scene:
     """Load a COLMAP dataset directory (`images/`, `sparse/[0/]`, optional `masks/`,
     `times.json`, `test_images.txt`) with cameras scaled by `resolution_scale` in (0, 1]."""
-    root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(root, "dataset directory does not exist")
-    if not (0.0 < resolution_scale <= 1.0):
-        raise DatasetError(root, f"resolution scale must be in (0, 1], got {resolution_scale}")
+    return get("colmap").load(root, resolution_scale)
+
+
+def read(root: Path, resolution_scale: float, test_split: str) -> Scene:
+    """The scene in folder `root`, whose arguments the registry checked (`prepare`)."""
     image_dir = root / "images"
     if not image_dir.is_dir():
         raise DatasetError(image_dir, "image folder is missing")

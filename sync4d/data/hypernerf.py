@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.data.blender import _read_json
+from sync4d.data.loaders import get
 from sync4d.data.scene import (
     Camera,
     DatasetError,
@@ -20,11 +20,12 @@ from sync4d.data.scene import (
     as_number_array,
     as_string,
     check_pose,
+    read_json,
 )
 
 
 def _camera(path: Path) -> Camera:
-    c = _read_json(path)
+    c = read_json(path)
     for key in ("orientation", "position", "focal_length", "principal_point", "image_size"):
         if key not in c:
             raise DatasetError(path, f"missing camera field '{key}'")
@@ -64,13 +65,13 @@ def _camera(path: Path) -> Camera:
 def load_hypernerf(root: str | Path, resolution_scale: float = 1.0) -> Scene:
     """Load a HyperNeRF capture; `resolution_scale` 1, 0.5, 0.25 ... reads `rgb/1x`, `rgb/2x`,
     `rgb/4x` ... when present (else resizes from `rgb/1x`)."""
-    root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(root, "dataset directory does not exist")
-    if not (0.0 < resolution_scale <= 1.0):
-        raise DatasetError(root, f"resolution scale must be in (0, 1], got {resolution_scale}")
+    return get("hypernerf").load(root, resolution_scale)
+
+
+def read(root: Path, resolution_scale: float, test_split: str) -> Scene:
+    """The scene in folder `root`, whose arguments the registry checked (`prepare`)."""
     ds_path, meta_path = root / "dataset.json", root / "metadata.json"
-    ds, meta = _read_json(ds_path), _read_json(meta_path)
+    ds, meta = read_json(ds_path), read_json(meta_path)
     for key in ("train_ids", "val_ids"):
         if not isinstance(ds.get(key), list):
             raise DatasetError(ds_path, f"missing '{key}' list")

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.data.blender import _image_size, _read_json
+from sync4d.data.loaders import get, prepare
 from sync4d.data.scene import (
     Camera,
     DatasetError,
@@ -35,8 +35,10 @@ from sync4d.data.scene import (
     as_number_array,
     as_string,
     check_pose,
+    image_size,
     json_kind,
     opengl_c2w_to_opencv_w2c,
+    read_json,
 )
 
 __all__ = ["UndistortedFrame", "distort", "load_nerfstudio", "undistorted_camera"]
@@ -240,13 +242,15 @@ def _read_points(root: Path, path: Path, data: dict) -> tuple[np.ndarray | None,
 
 def load_nerfstudio(root: str | Path, resolution_scale: float = 1.0, test_every: int = 8) -> Scene:
     """Load a nerfstudio-format directory (`transforms.json`; see the module docstring)."""
-    root = Path(root)
+    path, _ = prepare(root, resolution_scale, "test", get("nerfstudio"))
+    return read(path, resolution_scale, "test", test_every)
+
+
+def read(root: Path, resolution_scale: float, test_split: str, test_every: int = 8) -> Scene:
+    """The scene in folder `root`, whose arguments the registry checked (`prepare`);
+    `test_every` as in `load_nerfstudio`."""
     path = root / "transforms.json"
-    if not root.is_dir():
-        raise DatasetError(root, "dataset directory does not exist")
-    if not (0.0 < resolution_scale <= 1.0):
-        raise DatasetError(root, f"resolution scale must be in (0, 1], got {resolution_scale}")
-    data = _read_json(path)
+    data = read_json(path)
     frames = data.get("frames")
     if not isinstance(frames, list) or not frames:
         raise DatasetError(path, "missing or empty 'frames' list")
@@ -288,7 +292,7 @@ def load_nerfstudio(root: str | Path, resolution_scale: float = 1.0, test_every:
             w = int(_intrinsic(path, i, fr, data, "w"))
             h = int(_intrinsic(path, i, fr, data, "h"))
         else:
-            w, h = _image_size(img)
+            w, h = image_size(img)
         cam = Camera(
             opengl_c2w_to_opencv_w2c(m),
             _intrinsic(path, i, fr, data, "fl_x"),

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.data.blender import _read_json
+from sync4d.data.loaders import get
 from sync4d.data.scene import (
     Camera,
     DatasetError,
@@ -19,12 +19,13 @@ from sync4d.data.scene import (
     as_number_array,
     as_string,
     check_pose,
+    read_json,
 )
 
 
 def _load_meta(root: Path, name: str, resolution_scale: float) -> list[Frame]:
     path = root / name
-    meta = _read_json(path)
+    meta = read_json(path)
     for key in ("w", "h", "k", "w2c", "fn"):
         if key not in meta:
             raise DatasetError(path, f"missing '{key}'")
@@ -78,11 +79,11 @@ def _load_meta(root: Path, name: str, resolution_scale: float) -> list[Frame]:
 
 def load_panoptic(root: str | Path, resolution_scale: float = 1.0) -> Scene:
     """Load a Dynamic-3DGS Panoptic sequence directory (e.g. `basketball/`)."""
-    root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(root, "dataset directory does not exist")
-    if not (0.0 < resolution_scale <= 1.0):
-        raise DatasetError(root, f"resolution scale must be in (0, 1], got {resolution_scale}")
+    return get("panoptic").load(root, resolution_scale)
+
+
+def read(root: Path, resolution_scale: float, test_split: str) -> Scene:
+    """The scene in folder `root`, whose arguments the registry checked (`prepare`)."""
     train = _load_meta(root, "train_meta.json", resolution_scale)
     test = _load_meta(root, "test_meta.json", resolution_scale)
     labels = {0: "background", 1: "foreground"} if any(f.mask_path for f in train) else None

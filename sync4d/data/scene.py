@@ -7,6 +7,7 @@ carry a time in [0, 1] and load their image (and instance mask, if any) lazily.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -107,6 +108,35 @@ def as_string(value: object, path: str | Path, what: str) -> str:
     if not isinstance(value, str) or not value:
         raise DatasetError(path, f"{what} must be a non-empty string, got {json_kind(value)}")
     return value
+
+
+def read_json(path: Path) -> dict:
+    """The JSON object in file `path`, else `DatasetError(path, ...)`: the file is missing, is
+    not valid JSON (with the line of the first error) or holds something other than an object
+    at the top level. Every loader reads its JSON files through this one function."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except FileNotFoundError:
+        raise DatasetError(path, "file is missing") from None
+    except json.JSONDecodeError as e:
+        raise DatasetError(path, f"invalid JSON ({e.msg} at line {e.lineno})") from None
+    if not isinstance(data, dict):
+        raise DatasetError(path, "expected a JSON object at the top level")
+    return data
+
+
+def read_labels(path: Path) -> dict[int, str]:
+    """`labels.json`: an object of integer mask label (as a string key) -> name string."""
+    raw = read_json(path)
+    labels: dict[int, str] = {}
+    for k, v in raw.items():
+        try:
+            label = int(k)
+        except ValueError:
+            raise DatasetError(path, f"key {k!r} is not an integer mask label") from None
+        labels[label] = as_string(v, path, f"the name of label {k}")
+    return labels
 
 
 #: Largest max-abs entry of |R^T R - I| accepted for a pose's 3x3 rotation part. Real poses are
@@ -270,6 +300,12 @@ def _open_header(path: Path, what: str, where: str):
         raise DatasetError(path, f"{what} file is missing{suffix}") from None
     except (UnidentifiedImageError, OSError) as e:
         raise DatasetError(path, f"cannot read {what} ({e}){suffix}") from None
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of image file `path` from its header, or `DatasetError`."""
+    with _open_header(path, "image", "") as im:
+        return im.size
 
 
 def _resize(img: np.ndarray, size: tuple[int, int], nearest: bool) -> np.ndarray:
