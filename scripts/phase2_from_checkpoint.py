@@ -47,7 +47,7 @@ def main() -> None:
     trainer = Phase2Trainer(model, scene, cfg.phase1, fitted, max(1, args.iters), threads)
     report("closed-form fit", trainer)
     if mc.refine_steps > 0:
-        trainer.refine_motion(mc, progress=False)
+        trainer.refine_motion(mc)
         report("refined", trainer)
     if args.per_frame:
         export = trainer.motion_export()

@@ -45,7 +45,7 @@ if os.path.exists(cache):
         m.rotvecs.copy_(rv)
         m.translations.copy_(tt)
 else:
-    tr.refine_motion(mc, progress=False)
+    tr.refine_motion(mc)
     colours = tr.template_colours
     torch.save((m.rotvecs.detach().clone(), m.translations.detach().clone(), colours), cache)
 print(gt.export_errors(tr.motion_export()), flush=True)

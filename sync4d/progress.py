@@ -3,6 +3,9 @@ statistics (loss, PSNR, #Gaussians, ...), seconds per iteration and ETA.
 
 On a terminal it redraws one line; when stderr is not a terminal (logs, CI) it prints a full
 line every `log_every` updates so logs stay readable.
+
+`TerminalRenderer` is the command line's subscriber to `sync4d.events`: it prints the
+pipeline's notes and draws its loops as `Progress` bars.
 """
 
 from __future__ import annotations
@@ -12,7 +15,9 @@ import sys
 import time
 from typing import TextIO
 
-__all__ = ["Progress", "format_duration"]
+from sync4d.events import Advanced, Event, Finished, Note, Started, Subscription, subscribe
+
+__all__ = ["Progress", "TerminalRenderer", "format_duration"]
 
 
 def format_duration(seconds: float) -> str:
@@ -108,3 +113,43 @@ class Progress:
         if self.tty:
             self.stream.write("\n")
             self.stream.flush()
+
+
+class TerminalRenderer:
+    """Renders `sync4d.events` as the commands print them: a `Note` as its lines on its stream
+    (sys.stdout or sys.stderr at that moment; on stderr through the open bar, so a terminal's
+    bar is not broken), `Started` / `Advanced` / `Finished` as a `Progress` bar on stderr;
+    `PhaseDone` adds nothing (the notes carry the text). With `details` False the notes marked
+    `detail` (tables, "wrote ..." lines) are left out, as ``bench fit`` shows its runs.
+
+    ``with renderer.installed(): ...`` (or ``with subscribe(renderer)``) renders what the block
+    emits."""
+
+    def __init__(self, details: bool = True) -> None:
+        self.details = details
+        self.bars: dict[str, Progress] = {}
+
+    def installed(self) -> Subscription:
+        """Subscribe this renderer; the subscription ends it (a context manager)."""
+        return subscribe(self)
+
+    def __call__(self, event: Event) -> None:
+        if isinstance(event, Note):
+            if event.detail and not self.details:
+                return
+            if event.stream == "err" and self.bars:
+                next(reversed(self.bars.values())).message(event.text)
+            else:
+                print(event.text, file=sys.stderr if event.stream == "err" else sys.stdout)
+        elif isinstance(event, Started):
+            self.bars[event.task] = Progress(
+                event.total, start=event.start, desc=event.task, log_every=event.log_every
+            )
+        elif isinstance(event, Advanced):
+            bar = self.bars.get(event.task)
+            if bar is not None:
+                bar.update(event.done, dict(event.stats))
+        elif isinstance(event, Finished):
+            bar = self.bars.pop(event.task, None)
+            if bar is not None:
+                bar.close()

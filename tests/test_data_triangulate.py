@@ -95,15 +95,15 @@ def test_init_from_chooses_the_source(synthetic, tmp_path, monkeypatch) -> None:
     mono = load_scene(root)
     cfg = RunConfig()
     assert cfg.init_from == "auto"
-    got = with_initial_points(multi, cfg, quiet=True)
+    got = with_initial_points(multi, cfg)
     assert got.points is not None and len(got.points) >= 100  # auto: multi-view -> triangulate
-    assert with_initial_points(mono, cfg, quiet=True).points is None  # auto: mono -> random
+    assert with_initial_points(mono, cfg).points is None  # auto: mono -> random
     random = load_config(None, ["init_from=random"])
-    assert with_initial_points(got, random, quiet=True).points is None
-    assert with_initial_points(got, load_config(None, ["init_from=points"]), quiet=True) is got
+    assert with_initial_points(got, random).points is None
+    assert with_initial_points(got, load_config(None, ["init_from=points"])) is got
     with pytest.raises(ConfigError, match="has no point cloud"):
-        with_initial_points(mono, load_config(None, ["init_from=points"]), quiet=True)
+        with_initial_points(mono, load_config(None, ["init_from=points"]))
     with pytest.raises(ConfigError, match="init_from: expected one of"):
-        with_initial_points(mono, load_config(None, ["init_from=sfm"]), quiet=True)
+        with_initial_points(mono, load_config(None, ["init_from=sfm"]))
     with pytest.raises(DatasetError, match="at least two training cameras"):
-        with_initial_points(mono, load_config(None, ["init_from=triangulate"]), quiet=True)
+        with_initial_points(mono, load_config(None, ["init_from=triangulate"]))

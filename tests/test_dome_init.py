@@ -75,15 +75,15 @@ def test_fit_adds_them_to_the_point_cloud_and_refuses_random_init(tmp_path) -> N
         _scene(tmp_path, _dome_eyes()), points=base, point_colors=np.ones((3, 3), np.float32)
     )
     cfg = load_config(None, ["phase1.init_dome_points=200", "phase1.init_from=points"])
-    out = with_dome_points(scene, cfg, quiet=True)
+    out = with_dome_points(scene, cfg)
     assert len(out.points) > 3 and np.array_equal(out.points[:3], base)
     assert len(out.point_colors) == len(out.points)
-    assert with_dome_points(scene, load_config(None, []), quiet=True) is scene
+    assert with_dome_points(scene, load_config(None, [])) is scene
     from sync4d.pipeline.fit import with_initial_points
 
     bad = load_config(None, ["phase1.init_dome_points=200", "phase1.init_from=random"])
     with pytest.raises(ConfigError, match="init_dome_points"):
-        with_initial_points(scene, bad, quiet=True)
+        with_initial_points(scene, bad)
 
 
 def test_a_sphere_no_image_sees_gives_no_points(tmp_path) -> None:

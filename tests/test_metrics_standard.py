@@ -23,6 +23,7 @@ from sync4d.metrics import lpips as lp
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.pipeline import evaluate
 from sync4d.pipeline.evaluate import METRIC_DEFINITIONS, evaluate_run
+from sync4d.progress import TerminalRenderer
 
 DNERF = Path(__file__).resolve().parents[2] / "shared" / "data" / "dnerf"
 
@@ -200,8 +201,8 @@ def _evaluate(tmp_path: Path, size: int, capsys) -> tuple[dict, str]:
     run = tmp_path / f"run{size}"
     run.mkdir()
     capsys.readouterr()
-    evaluate_run(run, _tiny_model(), scene, (1.0, 1.0, 1.0), threads=1, quiet=True,
-                 renders=False)  # fmt: skip
+    with TerminalRenderer(details=False).installed():
+        evaluate_run(run, _tiny_model(), scene, (1.0, 1.0, 1.0), threads=1, renders=False)
     return json.loads((run / "eval.json").read_text()), capsys.readouterr().err
 
 

@@ -106,7 +106,7 @@ def oracle_run(tmp_path_factory):
     run, root = oracle_phase2_run(tmp_path_factory.mktemp("phase3"))
     run_dir = run.path
     enc = ColourEncoder()
-    field = build_field(run, Phase3Config(), enc, threads=1, progress=False)
+    field = build_field(run, Phase3Config(), enc, threads=1)
     field.save(run_dir)
     return run, field, enc, root
 

@@ -85,7 +85,7 @@ def hiding(tmp_path_factory):
     for skip in (True, False):
         enc = Counting(offline)
         cfg = Phase3Config(skip_unobserved=skip)
-        built[skip] = (build_field(run, cfg, enc, threads=1, progress=False), enc)
+        built[skip] = (build_field(run, cfg, enc, threads=1), enc)
     return run, root, offline, built
 
 

@@ -33,6 +33,7 @@ from typing import Any
 from sync4d import raster
 from sync4d.config import ConfigError, RunConfig, load_config, with_budget
 from sync4d.data import DatasetError, load_scene
+from sync4d.progress import TerminalRenderer
 from sync4d.report import align_table
 from sync4d.runs.names import EVAL_FILE, RENDERS_DIR
 
@@ -119,7 +120,7 @@ def run_grid(
         scene = load_scene(data, scale, cfg.test_split)
         run_dir = work_dir / f"s{scale}_c{cap}_i{iters}{'_' + variant if variant else ''}"
         summary = run_fit(
-            scene, cfg, run_dir, data, threads=threads, log_every=max(50, iters // 10), quiet=True
+            scene, cfg, run_dir, data, threads=threads, log_every=max(50, iters // 10)
         )
         worst = worst_view(run_dir)
         rows.append(
@@ -436,32 +437,34 @@ def main(args: argparse.Namespace) -> int:
     if args.runs:
         return _tabulate_runs(args)
     try:
-        data, default_cfg = resolve_data(args.data)
-        base = load_config(args.config or default_cfg, list(args.set or []))
-        configs: RunConfig | dict[str, RunConfig] = base
-        factors: dict[str, float] = {}
-        if args.variant:
-            configs = {}
-            for text in args.variant:
-                name, extra = parse_variant(text)
-                if name in configs:
-                    raise ConfigError(f"--variant {name} is given twice")
-                factors[name], extra = split_budget(name, extra)
-                configs[name] = load_config(args.config or default_cfg,
-                                            list(args.set or []) + extra)  # fmt: skip
-        scales = args.scales or [base.resolution_scale]
-        caps = args.caps or [base.phase1.densify.max_gaussians]
-        n = base.phase1.iterations
-        iterations = args.iters or [max(100, n // 8), n // 4, n // 2, n]
-        out = Path(args.out or f"bench-fit-{data.name}.json")
-        check_writable(out.parent)  # before any budget trains, not after all of them
-        if args.keep_runs:
-            check_writable(args.keep_runs)
-        with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
-            work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
-            rows = run_grid(data, configs, iterations, scales, caps, args.threads, work,
-                            factors)  # fmt: skip
-            worst_png = copy_worst_view(rows, out.with_name(out.stem + "-worst.png"))
+        # the pipeline's notes and progress bars; its tables are bench fit's rows instead
+        with TerminalRenderer(details=False).installed():
+            data, default_cfg = resolve_data(args.data)
+            base = load_config(args.config or default_cfg, list(args.set or []))
+            configs: RunConfig | dict[str, RunConfig] = base
+            factors: dict[str, float] = {}
+            if args.variant:
+                configs = {}
+                for text in args.variant:
+                    name, extra = parse_variant(text)
+                    if name in configs:
+                        raise ConfigError(f"--variant {name} is given twice")
+                    factors[name], extra = split_budget(name, extra)
+                    configs[name] = load_config(args.config or default_cfg,
+                                                list(args.set or []) + extra)  # fmt: skip
+            scales = args.scales or [base.resolution_scale]
+            caps = args.caps or [base.phase1.densify.max_gaussians]
+            n = base.phase1.iterations
+            iterations = args.iters or [max(100, n // 8), n // 4, n // 2, n]
+            out = Path(args.out or f"bench-fit-{data.name}.json")
+            check_writable(out.parent)  # before any budget trains, not after all of them
+            if args.keep_runs:
+                check_writable(args.keep_runs)
+            with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
+                work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
+                rows = run_grid(data, configs, iterations, scales, caps, args.threads, work,
+                                factors)  # fmt: skip
+                worst_png = copy_worst_view(rows, out.with_name(out.stem + "-worst.png"))
     except (ConfigError, DatasetError, WriteFailed) as e:
         print(f"bench fit: {e}", file=sys.stderr)
         return 2

@@ -48,8 +48,7 @@ def bench_run(run_dir: Path, encoder_spec: str | None, queries: list[str], repea
     t0 = time.perf_counter()
     encoder = load_encoder(cfg3.encoder or None)
     load_s = time.perf_counter() - t0
-    built = build_phase3(run_dir, cfg3, threads=threads, save=False, progress=False,
-                         encoder=encoder)  # fmt: skip
+    built = build_phase3(run_dir, cfg3, threads=threads, save=False, encoder=encoder)
     field, run_gaussians = built.field, built.gaussians
     cold, warm = [], []
     with tempfile.TemporaryDirectory(prefix="sync4d-bench-phase3-") as tmp:

@@ -15,6 +15,7 @@ from sync4d.data import DatasetError
 from sync4d.files import RunBusy, RunLock, WriteFailed
 from sync4d.pipeline import evaluate_run
 from sync4d.pipeline.record import dataset_differences
+from sync4d.progress import TerminalRenderer
 from sync4d.runs import CheckpointError, RunError, load_run
 
 __all__ = ["main"]
@@ -74,8 +75,9 @@ def main(args: argparse.Namespace) -> int:
             threads = args.threads or None
             if threads:
                 torch.set_num_threads(threads)
-            evaluate_run(run.path, run.model, scene, run.background, threads, args.split,
-                         tag=tag)  # fmt: skip
+            with TerminalRenderer().installed():
+                evaluate_run(run.path, run.model, scene, run.background, threads, args.split,
+                             tag=tag)  # fmt: skip
     except (RunError, CheckpointError, DatasetError, RunBusy, WriteFailed) as e:
         print(f"eval: {e}", file=sys.stderr)
         return 2

@@ -1,5 +1,6 @@
 """``python -m sync4d fit [DATA] --out runs/NAME``: Phase 1 then Phase 2 training (``phases``)
-into a run folder (`sync4d.runs.run_fit`), then the test metrics and Phase 2's diagnostics.
+into a run folder (`sync4d.pipeline.run_fit`), then the test metrics and Phase 2's diagnostics.
+What the pipeline reports (`sync4d.events`) is printed by `sync4d.progress.TerminalRenderer`.
 
 Without DATA it trains on the embedded synthetic scene (generated once into a cache folder).
 """
@@ -37,7 +38,7 @@ from sync4d.pipeline.record import (
     read_record,
     recorded_config,
 )
-from sync4d.progress import format_duration
+from sync4d.progress import TerminalRenderer, format_duration
 from sync4d.runs import (
     CHECKPOINT_NAME,
     EVAL_FILE,
@@ -178,7 +179,7 @@ def main(args: argparse.Namespace) -> int:
     created = not run_dir.exists()
     try:
         fresh = _fresh_config(args)
-        with RunLock(run_dir, "fit"):
+        with RunLock(run_dir, "fit"), TerminalRenderer().installed():
             return _fit(args, run_dir, fresh)
     except (ConfigError, DatasetError, CheckpointError, RunError, RunBusy, WriteFailed,
             EncoderError, FieldError) as e:  # fmt: skip

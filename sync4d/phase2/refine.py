@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sync4d.events import Advanced, Finished, Started, emit
 from sync4d.geometry import axis_angle_to_quat, matrix_to_rotvec, quat_multiply, rotvec_to_matrix
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.losses import photometric_loss
 from sync4d.phase2.motion import MotionConfig, SE3Table, cosine_lr
-from sync4d.progress import Progress
 
 if TYPE_CHECKING:
     from sync4d.phase2.trainer import Phase2Trainer
@@ -100,9 +100,7 @@ class _RigidTemplate:
         return means, quats, scales
 
 
-def refine_motion(
-    trainer: Phase2Trainer, config: MotionConfig | None = None, progress: bool = True
-) -> None:
+def refine_motion(trainer: Phase2Trainer, config: MotionConfig | None = None) -> None:
     """Photometric refinement of `trainer`'s SE(3) table with the `refine_*` settings of
     `config` (default: the trainer's `phase2.motion`; `steps` below is `refine_steps`, `lr`
     `refine_lr`, and so on): every moving
@@ -156,14 +154,13 @@ def refine_motion(
     first = [(4 * steps if j == 0 else steps) if v else 0 for j, v in enumerate(template.views)]
     n_views = sum(len(v) for v in template.views)
     per_round = colour_epochs * n_views + retrack_steps * sum(1 for v in template.views if v)
-    bar = Progress(sum(first) + texture_rounds * per_round, desc="refine M_phi", log_every=10)
+    emit(Started("refine M_phi", sum(first) + texture_rounds * per_round, log_every=10))
     done = 0
 
     def advance(n: int, loss: float) -> None:
         nonlocal done
         done += n
-        if progress:
-            bar.update(done, {"loss": f"{loss:.4f}"})
+        emit(Advanced("refine M_phi", done, {"loss": f"{loss:.4f}"}))
 
     poses: list[tuple[Tensor, Tensor]] = []
     scores: list[float] = []  # each tracked frame's mean loss over its views (restarts only)
@@ -195,8 +192,7 @@ def refine_motion(
                     trainer, template, j, poses[j], poses[:j], scores, mc, track
                 )
             advance(retrack_steps if template.views[j] else 0, loss)
-    if progress:
-        bar.close()
+    emit(Finished("refine M_phi"))
     trainer.template_colours = template.sh_dc
     with torch.no_grad():
         centre = template.centre

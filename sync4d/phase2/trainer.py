@@ -263,9 +263,9 @@ class Phase2Trainer(Phase1Trainer):
             if mc.refine_steps > 0:
                 self.refine_motion()
 
-    def refine_motion(self, config: MotionConfig | None = None, progress: bool = True) -> None:
+    def refine_motion(self, config: MotionConfig | None = None) -> None:
         """Photometric refinement of the SE(3) table (`sync4d.phase2.refine.refine_motion`)."""
-        refine_motion(self, config, progress)
+        refine_motion(self, config)
 
     @torch.no_grad()
     def fit_motion(self, positions: list[np.ndarray] | None = None) -> None:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sync4d.events import PhaseDone, emit
 from sync4d.phase3 import field as fm
 from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.encoders.encoder import Encoder
@@ -64,10 +65,11 @@ def _tracks(run: Run, obs: Observations, hand: int | None) -> Tracks:
 
 def build_field(
     run: Run, cfg: Phase3Config, encoder: Encoder, *, data: str | Path | None = None,
-    threads: int | None = None, progress: bool = True,
+    threads: int | None = None,
 ) -> Field:  # fmt: skip
     """The language field of the Phase 2 run `run` (its dataset from `data` or the folder it
-    recorded) with `encoder` and the settings `cfg`."""
+    recorded) with `encoder` and the settings `cfg`; reports its progress and then
+    `PhaseDone("phase3")` as `sync4d.events`."""
     if run.kind != "sync4d.phase2" or run.motion is None:
         raise FieldError(
             f"{run.checkpoint}: Phase 3 needs a Phase 2 run (this checkpoint is {run.kind}); "
@@ -87,7 +89,7 @@ def build_field(
     obs = observe(
         run, scene, min_visible=cfg.min_visible, min_box=cfg.min_box, margin=cfg.crop_margin,
         percentiles=(cfg.crop_low, cfg.crop_high), share_eps=share_eps, up=up, threads=threads,
-        progress=progress, skip_unobserved=cfg.skip_unobserved,
+        skip_unobserved=cfg.skip_unobserved,
     )  # fmt: skip
     if not obs.labels:
         raise FieldError(
@@ -124,7 +126,7 @@ def build_field(
     timings["crops"] = len(obs.crops)
     counts = {**obs.counts, "crops_encoded": len(obs.crops) + len(obs.extra_crops),
               "encoder_calls": calls, **relational_counts(obs.observed)}  # fmt: skip
-    return Field(
+    built = Field(
         labels=obs.labels, names=names, times=obs.times, obs=e_obs.astype(np.float32),
         observed=obs.observed, static=static.astype(np.float32), features=feats,
         standardised=std, ridge=w, pred=pred.astype(np.float32), sync=sync.astype(np.float32),
@@ -135,6 +137,9 @@ def build_field(
         config=dataclasses.asdict(cfg), timings=timings, counts=counts,
         checkpoint=checkpoint_record(run.checkpoint),
     )  # fmt: skip
+    emit(PhaseDone("phase3", {"objects": len(obs.labels), "frames": len(obs.times), **timings,
+                              **counts}))  # fmt: skip
+    return built
 
 
 def skip_report(field: Field) -> str:

@@ -31,7 +31,6 @@ For each stored frame time t of M_phi and each training view at t:
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,8 +38,8 @@ import torch
 
 from sync4d import raster
 from sync4d.data import Scene
+from sync4d.events import Advanced, Finished, Started, emit
 from sync4d.phase2.diagnostics import rigid_share
-from sync4d.progress import Progress
 from sync4d.runs import Run
 
 __all__ = ["Observations", "crop_box", "observe"]
@@ -152,12 +151,13 @@ def observe(
     run: Run, scene: Scene, *, min_visible: float = 0.05, min_box: int = 4,
     margin: float = 0.12, percentiles: tuple[float, float] = (2.0, 98.0),
     share_eps: float = 1e-6, up: np.ndarray | None = None, threads: int | None = None,
-    progress: bool = True, skip_unobserved: bool = True,
+    skip_unobserved: bool = True,
 ) -> Observations:  # fmt: skip
     """Crops, visibility, residual statistics and gaps of every foreground object of the
     Phase 2 run `run` at each of its stored frames, from the training views of `scene`; `up`
     [3] is the world's up (default +z) for the gap to the background. Crops only of the
-    observed object-frames unless `skip_unobserved` is False (then also `extra_crops`)."""
+    observed object-frames unless `skip_unobserved` is False (then also `extra_crops`).
+    Progress over the frames goes out as `sync4d.events` (task "phase3 observe")."""
     up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
     if run.motion is None or run.labels is None or run.times is None:
         raise ValueError(f"{run.path}: not a Phase 2 run")
@@ -193,8 +193,7 @@ def observe(
         gaps=np.full((k, len(gap_labels), t), np.inf), gap_labels=gap_labels,
     )  # fmt: skip
     n_invisible = n_below = n_loaded = 0
-    bar = Progress(t, desc="phase3 observe", log_every=max(1, t // 10),
-                   stream=None if progress else io.StringIO())  # fmt: skip
+    emit(Started("phase3 observe", t, log_every=max(1, t // 10)))
     for f, tf in enumerate(times):
         means, quats, scales = model.at_time(float(tf))
         r = means - motion(x0, labels, float(tf))
@@ -261,8 +260,8 @@ def observe(
                 obs.extra_crops.append(_crop(images, vi, scene, box, run.background))
                 obs.extra_index.append((a, f))
         n_loaded += len(images)
-        bar.update(f + 1)
-    bar.close()
+        emit(Advanced("phase3 observe", f + 1))
+    emit(Finished("phase3 observe"))
     obs.counts = {
         "object_frames": k * t, "observed": int(obs.observed.sum()), "invisible": n_invisible,
         "below_threshold": n_below, "crops": len(obs.crops), "extra_crops": len(obs.extra_crops),

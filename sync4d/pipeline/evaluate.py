@@ -7,7 +7,6 @@ them, with what each metric is (`METRIC_DEFINITIONS`) and why one is missing, to
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -16,12 +15,12 @@ import numpy as np
 import torch
 
 from sync4d.data.scene import Frame, Scene
+from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
 from sync4d.files import write_text_atomic
 from sync4d.metrics import psnr, ssim, ssim_gaussian
 from sync4d.metrics.image import GAUSSIAN_WINDOW
 from sync4d.metrics.lpips import INSTALL_HINT, MIN_SIZE, LPIPSAlex, LPIPSWeightsMissing, load_lpips
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.progress import Progress
 from sync4d.report import align_table
 from sync4d.runs.folder import RunError
 from sync4d.runs.names import RENDERS_DIR, eval_file
@@ -217,14 +216,14 @@ def evaluate_run(
     background: tuple[float, ...] | list[float],
     threads: int | None = None,
     split: str = "test",
-    quiet: bool = False,
     renders: bool = True,
     tag: str | None = None,
 ) -> dict:
     """Evaluate `model` on `scene`'s split, write ``run_dir/eval.json`` (and, with `renders`,
-    ``run_dir/renders/<split>/<frame>.png``: render beside ground truth), print the table;
-    returns the summary (mean PSNR, SSIM, SSIM 3x3 box, LPIPS, and ``"metrics"``: what each
-    is). A metric that cannot run is None, with one line on stderr saying why (for LPIPS
+    ``run_dir/renders/<split>/<frame>.png``: render beside ground truth), report the table (a
+    `sync4d.events` note; progress as task "eval <split>", then `PhaseDone("eval")`); returns
+    the summary (mean PSNR, SSIM, SSIM 3x3 box, LPIPS, and ``"metrics"``: what each
+    is). A metric that cannot run is None, with one note (stderr) saying why (for LPIPS
     weights, the command that installs them) and the reason in ``eval.json``. With `tag`
     (another split or dataset than the run's test split) the files are ``eval-<tag>.json`` and
     ``renders/<tag>/`` instead, so the run's own results are never overwritten."""
@@ -236,14 +235,15 @@ def evaluate_run(
     ssim_skipped = _ssim_skipped(frames)
     for name, reason in (("SSIM", ssim_skipped), ("LPIPS", lpips_skipped)):
         if reason is not None:
-            print(f"eval: {name} n/a: {reason}", file=sys.stderr)
-    bar = Progress(len(frames), desc=f"eval {split}", log_every=max(1, len(frames)))
+            note(f"eval: {name} n/a: {reason}")
+    task = f"eval {split}"
+    emit(Started(task, len(frames), log_every=max(1, len(frames))))
     metrics = evaluate_frames(
         model, frames, tuple(background), threads, lpips=lpips,
-        on_frame=lambda i, m: bar.update(i + 1, {"PSNR": f"{m.psnr:.2f}"}),
+        on_frame=lambda i, m: emit(Advanced(task, i + 1, {"PSNR": f"{m.psnr:.2f}"})),
         save_dir=run_dir / RENDERS_DIR / (tag or split) if renders else None,
     )  # fmt: skip
-    bar.close()
+    emit(Finished(task))
     summary = summarize(metrics)
     definitions = metric_definitions(ssim_skipped, lpips_skipped)
     out = {
@@ -255,8 +255,8 @@ def evaluate_run(
     }
     path = run_dir / eval_file(tag)
     write_text_atomic(path, json.dumps(out, indent=2) + "\n")
-    if not quiet:
-        print(format_metrics(metrics, summary))
-        where = f" and {run_dir / RENDERS_DIR / (tag or split)}/" if renders else ""
-        print(f"eval: wrote {path}{where}")
+    note(format_metrics(metrics, summary), "out", detail=True)
+    where = f" and {run_dir / RENDERS_DIR / (tag or split)}/" if renders else ""
+    note(f"eval: wrote {path}{where}", "out", detail=True)
+    emit(PhaseDone("eval", {"split": split, "file": str(path), **summary}))
     return {**summary, "metrics": definitions}

@@ -1,6 +1,7 @@
-"""The fit loop: Phase 1, then Phase 2 from its model (``phases``), into a run folder, with a
-progress bar, periodic test evaluation, atomic checkpoints every K iterations and on Ctrl-C or
-SIGTERM, resume from the last checkpoint, and a final evaluation and Phase 2 diagnostics.
+"""The fit loop: Phase 1, then Phase 2 from its model (``phases``), into a run folder, with
+periodic test evaluation, atomic checkpoints every K iterations and on Ctrl-C or SIGTERM,
+resume from the last checkpoint, and a final evaluation and Phase 2 diagnostics. It prints
+nothing: it reports progress and results as `sync4d.events`, which the command line renders.
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ import math
 import os
 import shutil
 import signal
-import sys
 import time
 from pathlib import Path
 
@@ -20,6 +20,7 @@ import torch
 
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
 from sync4d.data import DatasetError, Scene
+from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
 from sync4d.files import RunLock, write_atomic, write_text_atomic
 from sync4d.phase1.init import initial_model
 from sync4d.phase1.trainer import Phase1Trainer
@@ -28,7 +29,7 @@ from sync4d.phase2.trainer import Phase2Trainer
 from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
 from sync4d.pipeline.record import continue_command, dataset_fingerprint
 from sync4d.pipeline.stop import StopSignals
-from sync4d.progress import Progress, format_duration
+from sync4d.progress import format_duration
 from sync4d.report import plot_object_trajectories
 from sync4d.runs.checkpoint import (
     camera_records,
@@ -91,10 +92,11 @@ def _train_loop(
     train_seconds: float,
     stop: StopSignals,
 ) -> tuple[float, bool]:
-    """Step `trainer` up to `total` iterations with a progress bar, periodic evaluation and
-    checkpoints; returns (training seconds, whether a stop signal ended it). A signal ends the
-    loop after the iteration under way; the last state is always checkpointed."""
-    bar = Progress(total, start=trainer.iteration, desc=desc, log_every=log_every)
+    """Step `trainer` up to `total` iterations with progress events (task `desc`), periodic
+    evaluation and checkpoints; returns (training seconds, whether a stop signal ended it). A
+    signal ends the loop after the iteration under way; the last state is always
+    checkpointed."""
+    emit(Started(desc, total, start=trainer.iteration, log_every=log_every))
     ema: dict[str, float] = {}
 
     def save() -> None:
@@ -118,7 +120,7 @@ def _train_loop(
                 }
                 if "rho" in ema:
                     shown["rho"] = f"{ema['rho']:.3f}"
-                bar.update(it, shown)
+                emit(Advanced(desc, it, shown))
                 if it % log_every == 0:
                     log({"phase": desc, "iteration": it, "train_seconds": train_seconds,
                          **stats})  # fmt: skip
@@ -131,7 +133,7 @@ def _train_loop(
                     )
                     log({"phase": desc, "iteration": it, "train_seconds": train_seconds,
                          "test": res})  # fmt: skip
-                    bar.message(
+                    note(
                         f"[eval @ {it}] test PSNR {res['psnr']:.2f} dB, SSIM "
                         f"{'n/a' if res['ssim'] is None else format(res['ssim'], '.4f')} "
                         f"({res['frames']} frames, "
@@ -143,7 +145,7 @@ def _train_loop(
         except KeyboardInterrupt:  # raised by a step itself, not by our handler
             stop.requested = stop.requested or int(signal.SIGINT)
         finally:
-            bar.close()
+            emit(Finished(desc))
         save()
     return train_seconds, stop.requested is not None
 
@@ -155,7 +157,7 @@ def resolve_data(data: str | Path | None) -> tuple[Path, Path | None]:
         return Path(data), None
     from sync4d.data.synthetic import ensure_default_scene
 
-    print("fit: no dataset given; using the embedded synthetic scene", file=sys.stderr)
+    note("fit: no dataset given; using the embedded synthetic scene")
     root = ensure_default_scene()
     cfg = repo_configs() / "synthetic.toml"
     return root, cfg if cfg.exists() else None
@@ -186,7 +188,7 @@ def resume_trainer(
 INIT_SOURCES = ("auto", "points", "triangulate", "random")
 
 
-def with_initial_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Scene:
+def with_initial_points(scene: Scene, cfg: RunConfig) -> Scene:
     """`scene` with the point cloud `cfg.phase1.init_from` asks for: its own points, points
     triangulated from one instant of a multi-view capture, or none (random initialisation)."""
     from sync4d.data.triangulate import TriangulationConfig, is_multiview, triangulate_scene
@@ -203,7 +205,7 @@ def with_initial_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Sc
                 f"init_from=points: the dataset '{scene.name}' has no point cloud; "
                 "use init_from=triangulate (multi-view) or init_from=random"
             )
-        return with_dome_points(scene, cfg, quiet)
+        return with_dome_points(scene, cfg)
     if source == "random":
         if cfg.phase1.init_dome_points > 0:
             raise ConfigError(
@@ -211,26 +213,22 @@ def with_initial_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Sc
                 "with it, or set init_dome_points = 0"
             )
         return dataclasses.replace(scene, points=None, point_colors=None)
-    if not quiet:
-        print("fit: triangulating initial points (pycolmap, fixed poses)...", file=sys.stderr)
+    note("fit: triangulating initial points (pycolmap, fixed poses)...", detail=True)
     tri = triangulate_scene(scene, TriangulationConfig(threads=torch.get_num_threads()))
     if len(tri.points) == 0:
         raise DatasetError(
             scene.train[0].image_path.parent,
             "triangulation found no points (too little texture?); use init_from=random",
         )
-    if not quiet:
-        how = "cached" if tri.cached else f"{tri.seconds:.0f} s"
-        print(
-            f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "
-            f"({how})", file=sys.stderr,
-        )  # fmt: skip
+    how = "cached" if tri.cached else f"{tri.seconds:.0f} s"
+    note(f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "
+         f"({how})", detail=True)  # fmt: skip
     return with_dome_points(
-        dataclasses.replace(scene, points=tri.points, point_colors=tri.colors), cfg, quiet
+        dataclasses.replace(scene, points=tri.points, point_colors=tri.colors), cfg
     )
 
 
-def with_dome_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Scene:
+def with_dome_points(scene: Scene, cfg: RunConfig) -> Scene:
     """`scene` with `cfg.phase1.init_dome_points` points on its capture dome's wall added to
     its point cloud (unchanged when that is 0); ConfigError when the cameras are not on a
     sphere."""
@@ -243,8 +241,7 @@ def with_dome_points(scene: Scene, cfg: RunConfig, quiet: bool = False) -> Scene
         pts, cols = dome_points(scene, p1.init_dome_points, p1.init_dome_radius, p1.seed)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    if not quiet:
-        print(f"fit: {len(pts)} initial points on the dome's wall", file=sys.stderr)
+    note(f"fit: {len(pts)} initial points on the dome's wall", detail=True)
     base = np.zeros((0, 3)) if scene.points is None else np.asarray(scene.points, np.float64)
     base_cols = scene.point_colors
     if base_cols is None:
@@ -264,7 +261,6 @@ def run_fit(
     resume: bool = False,
     threads: int | None = None,
     log_every: int = 100,
-    quiet: bool = False,
     command: dict | None = None,
 ) -> dict:
     """Train (or resume) the phases `cfg.phases` on `scene` into `run_dir`: Phase 1, then Phase 2
@@ -272,7 +268,8 @@ def run_fit(
     summary (test metrics, and Phase 2's diagnostics when it ran). Holds the run folder's lock
     throughout; `command` (the command-line settings behind `cfg`, see `sync4d.pipeline.record`)
     goes into the run record. Raises `FitInterrupted` after Ctrl-C, SIGTERM or SIGHUP, with
-    the last state saved."""
+    the last state saved. Reports what happens as `sync4d.events` (silent without a
+    subscriber; the command line subscribes `sync4d.progress.TerminalRenderer`)."""
     phases = parse_phases(cfg.phases)
     p1 = cfg.phase1
     if not (math.isfinite(p1.near) and p1.near > 0):
@@ -280,13 +277,12 @@ def run_fit(
     with RunLock(run_dir, "fit"), StopSignals() as stop:
         try:
             return _run_fit(scene, cfg, phases, run_dir, data, resume, threads, log_every,
-                            quiet, command or {}, stop)  # fmt: skip
+                            command or {}, stop)  # fmt: skip
         except KeyboardInterrupt:  # between the loops: the last checkpoint is on disk
             record = {"data": str(Path(data).resolve()), **(command or {})}
-            print(
+            note(
                 f"fit: interrupted; the last checkpoint is {run_dir / CHECKPOINT_NAME}.\n"
-                f"     continue with: {continue_command(run_dir, record)}",
-                file=sys.stderr,
+                f"     continue with: {continue_command(run_dir, record)}"
             )
             raise FitInterrupted from None
 
@@ -300,7 +296,6 @@ def _run_fit(
     resume: bool,
     threads: int | None,
     log_every: int,
-    quiet: bool,
     command: dict,
     stop: StopSignals,
 ) -> dict:
@@ -328,9 +323,9 @@ def _run_fit(
     if resume and kind is not None:
         total = cfg.phase2.iterations if kind == "sync4d.phase2" else p1.iterations
         trainer = resume_trainer(ckpt, scene, p1, n_threads, total, cfg.phase2, near=p1.near)
-        print(f"fit: resumed {ckpt} at iteration {trainer.iteration}", file=sys.stderr)
+        note(f"fit: resumed {ckpt} at iteration {trainer.iteration}")
     elif 1 in phases:
-        scene = with_initial_points(scene, cfg, quiet)
+        scene = with_initial_points(scene, cfg)
         model = initial_model(
             scene, p1.init_points, p1.sh_degree, p1.deform, p1.init_box_fraction, p1.seed,
             near=p1.near,
@@ -371,7 +366,9 @@ def _run_fit(
                 trainer, p1.iterations, desc="fit", train_seconds=train_seconds, **loop
             )
             for line in phase1_skip_lines(trainer):
-                print(line, file=sys.stderr)
+                note(line)
+            if not interrupted:
+                emit(PhaseDone("phase1", _phase_summary(trainer, train_seconds)))
         if not interrupted and 2 in phases:
             if not isinstance(trainer, Phase2Trainer):
                 t0 = time.perf_counter()
@@ -379,21 +376,21 @@ def _run_fit(
                 train_seconds += time.perf_counter() - t0  # the assignment and refinement
             if trainer.skip_loop(cfg.phase2.iterations):
                 k = trainer.assignment.num_objects
-                print(f"fit: Phase 2 skipped: no object moves ({k} static objects)",
-                      file=sys.stderr)  # fmt: skip
+                note(f"fit: Phase 2 skipped: no object moves ({k} static objects)")
             train_seconds, interrupted = _train_loop(
                 trainer, cfg.phase2.iterations, desc="phase2", train_seconds=train_seconds,
                 **loop,
             )  # fmt: skip
-            print(phase2_skip_report(trainer), file=sys.stderr)
+            note(phase2_skip_report(trainer))
+            if not interrupted:
+                emit(PhaseDone("phase2", _phase_summary(trainer, train_seconds)))
         if interrupted:
-            print(
+            note(
                 f"fit: interrupted at iteration {trainer.iteration}; checkpoint saved to "
-                f"{ckpt}.\n     continue with: {continue_command(run_dir, run_info)}",
-                file=sys.stderr,
+                f"{ckpt}.\n     continue with: {continue_command(run_dir, run_info)}"
             )
             raise FitInterrupted
-        summary = _finish(trainer, scene, cfg, run_dir, n_threads, quiet)
+        summary = _finish(trainer, scene, cfg, run_dir, n_threads)
         summary.update(
             {"iterations": trainer.iteration, "train_seconds": train_seconds,
              "wall_seconds": time.perf_counter() - wall0,
@@ -405,6 +402,12 @@ def _run_fit(
     finally:
         metrics_log.close()
     return summary
+
+
+def _phase_summary(trainer: Phase1Trainer, train_seconds: float) -> dict:
+    """The numbers of a `PhaseDone` event at the end of a phase's loop."""
+    return {"iteration": trainer.iteration, "train_seconds": train_seconds,
+            "gaussians": trainer.model.num_gaussians}  # fmt: skip
 
 
 def skip_counts(model) -> dict[str, int | float]:
@@ -476,10 +479,9 @@ def _start_phase2(
     kept = run_dir / PHASE1_CHECKPOINT_NAME
     write_atomic(kept, lambda tmp: shutil.copyfile(ckpt, tmp))
     model = trainer.model if trainer is not None else load_model(ckpt, p1.near)[0]
-    print(
+    note(
         f"fit: Phase 2 ({cfg.phase2.iterations} iterations) from {kept}: assigning Gaussians "
-        "to objects ...",
-        file=sys.stderr,
+        "to objects ..."
     )
     try:
         p2 = Phase2Trainer(model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads)
@@ -487,22 +489,18 @@ def _start_phase2(
         raise ConfigError(str(e)) from None
     counts = p2.assignment.counts()
     names = p2.assignment.names
-    print(
+    note(
         f"fit: {p2.assignment.source} assignment, K = {p2.assignment.num_objects}: "
-        + ", ".join(f"{names.get(k, k)} {n}" for k, n in counts.items()),
-        file=sys.stderr,
+        + ", ".join(f"{names.get(k, k)} {n}" for k, n in counts.items())
     )
     return p2
 
 
 def _finish(
-    trainer: Phase1Trainer, scene: Scene, cfg: RunConfig, run_dir: Path, n_threads: int,
-    quiet: bool,
-) -> dict:  # fmt: skip
+    trainer: Phase1Trainer, scene: Scene, cfg: RunConfig, run_dir: Path, n_threads: int
+) -> dict:
     """The final evaluation, and after Phase 2 its diagnostics and trajectory plot."""
-    summary = evaluate_run(
-        run_dir, trainer.model, scene, cfg.phase1.background, n_threads, quiet=quiet
-    )
+    summary = evaluate_run(run_dir, trainer.model, scene, cfg.phase1.background, n_threads)
     if isinstance(trainer, Phase2Trainer):
         diag = trainer.diagnostics()
         export = trainer.motion_export()
@@ -517,9 +515,8 @@ def _finish(
             f"{scene.name}: object centroids after Phase 2 ({diag['assignment']} assignment)",
         )  # fmt: skip
         summary["phase2"] = diag
-        if not quiet:
-            print(format_diagnostics(diag))
-            print(f"fit: wrote {run_dir / PHASE2_FILE} and {plot}")
+        note(format_diagnostics(diag), "out", detail=True)
+        note(f"fit: wrote {run_dir / PHASE2_FILE} and {plot}", "out", detail=True)
     return summary
 
 

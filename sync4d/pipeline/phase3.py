@@ -47,7 +47,7 @@ def resolved_encoder(cfg3: Phase3Config) -> Phase3Config:
 
 
 def build_phase3(run_dir: Path, cfg3: Phase3Config, *, threads: int | None = None,
-                 data: Path | None = None, save: bool = True, progress: bool = True,
+                 data: Path | None = None, save: bool = True,
                  encoder=None) -> Phase3Build:  # fmt: skip
     """Build the language field of the Phase 2 run in `run_dir` with `cfg3` (the dataset from
     `data` or the run's record; `encoder` loaded from `cfg3` when None); with `save`, write it
@@ -59,8 +59,7 @@ def build_phase3(run_dir: Path, cfg3: Phase3Config, *, threads: int | None = Non
     run = load_run(run_dir)
     if encoder is None:
         encoder = load_encoder(cfg3.encoder or None)
-    field = build_field(run, resolved_encoder(cfg3), encoder, data=data, threads=threads,
-                        progress=progress)  # fmt: skip
+    field = build_field(run, resolved_encoder(cfg3), encoder, data=data, threads=threads)
     if not save:
         return Phase3Build(field, encoder, None, run.model.num_gaussians)
     folder = field.save(run_dir)
