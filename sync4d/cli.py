@@ -1,19 +1,20 @@
 """Command-line interface: ``sync4d <command> ...`` (the console script) or, the same,
 ``python -m sync4d <command> ...``.
 
-Commands (every option: docs/cli.md):
-  fit [DATA]     Phase 1 then Phase 2 into a run folder (the embedded scene without DATA)
-  process VIDEO|IMAGE_DIR  your own capture -> a dataset (frames, COLMAP poses, pinhole images)
-  eval RUN       PSNR / SSIM / LPIPS of a run on its test split
-  render RUN     render a run at chosen times (--time, --sweep) to PNGs and a GIF
-  bench raster   time the rasterizer (forward/backward), optionally against the gsplat reference
-  bench fit      Phase 1 test PSNR against training time over several budgets
-  encoder export write a SigLIP-ONNX encoder directory from a Hugging Face model (internet once)
-  encoder info   describe an encoder directory and check its files
-  completion SHELL  print a bash or zsh completion script (shtab)
+Every command is one row of `COMMANDS`: its name, its forms (the grammar, `GRAMMAR`), its help,
+the module whose ``main(args)`` runs it, the function that adds its arguments, and the earlier
+spellings it still answers to. `build_parser`, ``--help``, the shell completion and docs/cli.md
+(`scripts/gen_docs.py`) all come from that table, and so does the command list at the end of
+this docstring. Adding a command is a row and an argument function here, and its module.
 
-The command implementations are imported lazily, so ``--help`` stays fast and a missing optional
-module only affects the command that needs it.
+The modules are imported lazily, so ``--help`` stays fast and a missing optional module only
+affects the command that needs it. The names the options offer (scorers, activation rules,
+encoders) come from their registries in `sync4d.phase3` (numpy only), read when a command's
+arguments are added: `main` adds only those of the command it runs.
+
+Old spellings keep working for one release, hidden from ``--help``, the completion and the docs:
+a command's earlier names (`Command.aliases`, with a note on stderr) and hidden options
+(``options.renamed``, with a note; ``render --times``).
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from sync4d import __version__
@@ -35,248 +37,397 @@ from sync4d.options import (
     positive_int,
 )
 
+__all__ = ["COMMANDS", "GRAMMAR", "GROUPS", "Command", "build_parser", "command_parsers", "main"]
 
-def _prog() -> str:
-    """The name the user typed: ``sync4d`` (console script) or ``python -m sync4d``."""
-    return "python -m sync4d" if Path(sys.argv[0]).name == "__main__.py" else "sync4d"
+#: The one rule every command's arguments follow (--help's epilog, docs/cli.md).
+GRAMMAR = """\
+The grammar, the same for every command:
+  * Positional arguments name what a command works on; --out names the folder or file it
+    writes. Folders are DATA (a dataset), RUN (a run folder) or DIR (any other).
+  * A run is made and extended by fit alone, and fit always names it --out RUN: a new run
+    (fit DATA --out RUN), or one continued (--resume), refit from Phase 2 (--phases 2) or
+    given its language field (--phases 3), where DATA is optional: the run records it.
+  * Every other command that reads a run takes it first, as RUN (eval, render, query, bench
+    raster, bench phase3); --data DATA names the run's dataset if it has moved."""
 
 
-def build_parser(prog: str = "sync4d") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog=prog,
-        description="sync4d: 4D Synchronized Fields (CPU Gaussian splatting in Rust + PyTorch).",
-    )
-    parser.add_argument("--version", action="version", version=f"sync4d {__version__}")
-    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
-    commands.required = True
+@dataclass(frozen=True)
+class Command:
+    """One command of the command line (a row of `COMMANDS`)."""
 
-    fit = commands.add_parser(
-        "fit",
-        help="train a deformable 4D Gaussian scene (Phase 1) and decompose its motion (Phase 2)",
-        description=f"Train Phase 1, then Phase 2, on a dataset folder ({loaders.titles()}) "
-        "or, without DATA, on the embedded synthetic scene. Ctrl-C saves a checkpoint; --resume "
-        "continues it.",
-    )
-    fit.add_argument("data", nargs="?", default=None, metavar="DATA", help="dataset folder")
-    fit.add_argument("--out", metavar="RUN", default=None, help="run folder (default runs/NAME)")
+    #: Its words: "fit", "bench raster".
+    name: str
+    #: Its forms, by `GRAMMAR`: "fit [DATA] --out RUN" (--help's epilog, docs/cli.md).
+    forms: tuple[str, ...]
+    #: One line for --help's command list.
+    help: str
+    #: The paragraph of ``sync4d NAME --help``.
+    description: str
+    #: The module whose ``main(args)`` runs it (imported on use); None: `main` itself.
+    module: str | None
+    #: Adds its arguments to its parser.
+    arguments: Callable[[argparse.ArgumentParser], None]
+    #: Earlier names it still answers to, hidden ("encoder export").
+    aliases: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Group:
+    """A word that gathers commands ("bench raster", "bench fit"): its help, and the argument
+    name (`dest`) and placeholder of its second word."""
+
+    help: str
+    dest: str
+    metavar: str
+
+
+# --------------------------------------------------------------------------------------------
+# The arguments of each command
+# --------------------------------------------------------------------------------------------
+
+def _encoder_help(prefix: str = "", default: bool = False) -> str:
+    """--encoder's help: the encoder kinds of `sync4d.phase3.encoders.encoder.ENCODERS`;
+    `default`: with the default when it is not given."""
+    from sync4d.phase3.encoders.encoder import DEFAULT_ENCODER, ENCODER_ENV, describe_specs
+
+    last = f"; ${ENCODER_ENV}, else {DEFAULT_ENCODER}, when not given" if default else ""
+    return f"{prefix}{describe_specs(summaries=True)}{last}"
+
+
+def _add_rule(p: argparse.ArgumentParser, prefix: str) -> None:
+    """--rule: the activation rules of `sync4d.phase3.evaluation.metrics.RULES`."""
+    from sync4d.phase3.evaluation.metrics import RULES
+
+    rules = "; ".join(f"{name}: {rule.summary}" for name, rule in RULES.items())
+    p.add_argument("--rule", choices=tuple(RULES), default=None,
+                   help=f"{prefix}temporal activation, {rules} (default: the field's "
+                   "phase3.activation)")  # fmt: skip
+
+
+def _fit_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", nargs="?", default=None, metavar="DATA",
+                   help="dataset folder (optional when RUN exists: the run records it)")
+    p.add_argument("--out", metavar="RUN", default=None,
+                   help="the run folder to write, new or existing (default runs/NAME)")
     add_training_options(
-        fit, "hyperparameters: a TOML file or a shipped config's name (dnerf, panoptic, "
+        p, "hyperparameters: a TOML file or a shipped config's name (dnerf, panoptic, "
         "synthetic; default: the paper's values, synthetic for the embedded scene)",
     )  # fmt: skip
-    fit.add_argument("--iters", type=positive_int, default=None, metavar="N",
-                     help="bound each phase to N iterations: Phase 1 trains N, with the config's "
-                     "densification, opacity-reset and SH schedules scaled to the new length; "
-                     "Phase 2 trains at most N, its start and warm-up iterations and the "
-                     "photometric refinement's steps per frame scaled alike. With --resume: "
-                     "continue the checkpoint's phase to N iterations")  # fmt: skip
-    fit.add_argument("--resolution-scale", type=positive_float, default=None, metavar="S",
-                     help="downsample images by S, e.g. 0.5")  # fmt: skip
-    fit.add_argument("--phases", default=None, metavar="P",
-                     help="1, 2, 3 or a contiguous list such as 1,2 or 1,2,3 (default from the "
-                     "config: 1,2): Phase 1 reconstruction, Phase 2 motion decomposition, Phase "
-                     "3 language field; 2 alone restarts Phase 2 from RUN's Phase 1 checkpoint, "
-                     "3 alone builds the field of RUN's Phase 2 checkpoint (fit RUN --phases 3 "
-                     "or fit --out RUN --phases 3)")  # fmt: skip
-    fit.add_argument("--encoder", default=None, metavar="DIR",
-                     help="Phase 3's image-text encoder: a SigLIP-ONNX folder (python -m sync4d "
-                     "encoder export) or offline (the closed-vocabulary default; "
-                     "$SYNC4D_ENCODER when not given)")  # fmt: skip
-    fit.add_argument("--resume", action="store_true",
-                     help="continue RUN's checkpoint with the data and settings RUN recorded "
-                     "(DATA and settings that contradict them are refused)")
-    fit.add_argument("--force", action="store_true",
-                     help="start over in an existing RUN (deletes its results)")
-    fit.set_defaults(handler="sync4d.commands.fit")
+    p.add_argument("--iters", type=positive_int, default=None, metavar="N",
+                   help="bound each phase to N iterations: Phase 1 trains N, with the config's "
+                   "densification, opacity-reset and SH schedules scaled to the new length; "
+                   "Phase 2 trains at most N, its start and warm-up iterations and the "
+                   "photometric refinement's steps per frame scaled alike. With --resume: "
+                   "continue the checkpoint's phase to N iterations")  # fmt: skip
+    p.add_argument("--resolution-scale", type=positive_float, default=None, metavar="S",
+                   help="downsample images by S, e.g. 0.5")  # fmt: skip
+    p.add_argument("--phases", default=None, metavar="P",
+                   help="1, 2, 3 or a contiguous list such as 1,2 or 1,2,3 (default from the "
+                   "config: 1,2): Phase 1 reconstruction, Phase 2 motion decomposition, Phase "
+                   "3 language field; 2 alone restarts Phase 2 from RUN's Phase 1 checkpoint, "
+                   "3 alone builds the field of RUN's Phase 2 checkpoint "
+                   "(fit --out RUN --phases 3)")  # fmt: skip
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help=_encoder_help("Phase 3's image-text encoder: ", default=True))
+    p.add_argument("--resume", action="store_true",
+                   help="continue RUN's checkpoint with the data and settings RUN recorded "
+                   "(DATA and settings that contradict them are refused)")
+    p.add_argument("--force", action="store_true",
+                   help="start over in an existing RUN (deletes its results)")
 
-    pr = commands.add_parser(
-        "process",
-        help="turn your own video or photos into a dataset (camera poses from COLMAP)",
-        description="Extract frames from a video (PyAV) or read a folder of photos (sorted by "
-        "name), recover one shared camera and every frame's pose with COLMAP (pycolmap: SIFT, "
+
+def _process_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", metavar="VIDEO|IMAGE_DIR",
+                   help="a video file (mp4, mov, mkv, ...) or a folder of photos")
+    p.add_argument("--out", required=True, metavar="DATA",
+                   help="dataset folder to write (new or empty)")
+    p.add_argument("--fps", type=positive_float, default=None, metavar="F",
+                   help="video frames to keep per second of video time (default: every "
+                   "frame, then --max-frames)")  # fmt: skip
+    p.add_argument("--max-frames", type=positive_int, default=150, metavar="N",
+                   help="keep at most N frames, evenly spaced (default 150)")
+    p.add_argument("--max-size", type=positive_int, default=960, metavar="PX",
+                   help="downscale frames whose longest side exceeds PX pixels (default 960)")
+    p.add_argument("--camera-model", choices=("SIMPLE_RADIAL", "OPENCV", "PINHOLE"),
+                   default="SIMPLE_RADIAL",
+                   help="COLMAP model of the one camera all frames share: SIMPLE_RADIAL "
+                   "(default: focal + one radial term), OPENCV (two focals, k1, k2, p1, p2: "
+                   "wide-angle lenses, needs large frames) or PINHOLE")  # fmt: skip
+    p.add_argument("--matcher", choices=("sequential", "exhaustive"), default="sequential",
+                   help="sequential (default: each frame with its neighbours in time; "
+                   "videos) or exhaustive (every pair; unordered photos, slower)")
+    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
+                   help="CPU threads for COLMAP (default: all cores)")
+    p.add_argument("--force", action="store_true",
+                   help="replace what an earlier 'process' wrote in DATA")
+    p.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
+
+
+def _eval_arguments(p: argparse.ArgumentParser) -> None:
+    from sync4d.phase3.query import SCORERS
+
+    p.add_argument("run", metavar="RUN", help="run folder written by 'fit'")
+    p.add_argument("--data", default=None, metavar="DATA",
+                   help="dataset folder, if it moved since training")
+    p.add_argument("--split", choices=("test", "train"), default="test")
+    p.add_argument("--queries", default=None, metavar="ANNOTATIONS",
+                   help="evaluate Phase 3's temporal queries instead (Acc, vIoU, tIoU, "
+                   "Appendix F): our query JSON or 4D LangSplat's annotations folder")
+    p.add_argument("--scorer", nargs="+", default=None, metavar="S", choices=SCORERS,
+                   help=f"with --queries: the scorers to report, of {', '.join(SCORERS)} "
+                   "(default: all, in that order)")
+    _add_rule(p, "with --queries: ")
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help="with --queries: the encoder the field was built with, if it moved")
+    add_threads(p)
+
+
+def _render_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", help="run folder (or a checkpoint file)")
+    p.add_argument("--time", nargs="+", type=float, default=None, metavar="T", dest="times",
+                   help="times in [0, 1], one PNG each (default: a --sweep)")
+    p.add_argument("--sweep", type=positive_int, default=48, metavar="N", dest="frames",
+                   help="frames of the default time sweep, evenly spaced over [0, 1] "
+                   "(default 48)")
+    # The spellings before sync4d-render's words: --times, --frames.
+    p.add_argument("--times", nargs="+", type=float, dest="times", help=argparse.SUPPRESS)
+    p.add_argument("--frames", type=positive_int, dest="frames", help=argparse.SUPPRESS)
+    p.add_argument("--camera", default=None, metavar="CAM",
+                   help="test:K / train:K (K-th frame of that split), K (a test frame) or a "
+                   "frame name such as cam10_000000.jpg; default test:0")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="output folder (default RUN/renders)")
+    p.add_argument("--fps", type=positive_float, default=15.0, help="GIF frame rate")
+    p.add_argument("--no-gif", action="store_true", help="write PNGs only")
+    add_threads(p)
+
+
+def _query_arguments(p: argparse.ArgumentParser) -> None:
+    from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS
+
+    p.add_argument("run", metavar="RUN",
+                   help="run folder with a Phase 3 field (fit --out RUN --phases 3)")
+    p.add_argument("texts", nargs="+", metavar="TEXT", help="one or more queries")
+    scorers = "; ".join(f"{name}: {s.summary}" for name, s in SCORER_TABLE.items())
+    p.add_argument("--scorer", choices=SCORERS, default=DEFAULT_SCORER,
+                   help=f"{scorers} (default {DEFAULT_SCORER})")
+    _add_rule(p, "")
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help=_encoder_help("the encoder the field was built with, if it moved: "))
+    p.add_argument("--json", action="store_true", help="print the answers as JSON")
+    p.add_argument("--plot", default=None, metavar="DIR",
+                   help="folder for the timeline PNGs (default RUN/phase3)")
+    p.add_argument("--no-plot", action="store_true", help="write no timeline PNG")
+
+
+def _bench_phase3_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("runs", nargs="+", metavar="RUN", help="Phase 2 run folders")
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help=_encoder_help(default=True))
+    p.add_argument("--queries", nargs="+", default=None, metavar="TEXT",
+                   help="the queries to time (default: five identity, state and motion "
+                   "queries)")  # fmt: skip
+    p.add_argument("--repeat", type=positive_int, default=3, metavar="N",
+                   help="timings per query (the median is reported; default 3)")
+    p.add_argument("--out", default=None, metavar="FILE.json",
+                   help="results JSON (default bench-phase3.json)")
+    add_threads(p)
+
+
+def _encoder_convert_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", default="google/siglip-base-patch16-224", metavar="NAME",
+                   help="Hugging Face model id or a local save_pretrained folder "
+                   "(default google/siglip-base-patch16-224)")  # fmt: skip
+    p.add_argument("--out", required=True, metavar="DIR", help="encoder directory to write")
+    p.add_argument("--force", action="store_true", help="replace the encoder already in DIR")
+
+
+def _encoder_info_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", metavar="DIR", help="encoder directory written by 'encoder convert'")
+
+
+def _completion_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("shell", choices=("bash", "zsh"), help="the shell to complete for")
+
+
+# --------------------------------------------------------------------------------------------
+# The commands
+# --------------------------------------------------------------------------------------------
+
+#: The words that gather commands.
+GROUPS: dict[str, Group] = {
+    "bench": Group("run a benchmark", "target", "TARGET"),
+    "encoder": Group("convert or inspect a SigLIP-ONNX encoder (Phase 3)", "action", "ACTION"),
+}
+
+#: Every command, in --help's order.
+COMMANDS: tuple[Command, ...] = (
+    Command(
+        "fit", ("fit [DATA] --out RUN", "fit --out RUN --resume | --phases 2 | --phases 3"),
+        "train a deformable 4D Gaussian scene (Phase 1) and decompose its motion (Phase 2)",
+        f"Train Phase 1, then Phase 2, on a dataset folder ({loaders.titles()}) or, without "
+        "DATA, on the embedded synthetic scene, into the run folder RUN; --phases 3 adds the "
+        "language field. Ctrl-C saves a checkpoint; fit --out RUN --resume continues it.",
+        "sync4d.commands.fit", _fit_arguments,
+    ),
+    Command(
+        "process", ("process VIDEO|IMAGE_DIR --out DATA",),
+        "turn your own video or photos into a dataset (camera poses from COLMAP)",
+        "Extract frames from a video (PyAV) or read a folder of photos (sorted by name), "
+        "recover one shared camera and every frame's pose with COLMAP (pycolmap: SIFT, "
         "matching, incremental mapping), undistort the frames to a pinhole camera and write a "
         "nerfstudio dataset (transforms.json with per-frame time, images/, sparse_pc.ply) that "
         "'fit DATA' reads. Frames COLMAP cannot register are left out and named.",
-    )
-    pr.add_argument("input", metavar="VIDEO|IMAGE_DIR",
-                    help="a video file (mp4, mov, mkv, ...) or a folder of photos")
-    pr.add_argument("--out", required=True, metavar="DATA",
-                    help="dataset folder to write (new or empty)")
-    pr.add_argument("--fps", type=positive_float, default=None, metavar="F",
-                    help="video frames to keep per second of video time (default: every "
-                    "frame, then --max-frames)")  # fmt: skip
-    pr.add_argument("--max-frames", type=positive_int, default=150, metavar="N",
-                    help="keep at most N frames, evenly spaced (default 150)")
-    pr.add_argument("--max-size", type=positive_int, default=960, metavar="PX",
-                    help="downscale frames whose longest side exceeds PX pixels (default 960)")
-    pr.add_argument("--camera-model", choices=("SIMPLE_RADIAL", "OPENCV", "PINHOLE"),
-                    default="SIMPLE_RADIAL",
-                    help="COLMAP model of the one camera all frames share: SIMPLE_RADIAL "
-                    "(default: focal + one radial term), OPENCV (two focals, k1, k2, p1, p2: "
-                    "wide-angle lenses, needs large frames) or PINHOLE")  # fmt: skip
-    pr.add_argument("--matcher", choices=("sequential", "exhaustive"), default="sequential",
-                    help="sequential (default: each frame with its neighbours in time; "
-                    "videos) or exhaustive (every pair; unordered photos, slower)")
-    pr.add_argument("--threads", type=positive_int, default=None, metavar="T",
-                    help="CPU threads for COLMAP (default: all cores)")
-    pr.add_argument("--force", action="store_true",
-                    help="replace what an earlier 'process' wrote in DATA")
-    pr.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
-    pr.set_defaults(handler="sync4d.commands.process")
+        "sync4d.commands.process", _process_arguments,
+    ),
+    Command(
+        "eval", ("eval RUN", "eval RUN --queries ANNOTATIONS"),
+        "PSNR / SSIM / LPIPS of a run, or its temporal queries (--queries)",
+        "Evaluate a run's checkpoint on its dataset's test split (writes RUN/eval.json), or "
+        "with --queries its Phase 3 field on annotated temporal queries (writes "
+        "RUN/phase3/eval-NAME*.csv/json).",
+        "sync4d.commands.evaluate", _eval_arguments,
+    ),
+    Command(
+        "render", ("render RUN [--time T... | --sweep N] [--out DIR]",),
+        "render a run at chosen times",
+        "Render a run's checkpoint from one of its stored cameras at chosen times (default: a "
+        "sweep over [0, 1]) to PNGs and a GIF.",
+        "sync4d.commands.render", _render_arguments,
+    ),
+    Command(
+        "query", ("query RUN TEXT...",),
+        "ask a run's language field which object matches a text, and when",
+        "Rank a run's objects for each text query and give the frames where each is active, "
+        "from the Phase 3 field (fit --out RUN --phases 3). Writes a timeline PNG per query.",
+        "sync4d.commands.query", _query_arguments,
+    ),
+    Command(
+        "bench raster", ("bench raster [RUN]",),
+        "rasterizer forward/backward timings",
+        "Time sync4d.raster (forward and backward) on seeded random scenes or, given RUN, on "
+        "the run's own Gaussians at its test cameras.",
+        "sync4d.bench.raster", add_bench_raster_options,
+    ),
+    Command(
+        "bench fit", ("bench fit [DATA]", "bench fit --runs RUN..."),
+        "Phase 1 test PSNR against training time (Pareto curve)",
+        "Train one scene at several budgets (iterations x resolution scale x Gaussian cap) and "
+        "write a JSON and a PNG plot of test PSNR against training time; --runs tabulates "
+        "finished runs instead.",
+        "sync4d.bench.fit", add_bench_fit_options,
+    ),
+    Command(
+        "bench phase3", ("bench phase3 RUN...",),
+        "Phase 3 build time and query latency on Phase 2 runs",
+        "Build each run's language field in a temporary folder (the run is not touched) and "
+        "time its steps and text queries, cold and cached; writes a JSON.",
+        "sync4d.bench.phase3", _bench_phase3_arguments,
+    ),
+    Command(
+        "encoder convert", ("encoder convert --out DIR [--model NAME]",),
+        "convert a Hugging Face SigLIP model into a SigLIP-ONNX encoder directory",
+        "Download a SigLIP model (needs internet once and the export extra: pip install "
+        "'sync4d[export]'), convert it to ONNX and write DIR: vision.onnx, text.onnx, "
+        "tokenizer.json and the manifest encoder.json. Phase 3 then runs it with onnxruntime, "
+        "offline (--encoder DIR or $SYNC4D_ENCODER).",
+        "sync4d.commands.encoder", _encoder_convert_arguments, aliases=("encoder export",),
+    ),
+    Command(
+        "encoder info", ("encoder info DIR",),
+        "describe an encoder directory and check its files",
+        "Print an encoder directory's kind, embedding size, preprocessing and files, after "
+        "checking every file's sha256 and loading both graphs.",
+        "sync4d.commands.encoder", _encoder_info_arguments,
+    ),
+    Command(
+        "completion", ("completion bash|zsh",),
+        "print a shell completion script (bash or zsh)",
+        "Print a completion script for the sync4d command. bash: sync4d completion bash > "
+        "~/.local/share/bash-completion/completions/sync4d; zsh: sync4d completion zsh > "
+        "~/.zfunc/_sync4d (with ~/.zfunc on $fpath).",
+        None, _completion_arguments,
+    ),
+)
 
-    ev = commands.add_parser(
-        "eval",
-        help="PSNR / SSIM / LPIPS of a run, or its temporal queries (--queries)",
-        description="Evaluate a run's checkpoint on its dataset's test split "
-        "(writes RUN/eval.json), or with --queries its Phase 3 field on annotated temporal "
-        "queries (writes RUN/phase3/eval-NAME*.csv/json).",
-    )
-    ev.add_argument("run", metavar="RUN", help="run folder written by 'fit'")
-    ev.add_argument("--data", default=None, metavar="DATA",
-                    help="dataset folder, if it moved since training")
-    ev.add_argument("--split", choices=("test", "train"), default="test")
-    ev.add_argument("--queries", default=None, metavar="ANNOTATIONS",
-                    help="evaluate Phase 3's temporal queries instead (Acc, vIoU, tIoU, "
-                    "Appendix F): our query JSON or 4D LangSplat's annotations folder")
-    ev.add_argument("--scorer", nargs="+", default=None, metavar="S",
-                    choices=("full", "paper", "static", "motion", "names"),
-                    help="with --queries: the scorers to report (default: all)")
-    ev.add_argument("--rule", choices=("half-peak", "mean"), default=None,
-                    help="with --queries: temporal activation above half the peak (Appendix "
-                    "F, default) or at least the mean (4D LangSplat)")
-    ev.add_argument("--encoder", default=None, metavar="DIR",
-                    help="with --queries: the encoder the field was built with, if it moved")
-    add_threads(ev)
-    ev.set_defaults(handler="sync4d.commands.evaluate")
 
-    rd = commands.add_parser(
-        "render",
-        help="render a run at chosen times",
-        description="Render a run's checkpoint from one of its stored cameras at chosen times "
-        "(default: a sweep over [0, 1]) to PNGs and a GIF.",
-    )
-    rd.add_argument("run", metavar="RUN", help="run folder (or a checkpoint file)")
-    rd.add_argument("--time", nargs="+", type=float, default=None, metavar="T", dest="times",
-                    help="times in [0, 1], one PNG each (default: a --sweep)")
-    rd.add_argument("--sweep", type=positive_int, default=48, metavar="N", dest="frames",
-                    help="frames of the default time sweep, evenly spaced over [0, 1] "
-                    "(default 48)")
-    # The spellings before sync4d-render's words: --times, --frames.
-    rd.add_argument("--times", nargs="+", type=float, dest="times", help=argparse.SUPPRESS)
-    rd.add_argument("--frames", type=positive_int, dest="frames", help=argparse.SUPPRESS)
-    rd.add_argument("--camera", default=None, metavar="CAM",
-                    help="test:K / train:K (K-th frame of that split), K (a test frame) or a "
-                    "frame name such as cam10_000000.jpg; default test:0")
-    rd.add_argument("--out", default=None, metavar="DIR",
-                    help="output folder (default RUN/renders)")
-    rd.add_argument("--fps", type=positive_float, default=15.0, help="GIF frame rate")
-    rd.add_argument("--no-gif", action="store_true", help="write PNGs only")
-    add_threads(rd)
-    rd.set_defaults(handler="sync4d.commands.render")
+def command_list(helps: bool = True) -> str:
+    """Every command's forms, one line each, and its help below them (`helps`)."""
+    lines = []
+    for c in COMMANDS:
+        lines += [f"  {form}" for form in c.forms] + ([f"      {c.help}"] if helps else [])
+    return "\n".join(lines)
 
-    qy = commands.add_parser(
-        "query",
-        help="ask a run's language field which object matches a text, and when",
-        description="Rank a run's objects for each text query and give the frames where each "
-        "is active, from the Phase 3 field (fit --phases 3). Writes a timeline PNG per query.",
-    )
-    qy.add_argument("run", metavar="RUN",
-                    help="run folder with a Phase 3 field (fit --phases 3)")
-    qy.add_argument("texts", nargs="+", metavar="TEXT", help="one or more queries")
-    qy.add_argument("--scorer", choices=("full", "paper", "static", "names", "motion"),
-                    default="full",
-                    help="full (default: motion phrases + the paper's score + object names), "
-                    "paper (Eq. 15 only), static (the static-only ablation), names, motion")
-    qy.add_argument("--rule", choices=("half-peak", "mean"), default=None,
-                    help="temporal activation: above half the peak (Appendix F, default) or at "
-                    "least the mean (4D LangSplat)")  # fmt: skip
-    qy.add_argument("--encoder", default=None, metavar="DIR",
-                    help="the encoder the field was built with, if it moved (a SigLIP-ONNX "
-                    "folder, or offline)")  # fmt: skip
-    qy.add_argument("--json", action="store_true", help="print the answers as JSON")
-    qy.add_argument("--plot", default=None, metavar="DIR",
-                    help="folder for the timeline PNGs (default RUN/phase3)")
-    qy.add_argument("--no-plot", action="store_true", help="write no timeline PNG")
-    qy.set_defaults(handler="sync4d.commands.query")
 
-    bench = commands.add_parser("bench", help="run a benchmark")
-    targets = bench.add_subparsers(dest="target", metavar="TARGET")
-    targets.required = True
+def _defaults(name: str) -> dict[str, str]:
+    """The words of command `name` as parsed arguments: command="bench", target="raster"."""
+    first, *rest = name.split()
+    out = {"command": first}
+    if rest:
+        out[GROUPS[first].dest] = rest[0]
+    return out
 
-    raster = targets.add_parser(
-        "raster",
-        help="rasterizer forward/backward timings",
-        description="Time sync4d.raster (forward and backward) on seeded random scenes.",
-    )
-    add_bench_raster_options(raster)
-    raster.set_defaults(handler="sync4d.bench.raster")
 
-    bfit = targets.add_parser(
-        "fit",
-        help="Phase 1 test PSNR against training time (Pareto curve)",
-        description="Train one scene at several budgets (iterations x resolution scale x "
-        "Gaussian cap) and write a JSON and a PNG plot of test PSNR against training time.",
-    )
-    add_bench_fit_options(bfit)
-    bfit.set_defaults(handler="sync4d.bench.fit")
+def _wanted(argv: Sequence[str]) -> str:
+    """The command words `argv` starts with ("query", "bench raster"; "" for none)."""
+    words = [a for a in argv if not a.startswith("-")]
+    if words and words[0] in GROUPS:
+        return " ".join(words[:2])
+    return words[0] if words else ""
 
-    bp3 = targets.add_parser(
-        "phase3",
-        help="Phase 3 build time and query latency on Phase 2 runs",
-        description="Build each run's language field in a temporary folder (the run is not "
-        "touched) and time its steps and text queries, cold and cached; writes a JSON.",
-    )
-    bp3.add_argument("runs", nargs="+", metavar="RUN", help="Phase 2 run folders")
-    bp3.add_argument("--encoder", default=None, metavar="DIR",
-                     help="SigLIP-ONNX folder or offline (default: $SYNC4D_ENCODER, else "
-                     "offline)")  # fmt: skip
-    bp3.add_argument("--queries", nargs="+", default=None, metavar="TEXT",
-                     help="the queries to time (default: five identity, state and motion "
-                     "queries)")  # fmt: skip
-    bp3.add_argument("--repeat", type=positive_int, default=3, metavar="N",
-                     help="timings per query (the median is reported; default 3)")
-    bp3.add_argument("--out", default=None, metavar="FILE.json",
-                     help="results JSON (default bench-phase3.json)")
-    add_threads(bp3)
-    bp3.set_defaults(handler="sync4d.bench.phase3")
 
-    enc = commands.add_parser("encoder", help="export or inspect a SigLIP-ONNX encoder (Phase 3)")
-    actions = enc.add_subparsers(dest="action", metavar="ACTION")
-    actions.required = True
-    exp = actions.add_parser(
-        "export",
-        help="write a SigLIP-ONNX encoder directory from a Hugging Face model",
-        description="Download a SigLIP model (needs internet once and the export extra: "
-        "pip install 'sync4d[export]') and write DIR: vision.onnx, text.onnx, tokenizer.json "
-        "and the manifest encoder.json. Phase 3 then runs it with onnxruntime, offline "
-        "(--encoder DIR or $SYNC4D_ENCODER).",
+def build_parser(prog: str = "sync4d", argv: Sequence[str] | None = None
+                 ) -> argparse.ArgumentParser:  # fmt: skip
+    """The parser of every command in `COMMANDS`, old spellings included (hidden). Given the
+    command line `argv`, only the command it runs gets its arguments (`main`: ``--help`` imports
+    no registry); every command is listed either way."""
+    wanted = None if argv is None else _wanted(argv)
+    parser = argparse.ArgumentParser(
+        prog=prog,
+        description="sync4d: 4D Synchronized Fields (CPU Gaussian splatting in Rust + PyTorch).",
+        epilog=f"forms (sync4d COMMAND --help: its options):\n{command_list(helps=False)}\n\n"
+        f"{GRAMMAR}",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    exp.add_argument("--model", default="google/siglip-base-patch16-224", metavar="NAME",
-                     help="Hugging Face model id or a local save_pretrained folder "
-                     "(default google/siglip-base-patch16-224)")  # fmt: skip
-    exp.add_argument("--out", required=True, metavar="DIR", help="encoder directory to write")
-    exp.add_argument("--force", action="store_true",
-                     help="replace the encoder already in DIR")  # fmt: skip
-    exp.set_defaults(handler="sync4d.commands.encoder")
-    info = actions.add_parser(
-        "info",
-        help="describe an encoder directory and check its files",
-        description="Print an encoder directory's kind, embedding size, preprocessing and "
-        "files, after checking every file's sha256 and loading both graphs.",
-    )
-    info.add_argument("dir", metavar="DIR", help="encoder directory written by 'encoder export'")
-    info.set_defaults(handler="sync4d.commands.encoder")
-
-    comp = commands.add_parser(
-        "completion",
-        help="print a shell completion script (bash or zsh)",
-        description="Print a completion script for the sync4d command. bash: "
-        "sync4d completion bash > ~/.local/share/bash-completion/completions/sync4d; "
-        "zsh: sync4d completion zsh > ~/.zfunc/_sync4d (with ~/.zfunc on $fpath).",
-    )
-    comp.add_argument("shell", choices=("bash", "zsh"), help="the shell to complete for")
-    comp.set_defaults(handler=None)
+    parser.add_argument("--version", action="version", version=f"sync4d {__version__}")
+    levels = {"": parser.add_subparsers(dest="command", metavar="COMMAND", required=True)}
+    for cmd in COMMANDS:
+        for name in (cmd.name, *cmd.aliases):
+            *group, leaf = name.split()
+            key = " ".join(group)
+            if key not in levels:  # the group's own parser, on its first command
+                g = GROUPS[key]
+                words = levels[""].add_parser(key, help=g.help)
+                levels[key] = words.add_subparsers(dest=g.dest, metavar=g.metavar, required=True)
+            hidden = name != cmd.name  # no help: argparse and shtab list it nowhere
+            sub = levels[key].add_parser(leaf, description=cmd.description,
+                                         **({} if hidden else {"help": cmd.help}))
+            if wanted is None or wanted == name:
+                cmd.arguments(sub)
+            sub.set_defaults(handler=cmd.module, renamed=(name, cmd.name) if hidden else None,
+                             **_defaults(cmd.name))  # fmt: skip
     _complete_paths(parser)
     return parser
+
+
+def command_parsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """The parser of every visible command of `parser` by its words ("bench raster"), in
+    `COMMANDS`' order; hidden old spellings left out."""
+    out: dict[str, argparse.ArgumentParser] = {}
+
+    def walk(p: argparse.ArgumentParser, prefix: str) -> None:
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for shown in action._choices_actions:  # the names given a help
+                    sub = action.choices[shown.dest]
+                    full = f"{prefix} {shown.dest}".strip()
+                    if any(isinstance(a, argparse._SubParsersAction) for a in sub._actions):
+                        walk(sub, full)
+                    else:
+                        out[full] = sub
+
+    walk(parser, "")
+    return out
 
 
 def _complete_paths(parser: argparse.ArgumentParser) -> None:
@@ -312,11 +463,14 @@ def _print_completion(parser: argparse.ArgumentParser, shell: str) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser(_prog())
-    args = parser.parse_args(argv)
-    if args.command == "completion":
-        parser.prog = "sync4d"
-        return _print_completion(parser, args.shell)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(_prog(), argv).parse_args(argv)
+    if args.renamed is not None:
+        old, new = args.renamed
+        print(f"sync4d: `{old}` is now `{new}` (the old spelling goes after this release)",
+              file=sys.stderr)  # fmt: skip
+    if args.command == "completion":  # completes every command: all their arguments
+        return _print_completion(build_parser("sync4d"), args.shell)
     module_name: str = args.handler
     try:
         module = importlib.import_module(module_name)
@@ -350,11 +504,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     return int(result or 0)
 
 
+def _prog() -> str:
+    """The name the user typed: ``sync4d`` (console script) or ``python -m sync4d``."""
+    return "python -m sync4d" if Path(sys.argv[0]).name == "__main__.py" else "sync4d"
+
+
 def _core_adapter() -> str:
     from sync4d import _core
 
     return _core.wgpu_adapter()
 
+
+__doc__ = f"{__doc__}\nCommands (from `COMMANDS`; every option: docs/cli.md):\n{command_list()}\n"
 
 if __name__ == "__main__":
     sys.exit(main())

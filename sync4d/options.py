@@ -5,6 +5,7 @@ each other."""
 from __future__ import annotations
 
 import argparse
+import sys
 
 __all__ = [
     "add_bench_fit_options",
@@ -13,8 +14,28 @@ __all__ = [
     "add_training_options",
     "positive_float",
     "positive_int",
+    "renamed",
     "resolution",
 ]
+
+
+class _Renamed(argparse.Action):
+    """An option's spelling before a rename (see `renamed`)."""
+
+    def __init__(self, option_strings: list[str], dest: str, now: str = "", **kw) -> None:
+        super().__init__(option_strings, dest, **kw)
+        self.now = now
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # noqa: ANN001
+        print(f"sync4d: `{option_string}` is now `{self.now}` (the old spelling goes after this "
+              "release)", file=sys.stderr)  # fmt: skip
+        setattr(namespace, self.dest, values)
+
+
+def renamed(p: argparse.ArgumentParser, old: str, now: str, dest: str, **kw) -> None:
+    """Keep option `old` working for one release as a hidden spelling of `now` (an option, or
+    a positional argument): it stores into `dest` and notes the new spelling on stderr."""
+    p.add_argument(old, action=_Renamed, now=now, dest=dest, help=argparse.SUPPRESS, **kw)
 
 
 def positive_int(text: str) -> int:
@@ -82,6 +103,15 @@ def add_training_options(p: argparse.ArgumentParser, config_help: str) -> None:
 
 def add_bench_raster_options(p: argparse.ArgumentParser) -> None:
     """The options of `bench raster`."""
+    renamed(p, "--run", "bench raster RUN", "run", default=None)  # sets run=None by default
+    p.add_argument(
+        "run",
+        nargs="?",
+        default=argparse.SUPPRESS,  # absent: keeps --run's value
+        metavar="RUN",
+        help="time the rasterizer on this trained run's own Gaussians at its test cameras "
+        "instead of the random scenes (one thread count: the first of --thread-counts)",
+    )
     p.add_argument(
         "--out",
         metavar="FILE.json",
@@ -158,31 +188,24 @@ def add_bench_raster_options(p: argparse.ArgumentParser) -> None:
         help="N=10000 at 256x256 only, fewer repeats (smoke run); --sizes/--resolutions win",
     )
     p.add_argument(
-        "--run",
-        metavar="RUN",
-        default=None,
-        help="time the rasterizer on a trained run's own Gaussians at its test cameras "
-        "instead of the random scenes (one thread count: the first of --thread-counts)",
-    )
-    p.add_argument(
         "--frames",
         type=positive_int,
         metavar="K",
         default=3,
-        help="with --run: test frames timed, evenly spread over the split (default: 3)",
+        help="with RUN: test frames timed, evenly spread over the split (default: 3)",
     )
     p.add_argument(
         "--data",
-        metavar="DIR",
+        metavar="DATA",
         default=None,
-        help="with --run: the run's dataset folder, when it moved since the run",
+        help="with RUN: the run's dataset folder, when it moved since the run",
     )
     p.add_argument(
         "--variant",
         action="append",
         default=None,
         metavar="NAME:KEY=VALUE,...",
-        help="with --run: also time rasterize with these keyword arguments (alpha_max, eps2d, "
+        help="with RUN: also time rasterize with these keyword arguments (alpha_max, eps2d, "
         "antialiased, backend), frame by frame beside the default (repeatable)",
     )
 

@@ -54,7 +54,7 @@ def test_a_missing_or_broken_encoder_folder_is_named(runs, capsys, tmp_path):
     missing = tmp_path / "no-such-encoder"
     assert main(["fit", str(runs["p2"]), "--phases", "3", "--encoder", str(missing)]) == 2
     err = capsys.readouterr().err
-    assert str(missing) in err and "encoder export" in err
+    assert str(missing) in err and "encoder convert" in err
     broken = tmp_path / "broken"
     broken.mkdir()
     (broken / "encoder.json").write_text("{}")
@@ -136,7 +136,7 @@ def test_a_field_of_another_model_is_refused_and_refits_clear_it(runs, capsys, t
                                                           str(queries)]):  # fmt: skip
         assert main(command) == 2
         err = capsys.readouterr().err
-        assert "built from another model" in err and f"fit {run} --phases 3" in err
+        assert "built from another model" in err and f"fit --out {run} --phases 3" in err
     # a field that does not say what it was built from (an older sync4d) is refused too
     shutil.copyfile(runs["objects"] / "checkpoint.safetensors", run / "checkpoint.safetensors")
     assert main(["query", str(run), "the blue box"]) == 0

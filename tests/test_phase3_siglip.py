@@ -242,7 +242,7 @@ def _replace_file(d: Path, name: str, data: bytes) -> None:
 def test_missing_file(exported: SimpleNamespace, tmp_path: Path, name: str) -> None:
     d = _copy(exported, tmp_path)
     (d / name).unlink()
-    with pytest.raises(EncoderError, match=rf"{name}: missing.*encoder export"):
+    with pytest.raises(EncoderError, match=rf"{name}: missing.*encoder convert"):
         SiglipOnnxEncoder(d)
 
 

@@ -1,4 +1,4 @@
-"""``sync4d bench raster --run RUN``: the rasterizer on a trained run's own Gaussians.
+"""``sync4d bench raster RUN``: the rasterizer on a trained run's own Gaussians.
 
 The random-cloud grid of `sync4d.bench.raster` says how the op scales; this says what one
 training step's compositing costs on a real scene. For each of ``--frames`` test frames of RUN
@@ -213,7 +213,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
 
 
 def main(args: Any) -> int:
-    """`bench raster --run RUN`: time the run's frames, print the table, write the JSON."""
+    """`bench raster RUN`: time the run's frames, print the table, write the JSON."""
     threads = (getattr(args, "threads", None) or [1])[0]
     repeats = getattr(args, "repeats", None) or 5
     try:
@@ -231,10 +231,10 @@ def main(args: Any) -> int:
             frames = run_frames(args.run, getattr(args, "frames", None) or 3,
                                 getattr(args, "data", None))  # fmt: skip
         except (RunError, CheckpointError, DatasetError) as e:
-            print(f"bench raster --run: {e}", file=sys.stderr)
+            print(f"bench raster: {e}", file=sys.stderr)
             return 2
         out = Path(args.out or f"bench-raster-{Path(args.run).resolve().name}.json")
-        print(f"sync4d {sync4d.__version__} bench raster --run {args.run}: {len(frames)} frames "
+        print(f"sync4d {sync4d.__version__} bench raster {args.run}: {len(frames)} frames "
               f"x {1 + len(variants)} variants, {threads} thread(s), {repeats} timed calls each; "
               f"json: {out}", flush=True)  # fmt: skip
         rows: list[dict[str, Any]] = []

@@ -1,5 +1,6 @@
-"""``python -m sync4d encoder export|info``: write a SigLIP-ONNX encoder directory from a Hugging
-Face model (once, with internet and the ``export`` extra), and describe and check one.
+"""``python -m sync4d encoder convert|info``: convert a Hugging Face SigLIP model into a
+SigLIP-ONNX encoder directory (once, with internet and the ``export`` extra), and describe and
+check one. (``encoder export``, the spelling before, still runs `convert` for one release.)
 
 The directory is what ``--encoder DIR`` (or ``$SYNC4D_ENCODER``) names in Phase 3; its layout is
 documented in `sync4d.phase3.encoders.siglip`."""
@@ -22,17 +23,17 @@ def _size(path: Path) -> str:
     return f"{n / 2**20:.1f} MiB" if n >= 2**20 else f"{n / 2**10:.1f} KiB"
 
 
-def _export(args: argparse.Namespace) -> int:
+def _convert(args: argparse.Namespace) -> int:
     from sync4d.phase3.encoders.siglip import FILES, MANIFEST, export_pretrained
 
     out = Path(args.out)
     if (out / MANIFEST).exists() and not args.force:
-        print(f"encoder export: {out} already holds an encoder ({MANIFEST}); --force replaces "
+        print(f"encoder convert: {out} already holds an encoder ({MANIFEST}); --force replaces "
               "it", file=sys.stderr)  # fmt: skip
         return 2
     t0 = time.perf_counter()
     manifest = export_pretrained(args.model, out)
-    print(f"encoder export: {args.model} -> {out} in {time.perf_counter() - t0:.0f} s "
+    print(f"encoder convert: {args.model} -> {out} in {time.perf_counter() - t0:.0f} s "
           f"(dim {manifest['dim']}, image {manifest['image_size']} px, "
           f"text {manifest['max_length']} tokens)")  # fmt: skip
     for f in (*FILES, MANIFEST):
@@ -65,14 +66,14 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
-    """Run `encoder export` or `encoder info` with parsed `args`; the exit status."""
+    """Run `encoder convert` or `encoder info` with parsed `args`; the exit status."""
     name = f"encoder {args.action}"
     try:
-        return _export(args) if args.action == "export" else _info(args)
+        return _convert(args) if args.action == "convert" else _info(args)
     except (EncoderError, WriteFailed) as e:
         print(f"{name}: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        done = "; the folder has no encoder.json, so it is not used" * (args.action == "export")
+        done = "; the folder has no encoder.json, so it is not used" * (args.action == "convert")
         print(f"{name}: interrupted{done}", file=sys.stderr)
         return 130

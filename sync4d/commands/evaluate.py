@@ -25,8 +25,8 @@ def _queries(args: argparse.Namespace) -> int:
     """`eval RUN --queries ANNOTATIONS`: Acc / vIoU / tIoU per scorer, printed as a table."""
     from sync4d.phase3.encoders.encoder import EncoderError
     from sync4d.phase3.evaluation.annotations import AnnotationError
-    from sync4d.phase3.evaluation.evaluate import EVAL_SCORERS, evaluate_queries
-    from sync4d.phase3.query import QueryError
+    from sync4d.phase3.evaluation.evaluate import evaluate_queries
+    from sync4d.phase3.query import SCORERS, QueryError
     from sync4d.phase3.store import FieldError
     from sync4d.report import align_table
 
@@ -35,7 +35,7 @@ def _queries(args: argparse.Namespace) -> int:
             if args.threads:
                 torch.set_num_threads(args.threads)
             summary = evaluate_queries(
-                args.run, args.queries, scorers=tuple(args.scorer or EVAL_SCORERS),
+                args.run, args.queries, scorers=tuple(args.scorer or SCORERS),
                 rule=args.rule, data=args.data, threads=args.threads,
                 encoder=args.encoder,
             )  # fmt: skip

@@ -3,6 +3,9 @@ into a run folder (`sync4d.pipeline.run_fit`), then the test metrics and Phase 2
 What the pipeline reports (`sync4d.events`) is printed by `sync4d.progress.TerminalRenderer`.
 
 Without DATA it trains on the embedded synthetic scene (generated once into a cache folder).
+The run is always ``--out RUN``, also when fit continues it (``--resume``), redoes Phase 2
+(``--phases 2``) or builds its language field (``--phases 3``). ``fit RUN --phases 3`` (or
+``--phases 2``, ``--resume``), the spelling before, still works for one release, with a note.
 """
 
 from __future__ import annotations
@@ -158,10 +161,11 @@ def _is_run(path: Path) -> bool:
     return (path / RUN_FILE).is_file() or (path / CHECKPOINT_NAME).is_file()
 
 
-def _phase3_only_asked(args: argparse.Namespace) -> bool:
-    """Whether the command line asks for Phase 3 alone (--phases 3)."""
+def _extends_a_run(args: argparse.Namespace) -> bool:
+    """Whether the command line continues or extends an existing run: --resume, or --phases
+    without Phase 1 (2, 2,3 or 3)."""
     try:
-        return args.phases is not None and parse_phases(args.phases) == (3,)
+        return args.resume or (args.phases is not None and 1 not in parse_phases(args.phases))
     except ConfigError:
         return False
 
@@ -172,8 +176,10 @@ def main(args: argparse.Namespace) -> int:
         print("fit: --resume continues RUN and --force deletes it; pass one of them",
               file=sys.stderr)  # fmt: skip
         return 2
-    if args.out is None and args.data and _is_run(Path(args.data)) and _phase3_only_asked(args):
+    if args.out is None and args.data and _is_run(Path(args.data)) and _extends_a_run(args):
         args.out, args.data = args.data, None  # `fit RUN --phases 3`: RUN, not a dataset
+        print("fit: `fit RUN --phases ...` is now `fit --out RUN --phases ...` (the old "
+              "spelling goes after this release)", file=sys.stderr)  # fmt: skip
     name = Path(args.data).name if args.data else default_scene_dir().name
     run_dir = Path(args.out) if args.out else Path("runs") / name
     created = not run_dir.exists()
@@ -262,7 +268,7 @@ def _fit(args: argparse.Namespace, run_dir: Path, fresh: RunConfig) -> int:
 
 
 def _phase3_only(args: argparse.Namespace, run_dir: Path, kind: str | None) -> int:
-    """`fit RUN --phases 3`: the language field of RUN's Phase 2 checkpoint, with the run's
+    """`fit --out RUN --phases 3`: the language field of RUN's Phase 2 checkpoint, with the run's
     recorded Phase 3 settings, then --config's, then --set phase3.* and --encoder."""
     if kind != "sync4d.phase2":
         raise RunError(

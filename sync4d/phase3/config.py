@@ -1,25 +1,18 @@
 """Phase 3's settings (`Phase3Config`): the language field's hyperparameters, the paper's
 values as defaults (Sec. 3.5, Appendices A, B, F). `sync4d.config.RunConfig` holds one as its
-``phase3`` section; this module imports nothing heavy, so a query reads it without torch.
+``phase3`` section; this module imports nothing heavy (the rules and encoders it names come
+from their numpy-only registries), so a query reads it without torch.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
+from sync4d.phase3.encoders.encoder import describe_specs, encoder_problem
+from sync4d.phase3.evaluation.metrics import DEFAULT_RULE, RULES
 from sync4d.settings import choice, ranged
 
 __all__ = ["Phase3Config"]
-
-
-def _encoder_problem(text: str) -> str | None:
-    """What is wrong with a `phase3.encoder` value, None if nothing."""
-    if text in ("", "offline"):
-        return None
-    if Path(text).is_file():
-        return f"expected a model folder (vision.onnx, text.onnx, ...), got the file {text!r}"
-    return None
 
 
 def _name_problem(text: str) -> str | None:
@@ -31,10 +24,9 @@ def _name_problem(text: str) -> str | None:
 class Phase3Config:
     """The language field (Sec. 3.5, Appendices A, B, F): the paper's values as defaults."""
 
-    #: Encoder: "offline" (closed-vocabulary default), a SigLIP-ONNX model directory, or ""
-    #: for $SYNC4D_ENCODER (else offline).
-    encoder: str = choice("", check=_encoder_problem,
-                          text='"", "offline" or a SigLIP-ONNX model folder')  # fmt: skip
+    #: Encoder (`sync4d.phase3.encoders.encoder.ENCODERS`): "offline" (closed-vocabulary
+    #: default), a SigLIP-ONNX model directory, or "" for $SYNC4D_ENCODER (else offline).
+    encoder: str = choice("", check=encoder_problem, text=describe_specs('""'))
     #: Crop box: lower percentile of the projected Gaussian centres (App. A: 2nd) ...
     crop_low: float = ranged(2.0, 0.0, 50.0)
     #: ... upper percentile (98th) ...
@@ -62,9 +54,9 @@ class Phase3Config:
     w_static: float = ranged(0.35, 0.0)
     #: ... and w_t of the peak temporal similarity.
     w_temporal: float = ranged(0.65, 0.0)
-    #: Temporal activation: "half-peak" (Appendix F: above 0.5 of the peak) or "mean" (4D
-    #: LangSplat's: at least the query's mean).
-    activation: str = choice("half-peak", ("half-peak", "mean"))
+    #: Temporal activation rule, a name of `sync4d.phase3.evaluation.metrics.RULES`: by default
+    #: the paper's "half-peak" (Appendix F: above 0.5 of the peak).
+    activation: str = choice(DEFAULT_RULE, tuple(RULES))
     #: Static-only ablation: e_sync = e_static at every frame in every scorer (Table 5's
     #: "static only"; `query --scorer static` gives it for one query).
     static_only: bool = False

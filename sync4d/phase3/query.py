@@ -1,18 +1,11 @@
 """Answering a text query on a built field: which object, and when.
 
-Scorers (each reported on its own by `eval`):
-
-* ``paper``: Eq. 15, S(k; q) = w_s <e_static_k, q> + w_t max_f <e_sync_k,f, q>; the top object's
-  active frames by Appendix F's rule on <e_sync_k,f, q> (or 4D LangSplat's mean rule);
-* ``static``: the same with e_sync = e_static (the paper's static-only ablation);
-* ``names`` (beyond the paper): identity by the text-text similarity of the query to each
-  object's name (from the masks' labels.json), when the ranking of `paper` would need an
-  open-vocabulary image encoder; frames as `paper`;
-* ``motion`` (beyond the paper): the query's motion phrases (`motion_phrases`) decide the frames;
-  the objects are ranked first by whether the motion happens at all, then by the fraction of
-  frames it holds, then by the paper's score of the rest of the query (its identity part);
-* ``full``: `motion` whose identity part is the paper's score plus the names' (when the objects
-  are named); without a motion phrase it is `paper` plus `names`.
+The scorers are registered here, once each: a function decorated with `@_scorer(name, summary)`
+scores every object for a text and says when it is active. The registry (`SCORER_TABLE`, in
+registration order) gives `SCORERS` (their names), the order `eval --queries` reports them in,
+and the choices and help of the command line; adding a scorer touches this file only. The
+design of each is its function's docstring: ``full`` (the default), ``paper`` (Eq. 15),
+``static`` (the static-only ablation), ``motion`` and ``names`` (both beyond the paper).
 
 Text embeddings are cached in ``RUN/phase3/texts.json`` under the encoder's fingerprint, so a
 repeated query loads no encoder and encodes nothing.
@@ -21,10 +14,11 @@ repeated query loads no encoder and encodes nothing.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,9 +32,8 @@ from sync4d.runs.names import FIELD_DIR, TEXT_CACHE
 if TYPE_CHECKING:
     from sync4d.phase3.config import Phase3Config
 
-__all__ = ["SCORERS", "QueryError", "TextCache", "answer", "query"]
-
-SCORERS = ("full", "paper", "static", "names", "motion")
+__all__ = ["DEFAULT_SCORER", "SCORERS", "SCORER_TABLE", "QueryError", "Scorer", "TextCache",
+           "answer", "query"]
 
 
 class QueryError(ValueError):
@@ -77,7 +70,7 @@ class TextCache:
                 f"the field in {self.path.parent} was built with encoder "
                 f"{self.field.encoder.get('kind')} ({self.fingerprint[:12]}), not "
                 f"{self._encoder.kind} ({self._encoder.fingerprint[:12]}); give that encoder "
-                "with --encoder or rebuild the field (fit RUN --phases 3)"
+                "with --encoder or rebuild the field (fit --out RUN --phases 3)"
             )
         return self._encoder
 
@@ -152,23 +145,52 @@ def _names_score(field: Field, text: str, cache: TextCache) -> np.ndarray | None
     return cache.get(field.names) @ cache.get([text])[0]
 
 
-def _score(field: Field, text: str, scorer: str, rule: str, cfg: Phase3Config,
-           cache: TextCache) -> tuple[_Scored, list[mp.MatchedPredicate], str]:  # fmt: skip
+_Result = tuple[_Scored, list[mp.MatchedPredicate], str]
+
+
+@dataclass(frozen=True)
+class Scorer:
+    """A registered scorer: its `name` (``--scorer NAME``), a one-line `summary` (the command
+    line's help) and `score(field, text, rule, cfg, cache)` -> (scores, matched motion phrases,
+    the identity text). `needs_names`: it answers only runs whose objects are named
+    (`eval --queries` leaves it out on others)."""
+
+    name: str
+    summary: str
+    score: Callable[[Field, str, str, Any, TextCache], _Result]
+    needs_names: bool = False
+
+
+#: Every scorer by name, in the order `eval --queries` reports them.
+SCORER_TABLE: dict[str, Scorer] = {}
+
+
+def _scorer(name: str, summary: str, *, needs_names: bool = False):
+    """Register the decorated function as scorer `name` (see `Scorer`)."""
+
+    def register(fn: Callable[[Field, str, str, Any, TextCache], _Result]):
+        SCORER_TABLE[name] = Scorer(name, summary, fn, needs_names)
+        return fn
+
+    return register
+
+
+def _by_frames(field: Field, text: str, rule: str, s: np.ndarray, sims: np.ndarray) -> _Result:
+    """Scores `s` [K] whose active frames are `rule` on the per-frame similarities `sims`."""
+    k = field.observed.shape[0]
+    act = np.stack([activate(sims[j], rule) for j in range(k)])
+    return _Scored(s, act, sims, s), [], text
+
+
+def _motion(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCache,
+            with_names: bool) -> _Result:  # fmt: skip
+    """The query's motion phrases decide the frames; the identity part is the paper's score of
+    the rest of the query, plus the names' when `with_names` (and the objects are named)."""
     k, t = field.observed.shape
-    if scorer in ("paper", "static", "names"):
-        s, sims = _identity(field, text, cache, cfg, scorer == "static")
-        if scorer == "names":
-            ns = _names_score(field, text, cache)
-            if ns is None:
-                raise QueryError("the names scorer needs named objects (labels.json beside the "
-                                 "masks); this run's objects have no names")  # fmt: skip
-            s = ns
-        act = np.stack([activate(sims[j], rule) for j in range(k)])
-        return _Scored(s, act, sims, s), [], text
     matched, rest = mp.match_predicates(text, cache.similarity, cfg.phrase_match)
     s, sims = _identity(field, rest if matched else text, cache, cfg, False)
     ident = s.copy()
-    if scorer == "full":
+    if with_names:
         ns = _names_score(field, rest if matched else text, cache)
         if ns is not None:
             ident = ident + ns
@@ -189,6 +211,55 @@ def _score(field: Field, text: str, scorer: str, rule: str, cfg: Phase3Config,
     return _Scored(score, truth, truth.astype(np.float64), ident, frac), matched, rest
 
 
+@_scorer("full", "motion phrases + the paper's score + object names")
+def _full(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCache) -> _Result:
+    """`motion` whose identity part is the paper's score plus the names' (when the objects are
+    named); without a motion phrase it is `paper` plus `names`."""
+    return _motion(field, text, rule, cfg, cache, True)
+
+
+@_scorer("paper", "Eq. 15 only")
+def _paper(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCache) -> _Result:
+    """Eq. 15, S(k; q) = w_s <e_static_k, q> + w_t max_f <e_sync_k,f, q>; the top object's
+    active frames by Appendix F's rule on <e_sync_k,f, q> (or 4D LangSplat's mean rule)."""
+    s, sims = _identity(field, text, cache, cfg, False)
+    return _by_frames(field, text, rule, s, sims)
+
+
+@_scorer("static", "the static-only ablation")
+def _static(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCache) -> _Result:
+    """`paper` with e_sync = e_static (the paper's static-only ablation)."""
+    s, sims = _identity(field, text, cache, cfg, True)
+    return _by_frames(field, text, rule, s, sims)
+
+
+@_scorer("motion", "the query's motion phrases, then the paper's score")
+def _motion_only(field: Field, text: str, rule: str, cfg: Phase3Config,
+                 cache: TextCache) -> _Result:  # fmt: skip
+    """Beyond the paper: the query's motion phrases (`motion_phrases`) decide the frames; the
+    objects are ranked first by whether the motion happens at all, then by the fraction of
+    frames it holds, then by the paper's score of the rest of the query (its identity part)."""
+    return _motion(field, text, rule, cfg, cache, False)
+
+
+@_scorer("names", "the query's similarity to object names", needs_names=True)
+def _names(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCache) -> _Result:
+    """Beyond the paper: identity by the text-text similarity of the query to each object's
+    name (from the masks' labels.json), when the ranking of `paper` would need an
+    open-vocabulary image encoder; frames as `paper`."""
+    _, sims = _identity(field, text, cache, cfg, False)
+    ns = _names_score(field, text, cache)
+    if ns is None:
+        raise QueryError("the names scorer needs named objects (labels.json beside the "
+                         "masks); this run's objects have no names")  # fmt: skip
+    return _by_frames(field, text, rule, ns, sims)
+
+
+#: The scorers' names, in `SCORER_TABLE`'s order; `query` answers with the first by default.
+SCORERS: tuple[str, ...] = tuple(SCORER_TABLE)
+DEFAULT_SCORER = SCORERS[0]
+
+
 #: The Phase 3 settings a query reads (the field records every one it was built with).
 _QUERY_KEYS = ("w_static", "w_temporal", "activation", "static_only", "moving_speed",
                "rest_speed", "vertical_speed", "closing_speed", "contact_gap", "phrase_match",
@@ -200,12 +271,12 @@ def _settings(field: Field) -> SimpleNamespace:
     missing = [k for k in _QUERY_KEYS if k not in field.config]
     if missing:
         raise FieldError(f"the field's header lacks the settings {missing}; rebuild it with "
-                         "`fit RUN --phases 3`")  # fmt: skip
+                         "`fit --out RUN --phases 3`")  # fmt: skip
     return SimpleNamespace(**field.config)
 
 
 def answer(
-    field: Field, text: str, *, cache: TextCache, scorer: str = "full",
+    field: Field, text: str, *, cache: TextCache, scorer: str = DEFAULT_SCORER,
     rule: str | None = None, cfg: Phase3Config | None = None,
 ) -> dict:  # fmt: skip
     """The answer to `text` on `field` as plain data: every object ranked with its score and
@@ -217,7 +288,7 @@ def answer(
         raise QueryError(f"unknown scorer {scorer!r}: expected one of {', '.join(SCORERS)}")
     cfg = cfg or _settings(field)
     rule = rule or cfg.activation
-    sc, matched, rest = _score(field, text, scorer, rule, cfg, cache)
+    sc, matched, rest = SCORER_TABLE[scorer].score(field, text, rule, cfg, cache)
     order = np.argsort(-sc.score, kind="stable")
     times = field.times
     objects = []
@@ -246,7 +317,7 @@ def answer(
 
 
 def query(
-    run_dir: str | Path, text: str, *, scorer: str = "full", rule: str | None = None,
+    run_dir: str | Path, text: str, *, scorer: str = DEFAULT_SCORER, rule: str | None = None,
     encoder: Encoder | str | None = None,
 ) -> dict:  # fmt: skip
     """Answer `text` on the field of the run in `run_dir` (see `answer`); `encoder` overrides

@@ -111,7 +111,7 @@ def checkpoint_record(path: str | Path) -> dict:
 
 def _check_checkpoint(run_dir: Path, meta_path: Path, meta: dict) -> None:
     """FieldError unless the field in `meta` was built from the run's current checkpoint."""
-    rebuild = f"rebuild it with `python -m sync4d fit {run_dir} --phases 3`"
+    rebuild = f"rebuild it with `python -m sync4d fit --out {run_dir} --phases 3`"
     built = meta.get("checkpoint")
     if not isinstance(built, dict) or "sha256" not in built:
         raise FieldError(f"{meta_path}: this field does not record the checkpoint it was built "
@@ -133,13 +133,13 @@ def load_field(run_dir: str | Path) -> Field:
     if not meta_path.is_file() or not arr_path.is_file():
         raise FieldError(
             f"{folder}: no language field in this run; build it with "
-            f"`python -m sync4d fit {run_dir} --phases 3`"
+            f"`python -m sync4d fit --out {run_dir} --phases 3`"
         )
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
         raise FieldError(f"{meta_path}: not a readable field header ({e}); rebuild with "
-                         f"`fit {run_dir} --phases 3`") from None  # fmt: skip
+                         f"`fit --out {run_dir} --phases 3`") from None  # fmt: skip
     try:
         arrays = load_file(str(arr_path))
     except Exception as e:  # noqa: BLE001 - safetensors raises several kinds
@@ -148,7 +148,7 @@ def load_field(run_dir: str | Path) -> Field:
     missing = [n for n in (*_ARRAYS, "times") if n not in arrays]
     if missing or meta.get("version") != _VERSION:
         raise FieldError(f"{arr_path}: field of another version or missing {missing}; "
-                         f"rebuild with `fit {run_dir} --phases 3`")  # fmt: skip
+                         f"rebuild with `fit --out {run_dir} --phases 3`")  # fmt: skip
     k = len(meta["labels"])
     for n in _ARRAYS:
         a = arrays[n]

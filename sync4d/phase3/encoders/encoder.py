@@ -10,25 +10,78 @@ the loaded model, never assumed) and returns L2-normalised float32 rows. Two kin
   sentence space, the map fitted on generated renders of coloured shapes. It knows
   colours and shapes, not the open world.
 
-`load_encoder(spec)` picks one: a directory path means SigLIP-ONNX from that directory,
-``"offline"`` (or nothing, with ``$SYNC4D_ENCODER`` unset) the offline default.
+The kinds are registered once, in `ENCODERS`: `load_encoder(spec)` picks one (a directory path
+means SigLIP-ONNX from that directory, ``"offline"`` or nothing, with ``$SYNC4D_ENCODER`` unset,
+the offline default), and the config's allowed values and the command line's help read it.
 """
 
 from __future__ import annotations
 
 import abc
+import importlib
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sync4d.files import file_sha256
 
-__all__ = ["ENCODER_ENV", "Encoder", "EncoderError", "file_sha256", "load_encoder",
-           "normalise_rows"]
+__all__ = ["CONVERT_COMMAND", "DEFAULT_ENCODER", "ENCODERS", "ENCODER_ENV", "Encoder",
+           "EncoderError", "EncoderKind", "describe_specs", "encoder_problem", "file_sha256",
+           "load_encoder", "normalise_rows"]
 
 #: Environment variable naming the encoder when ``--encoder`` is not given.
 ENCODER_ENV = "SYNC4D_ENCODER"
+#: The command that writes a SigLIP-ONNX folder, as messages name it.
+CONVERT_COMMAND = "python -m sync4d encoder convert"
+
+
+@dataclass(frozen=True)
+class EncoderKind:
+    """An encoder kind `load_encoder` knows: `kind` (`Encoder.kind`, what a field records),
+    `word` (the spec that names it, such as "offline"; "" for the kind read from a model folder),
+    `noun` (how help texts name the spec), a one-line `summary`, and the `module` and `cls`
+    that load it (imported on use: a cached query loads none)."""
+
+    kind: str
+    word: str
+    noun: str
+    summary: str
+    module: str
+    cls: str
+
+
+#: Every encoder kind, by kind; the default first.
+ENCODERS: dict[str, EncoderKind] = {e.kind: e for e in (
+    EncoderKind("offline", "offline", '"offline"', "the closed-vocabulary default",
+                "sync4d.phase3.encoders.offline", "OfflineEncoder"),
+    EncoderKind("siglip", "", "a SigLIP-ONNX model folder",
+                "the paper's encoder; `sync4d encoder convert` writes one",
+                "sync4d.phase3.encoders.siglip", "SiglipOnnxEncoder"),
+)}  # fmt: skip
+#: The spec of the default kind (no --encoder and no $SYNC4D_ENCODER).
+DEFAULT_ENCODER = next(iter(ENCODERS.values())).word
+_NAMED = {e.word: e for e in ENCODERS.values() if e.word}
+_FOLDER = next(e for e in ENCODERS.values() if not e.word)
+
+
+def describe_specs(*extra: str, summaries: bool = False) -> str:
+    """The specs `load_encoder` accepts, for help texts: '"offline" or a SigLIP-ONNX model
+    folder', after `extra` ones; with `summaries`, each followed by its summary in brackets."""
+    words = [*extra, *(f"{e.noun} ({e.summary})" if summaries else e.noun
+                       for e in ENCODERS.values())]  # fmt: skip
+    return ", ".join(words[:-1]) + " or " + words[-1] if len(words) > 1 else words[0]
+
+
+def encoder_problem(text: str) -> str | None:
+    """What is wrong with an encoder spec (`phase3.encoder`), None if nothing ("" is
+    $SYNC4D_ENCODER, else the default)."""
+    if text == "" or text in _NAMED:
+        return None
+    if Path(text).is_file():
+        return f"expected a model folder (vision.onnx, text.onnx, ...), got the file {text!r}"
+    return None
 
 
 class EncoderError(RuntimeError):
@@ -75,21 +128,21 @@ class Encoder(abc.ABC):
                 "closed_vocabulary": self.closed_vocabulary}  # fmt: skip
 
 
-def load_encoder(spec: str | Path | None = None) -> Encoder:
-    """The encoder named by `spec`: a SigLIP-ONNX model directory, or ``"offline"``; None reads
-    ``$SYNC4D_ENCODER`` and falls back to the offline default."""
-    if spec is None or str(spec) == "":
-        spec = os.environ.get(ENCODER_ENV) or "offline"
-    if str(spec) == "offline":
-        from sync4d.phase3.encoders.offline import OfflineEncoder
+def _encoder_class(entry: EncoderKind) -> type[Encoder]:
+    return getattr(importlib.import_module(entry.module), entry.cls)
 
-        return OfflineEncoder()
+
+def load_encoder(spec: str | Path | None = None) -> Encoder:
+    """The encoder named by `spec` (see `ENCODERS`): a SigLIP-ONNX model directory, or
+    ``"offline"``; None reads ``$SYNC4D_ENCODER`` and falls back to the offline default."""
+    if spec is None or str(spec) == "":
+        spec = os.environ.get(ENCODER_ENV) or DEFAULT_ENCODER
+    if str(spec) in _NAMED:
+        return _encoder_class(_NAMED[str(spec)])()
     path = Path(spec)
     if not path.is_dir():
         raise EncoderError(
             f"{path}: no such encoder directory; give a folder written by "
-            "`python -m sync4d encoder export --out DIR`, or --encoder offline"
+            f"`{CONVERT_COMMAND} --out DIR`, or --encoder {DEFAULT_ENCODER}"
         )
-    from sync4d.phase3.encoders.siglip import SiglipOnnxEncoder
-
-    return SiglipOnnxEncoder(path)
+    return _encoder_class(_FOLDER)(path)

@@ -38,7 +38,13 @@ from typing import Any
 
 import numpy as np
 
-from sync4d.phase3.encoders.encoder import Encoder, EncoderError, file_sha256, normalise_rows
+from sync4d.phase3.encoders.encoder import (
+    CONVERT_COMMAND,
+    Encoder,
+    EncoderError,
+    file_sha256,
+    normalise_rows,
+)
 
 __all__ = [
     "FILES",
@@ -64,7 +70,7 @@ RESAMPLING = {"nearest": 0, "bilinear": 2, "bicubic": 3}
 BATCH = 32
 
 _EXPORT_HINT = "pip install 'sync4d[export]'"
-_REEXPORT = "export it again with `python -m sync4d encoder export --model NAME --out DIR`"
+_REEXPORT = f"convert it again with `{CONVERT_COMMAND} --model NAME --out DIR`"
 _REQUIRED = ("format", "kind", "dim", "image_size", "mean", "std", "resize", "max_length",
              "pad_id", "files")  # fmt: skip
 

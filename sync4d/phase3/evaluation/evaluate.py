@@ -1,10 +1,11 @@
 """Evaluating temporal queries on a run's field (Appendix F): Acc, vIoU and tIoU per query and
 scorer, from 4D LangSplat's annotations or our own query file (`annotations`).
 
-Each query is answered by each scorer (`query.SCORERS`); the top-ranked object's activation is
-scored against the ground truth (`metrics.evaluate_query`: a wrong object counts as no
-overlap). Predicted masks for vIoU are the chosen object's pixels in an occlusion-aware render
-of every Gaussian's object label (the pixel's dominant label), from the frame's training view.
+Each query is answered by each scorer (`query.SCORERS`, in their order; one that needs named
+objects only when they are named); the top-ranked object's activation is scored against the
+ground truth (`metrics.evaluate_query`: a wrong object counts as no overlap). Predicted masks
+for vIoU are the chosen object's pixels in an occlusion-aware render of every Gaussian's object
+label (the pixel's dominant label), from the frame's training view.
 Ground-truth masks come from 4D LangSplat's polygons or, for our format, from the dataset's
 instance masks when it has them and the query names a label.
 
@@ -33,7 +34,7 @@ from sync4d.phase3.evaluation.annotations import (
     read_queries,
 )
 from sync4d.phase3.evaluation.metrics import evaluate_query, write_rows
-from sync4d.phase3.query import TextCache, answer
+from sync4d.phase3.query import SCORER_TABLE, SCORERS, TextCache, answer
 from sync4d.phase3.store import Field, load_field
 from sync4d.runs import Run, load_run
 from sync4d.runs.names import (
@@ -43,10 +44,7 @@ from sync4d.runs.names import (
     query_eval_summary,
 )
 
-__all__ = ["EVAL_SCORERS", "evaluate_queries", "label_masks", "state_queries"]
-
-#: The scorers `eval --queries` reports, in table order.
-EVAL_SCORERS = ("full", "paper", "static", "motion", "names")
+__all__ = ["evaluate_queries", "label_masks", "state_queries"]
 
 
 def _views(field: Field, scene: Scene) -> list[int]:
@@ -147,7 +145,7 @@ def _read(path: Path, field: Field, run: Run, scene: Scene | None) -> list[Query
 
 
 def evaluate_queries(
-    run_dir: str | Path, annotations: str | Path, *, scorers: tuple[str, ...] = EVAL_SCORERS,
+    run_dir: str | Path, annotations: str | Path, *, scorers: tuple[str, ...] = SCORERS,
     rule: str | None = None, data: str | Path | None = None, threads: int | None = None,
     encoder: Encoder | str | None = None,
 ) -> dict:  # fmt: skip
@@ -164,7 +162,8 @@ def evaluate_queries(
     if not queries:
         raise AnnotationError(f"{path}: holds no query")
     named = not all(n.startswith("object ") for n in field.names)
-    scorers = tuple(s for s in scorers if s != "names" or named)
+    scorers = tuple(s for s in scorers if named or s not in SCORER_TABLE
+                    or not SCORER_TABLE[s].needs_names)  # fmt: skip
     cache = TextCache(run_dir, field, encoder)
     gt_masks = {}
     for i, q in enumerate(queries):

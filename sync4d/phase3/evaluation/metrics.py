@@ -5,9 +5,11 @@ Design notes
 * Pure functions over numpy arrays; no torch, no file access except `write_rows`.
 * A query is answered with one object k and its per-frame similarities s(f) over the frames
   that are scored (f = 0..T-1, or the query's `evaluated` subset); `activate` turns them into a
-  bool activation with the paper's rule ("half-peak": s > 0.5 * max s) or 4D LangSplat's
-  ("mean": s >= mean s, `eval/eval.py: evaluate_video_feature` with `video_thresh` /
-  `clip_thresh` = the mean similarity over the evaluated frames).
+  bool activation with a rule of `RULES`, the one registry of activation rules (the config's
+  `phase3.activation` and the command line's ``--rule`` take their names from it): the paper's
+  ("half-peak": s > 0.5 * max s) or 4D LangSplat's ("mean": s >= mean s, `eval/eval.py:
+  evaluate_video_feature` with `video_thresh` / `clip_thresh` = the mean similarity over the
+  evaluated frames).
 * Acc = mean_f [active(f) == gt(f)]; tIoU = |P & G| / |P | G| over frame index sets.
 * vIoU mirrors 4D LangSplat's `evaluate_video_feature`: over the frames in P | G, a frame where
   both sides are active scores the spatial mask IoU of that frame, a frame where only one side is
@@ -33,10 +35,10 @@ import csv
 import io
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,7 +46,9 @@ if TYPE_CHECKING:
     from sync4d.phase3.evaluation.annotations import Query
 
 __all__ = [
+    "DEFAULT_RULE",
     "RULES",
+    "ActivationRule",
     "QueryResult",
     "Rule",
     "activate",
@@ -59,9 +63,8 @@ __all__ = [
     "write_rows",
 ]
 
-Rule = Literal["half-peak", "mean"]
-#: The activation rules: the paper's (Appendix F) and 4D LangSplat's.
-RULES: tuple[str, ...] = ("half-peak", "mean")
+#: An activation rule's name: a key of `RULES`.
+Rule = str
 
 Interval = tuple[int, int]
 
@@ -84,8 +87,42 @@ def _pair(pred: np.ndarray | Sequence[bool], gt: np.ndarray | Sequence[bool]):
     return p, g
 
 
-def activate(scores: np.ndarray | Sequence[float], rule: Rule = "half-peak") -> np.ndarray:
-    """Per-frame activation, bool [T], of one object's query similarities `scores` [T].
+@dataclass(frozen=True)
+class ActivationRule:
+    """A temporal activation rule: its `name` (``--rule NAME``, ``phase3.activation``), a
+    one-line `summary` (the command line's help) and `active(s)`: the bool [T] activation of
+    finite, non-constant scores s [T] (`activate` handles the rest)."""
+
+    name: str
+    summary: str
+    active: Callable[[np.ndarray], np.ndarray]
+
+
+def _half_peak(s: np.ndarray) -> np.ndarray:
+    """The paper's rule (Appendix F): s(f) > 0.5 * max s; with a peak <= 0, above the midpoint
+    of the score range (see `activate`)."""
+    lo, hi = float(s.min()), float(s.max())
+    if hi > 0.0:
+        return s > 0.5 * hi
+    return (s - lo) > 0.5 * (hi - lo)
+
+
+def _mean(s: np.ndarray) -> np.ndarray:
+    """4D LangSplat's rule (`evaluate_video_feature`): s(f) >= mean s."""
+    return s >= s.mean()
+
+
+#: The activation rules by name, the default first.
+RULES: dict[str, ActivationRule] = {r.name: r for r in (
+    ActivationRule("half-peak", "above half the peak (Appendix F)", _half_peak),
+    ActivationRule("mean", "at least the mean (4D LangSplat)", _mean),
+)}  # fmt: skip
+DEFAULT_RULE: Rule = next(iter(RULES))
+
+
+def activate(scores: np.ndarray | Sequence[float], rule: Rule = DEFAULT_RULE) -> np.ndarray:
+    """Per-frame activation, bool [T], of one object's query similarities `scores` [T] by
+    `rule`, a name in `RULES`.
 
     ``"half-peak"`` (the paper, Appendix F): active(f) = s(f) > 0.5 * max_f' s(f').
     ``"mean"`` (4D LangSplat's `evaluate_video_feature`): active(f) = s(f) >= mean_f' s(f').
@@ -99,7 +136,7 @@ def activate(scores: np.ndarray | Sequence[float], rule: Rule = "half-peak") -> 
       of the score range. With a positive peak the literal rule is kept (so results match the
       paper wherever the paper's rule is meaningful); the two branches meet discontinuously at
       peak = 0, which is the price of keeping the literal rule.
-    * Constant scores (max == min, exactly): every frame is active under both rules. Nothing
+    * Constant scores (max == min, exactly): every frame is active under every rule. Nothing
       tells the frames apart and the object was chosen as the answer, so it is answered for the
       whole run; this is what the mean rule (s >= mean) and the literal half-peak rule with a
       positive constant give anyway, and it makes the negative constant agree with them.
@@ -113,14 +150,9 @@ def activate(scores: np.ndarray | Sequence[float], rule: Rule = "half-peak") -> 
         raise ValueError(f"scores must be a non-empty 1-D array, got shape {list(s.shape)}")
     if not np.isfinite(s).all():
         raise ValueError("scores contain NaN or inf")
-    lo, hi = float(s.min()), float(s.max())
-    if hi == lo:
+    if float(s.max()) == float(s.min()):
         return np.ones(s.size, dtype=bool)
-    if rule == "mean":
-        return s >= s.mean()
-    if hi > 0.0:
-        return s > 0.5 * hi
-    return (s - lo) > 0.5 * (hi - lo)
+    return RULES[rule].active(s)
 
 
 def frame_accuracy(pred: np.ndarray | Sequence[bool], gt: np.ndarray | Sequence[bool]) -> float:
@@ -270,7 +302,7 @@ def _object_text(name: str | None, label: int | None) -> str:
 def evaluate_query(
     query: Query,
     scores: np.ndarray | Sequence[float],
-    rule: Rule = "half-peak",
+    rule: Rule = DEFAULT_RULE,
     object: str | int | None = None,
     pred_masks: Sequence[np.ndarray | None] | None = None,
     active: np.ndarray | Sequence[bool] | None = None,
