@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sync4d.files import write_text_atomic
 from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.encoders.encoder import Encoder, EncoderError, load_encoder
 from sync4d.phase3.evaluation.metrics import activate, intervals
@@ -91,8 +92,6 @@ class TextCache:
 
     def save(self) -> None:
         """Write the cache atomically (beside the field)."""
-        from sync4d.files import write_text_atomic
-
         if self.path.parent.is_dir():
             write_text_atomic(self.path, json.dumps(
                 {"fingerprint": self.fingerprint, "texts": self.texts}) + "\n")

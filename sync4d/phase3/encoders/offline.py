@@ -44,6 +44,7 @@ import torch
 import torch.nn.functional as F
 
 from sync4d.data.scene import cache_dir
+from sync4d.files import WriteFailed, write_atomic
 from sync4d.phase3.encoders import shapes
 from sync4d.phase3.encoders.encoder import Encoder, EncoderError, normalise_rows
 from sync4d.phase3.encoders.minilm import MiniLM, load_minilm
@@ -377,8 +378,6 @@ class OfflineEncoder(Encoder):
         return m if stored == _digest(m) else None  # a damaged file is refitted
 
     def _save(self, m: dict[str, np.ndarray]) -> None:
-        from sync4d.files import WriteFailed, write_atomic
-
         def write(tmp: Path) -> None:
             with open(tmp, "wb") as f:
                 np.savez(f, digest=np.array(_digest(m)), **m)

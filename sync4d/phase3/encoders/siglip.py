@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from sync4d.files import write_atomic, write_text_atomic
 from sync4d.phase3.encoders.encoder import (
     CONVERT_COMMAND,
     Encoder,
@@ -192,8 +193,6 @@ def export_siglip(
     run once with onnxruntime against torch on a probe batch: a difference over 1e-3 raises.
     Every file is written atomically; the manifest goes last."""
     import torch
-
-    from sync4d.files import write_atomic, write_text_atomic
 
     out = Path(out_dir)
     image_size, max_length, mean, std = _check_preprocessing(image_size, max_length, mean, std,

@@ -42,6 +42,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sync4d.files import write_text_atomic
+
 if TYPE_CHECKING:
     from sync4d.phase3.evaluation.annotations import Query
 
@@ -410,8 +412,6 @@ def write_rows(
     """Write the per-query `rows` and their mean row as CSV (columns `CSV_COLUMNS`, intervals
     as JSON lists, None as an empty cell, the last row's query "mean") and as JSON
     ({"queries": [...], "mean": {...}}), each file atomically. Returns the mean row."""
-    from sync4d.files import write_text_atomic  # lazy: metrics needs no torch
-
     mean = mean_row(rows)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
