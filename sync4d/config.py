@@ -14,7 +14,7 @@ from sync4d.data.loaders import offered_splits
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.trainer import Phase2Config
 from sync4d.phase3.config import Phase3Config
-from sync4d.settings import allowed, choice, ranged
+from sync4d.settings import allowed, budget_floor, choice, ranged
 
 __all__ = [
     "ConfigError",
@@ -169,34 +169,28 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
 
 
 def phase2_budget(p2: Phase2Config, iterations: int) -> Phase2Config:
-    """`p2` with at most `iterations` iterations. When that shortens it, its start and warm-up
-    iterations and the photometric refinement's work (steps per frame, re-tracking steps and
-    texture rounds) shrink by the same ratio, so Phase 2's whole cost is bounded, not only its
-    loop (before 2026-12-02, `fit --iters 30` still refined for over 5 minutes)."""
+    """`p2` with at most `iterations` iterations. When that shortens it, every iteration count
+    marked `ranged(..., scales=floor)` in it (its start and warm-up iterations, and the
+    photometric refinement's work: steps per frame, re-tracking steps and texture rounds)
+    shrinks by the same ratio, so Phase 2's whole cost is bounded, not only its loop (before
+    2026-12-02, `fit --iters 30` still refined for over 5 minutes). The marks, not a list
+    here, say what scales: a new term's start scales once its field is marked."""
     if iterations >= p2.iterations:
         return p2
-    r = iterations / p2.iterations
+    return dataclasses.replace(_scale_marked(p2, iterations / p2.iterations), iterations=iterations)
 
-    def scaled(v: int, floor: int = 1) -> int:
-        return max(floor, int(round(v * r))) if v > 0 else v
 
-    mc = p2.motion
-    motion = dataclasses.replace(
-        mc,
-        refine_steps=scaled(mc.refine_steps),
-        refine_retrack_steps=scaled(mc.refine_retrack_steps),
-        refine_texture_rounds=scaled(mc.refine_texture_rounds, 0),
-    )
-    return dataclasses.replace(
-        p2,
-        iterations=iterations,
-        motion=motion,
-        motion_start=scaled(p2.motion_start, 0),
-        velocity_start=scaled(p2.velocity_start, 0),
-        warmup_start=scaled(p2.warmup_start, 0),
-        warmup_end=scaled(p2.warmup_end, 0),
-        residual_start=scaled(p2.residual_start, 0),
-    )
+def _scale_marked(obj: Any, r: float) -> Any:
+    """Dataclass `obj` with every field marked `ranged(..., scales=floor)` (`budget_floor`),
+    in it and in its sections, times `r`: rounded, at least `floor`; 0 stays 0."""
+    changes: dict[str, Any] = {}
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            changes[f.name] = _scale_marked(value, r)
+        elif (floor := budget_floor(f)) is not None and value > 0:
+            changes[f.name] = max(floor, int(round(value * r)))
+    return dataclasses.replace(obj, **changes)
 
 
 def _replace(obj: Any, path: list[str], value: Any, full: str) -> Any:

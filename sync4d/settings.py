@@ -1,7 +1,10 @@
 """What each config field accepts, declared beside the field: `ranged` (numbers, and tuples of
 numbers, within a range) and `choice` (one of a fixed set of strings) build the
 `dataclasses.field` and keep an `Allowed` in its metadata, which `sync4d.config` checks for
-values from a file and from ``--set`` alike, and `scripts/gen_docs.py` prints.
+values from a file and from ``--set`` alike, and `scripts/gen_docs.py` prints. `ranged(...,
+scales=floor)` also marks an iteration count (a start, a warm-up end, steps of work) that a
+shorter budget scales (`budget_floor`; `sync4d.config.phase2_budget` scales every field so
+marked, so a new one cannot be forgotten).
 
 Standard library only, so every config dataclass (`sync4d.phase1`, `sync4d.phase2`,
 `sync4d.config`) may import it.
@@ -14,10 +17,12 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
-__all__ = ["Allowed", "allowed", "choice", "ranged"]
+__all__ = ["Allowed", "allowed", "budget_floor", "choice", "ranged"]
 
 #: The metadata key of a field's `Allowed`.
 KEY = "sync4d.allowed"
+#: The metadata key of the floor of a field that scales with the budget (`budget_floor`).
+SCALES_KEY = "sync4d.scales"
 
 
 def _num(x: float) -> str:
@@ -125,10 +130,13 @@ def ranged(
     hi_open: bool = False,
     length: int | None = None,
     what: str = "",
+    scales: int | None = None,
 ) -> Any:
     """A dataclass field of number `default` (an int, a float or a tuple of them) whose values
     must be finite and lie in `lo`..`hi` (None: unbounded on that side; `lo_open`/`hi_open`
-    exclude the end); a tuple must hold `length` numbers (None: one or more)."""
+    exclude the end); a tuple must hold `length` numbers (None: one or more). `scales`: an
+    integer field counting iterations that a shorter budget scales by its ratio, to no less
+    than `scales` (`budget_floor`); None: the budget leaves it alone."""
     if isinstance(default, bool) or not isinstance(default, int | float | tuple):
         raise TypeError(f"ranged: expected a number or a tuple of numbers, got {default!r}")
     if isinstance(default, tuple):
@@ -139,7 +147,12 @@ def ranged(
     rule = Allowed(kind, lo, hi, lo_open, hi_open, item, length, what=what)
     if rule.problem(default) is not None:
         raise ValueError(f"ranged: the default {default!r} {rule.problem(default)}")
-    return dataclasses.field(default=default, metadata={KEY: rule})
+    if scales is not None and (kind != "int" or isinstance(scales, bool) or scales < 0):
+        raise TypeError(f"ranged: scales needs an integer field and a floor >= 0, got {scales!r}")
+    metadata: dict[str, Any] = {KEY: rule}
+    if scales is not None:
+        metadata[SCALES_KEY] = scales
+    return dataclasses.field(default=default, metadata=metadata)
 
 
 def choice(
@@ -160,3 +173,9 @@ def choice(
 def allowed(field: dataclasses.Field) -> Allowed | None:
     """The `Allowed` declared for `field` by `ranged` or `choice`, None if none was."""
     return field.metadata.get(KEY)
+
+
+def budget_floor(field: dataclasses.Field) -> int | None:
+    """The floor `ranged(..., scales=floor)` declared for `field`, an iteration count that a
+    shorter budget scales; None when the budget leaves it alone."""
+    return field.metadata.get(SCALES_KEY)

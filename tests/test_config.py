@@ -53,3 +53,44 @@ def test_with_budget_scales_the_schedule_and_overrides_win() -> None:
     assert apply_overrides(cfg, ["eval_every=7"]).eval_every == 7
     with pytest.raises(ConfigError, match="positive"):
         with_budget(cfg, 0)
+
+
+def test_phase2_budget_scales_every_marked_field() -> None:
+    """`phase2_budget` scales the fields marked `ranged(..., scales=floor)`, not a list: the
+    current ones as the hand-written list did (rounded, at least the floor, 0 stays 0), and
+    one declared later without touching `sync4d.config`."""
+    import dataclasses
+
+    from sync4d.config import phase2_budget
+    from sync4d.phase2.motion import MotionConfig
+    from sync4d.phase2.trainer import Phase2Config
+    from sync4d.settings import budget_floor, ranged
+
+    motion = MotionConfig(refine_steps=40, refine_texture_rounds=2, refine_retrack_steps=80)
+    p2 = Phase2Config(iterations=1000, motion=motion)
+    got = phase2_budget(p2, 60)
+    assert got.iterations == 60
+    starts = (got.motion_start, got.velocity_start, got.warmup_start, got.warmup_end)
+    assert starts == (12, 18, 30, 60) and got.residual_start == 36
+    m = got.motion
+    assert (m.refine_steps, m.refine_retrack_steps, m.refine_texture_rounds) == (2, 5, 0)
+    assert phase2_budget(p2, 2).motion.refine_steps == 1  # floor 1
+    assert phase2_budget(Phase2Config(iterations=1000), 60).motion.refine_steps == 0  # 0 stays
+    assert phase2_budget(p2, 1000) is p2
+
+    @dataclasses.dataclass(frozen=True)
+    class WithNewTerm(Phase2Config):
+        lambda_new: float = ranged(0.1, 0.0)
+        new_start: int = ranged(400, 0, scales=0)
+
+    new = phase2_budget(WithNewTerm(iterations=1000), 100)
+    assert new.new_start == 40 and new.motion_start == 20 and new.lambda_new == 0.1
+
+    # Every start (and the warm-up's end) of Phase 2 is marked.
+    for f in dataclasses.fields(Phase2Config):
+        if f.name.endswith(("_start", "_end")):
+            assert budget_floor(f) == 0, f.name
+    tau = next(f for f in dataclasses.fields(Phase2Config) if f.name == "tau")
+    assert budget_floor(tau) is None
+    with pytest.raises(TypeError, match="scales"):
+        ranged(0.5, 0.0, scales=0)

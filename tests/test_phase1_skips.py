@@ -50,7 +50,7 @@ def test_coarse_target_is_the_area_average_of_the_image(tmp_path: Path) -> None:
     trainer = _trainer(tmp_path, coarse_iterations=5, coarse_scale=0.5)
     frame = trainer.scene.train[0]
     camera, small = trainer._coarse_view(0, frame)
-    full = trainer._image(0, frame)
+    full = trainer.image(0, frame)
     want = full.reshape(16, 2, 20, 2, 3).mean(dim=(1, 3))
     assert (camera.width, camera.height) == (20, 16)
     assert torch.allclose(small, want, atol=1e-6)

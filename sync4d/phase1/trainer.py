@@ -3,6 +3,17 @@ frame per iteration, Adam with per-group learning rates and the usual exponentia
 position learning rate, the SH-degree schedule, and adaptive density control.
 
 This module holds the loop only; data loading, checkpoints and the command line live elsewhere.
+
+What the loop does is composed, not overridden, where it is a policy: densification is the
+`Densifier` strategy (its settings `densify`, default `Phase1Config.densify`), and the
+iteration schedules (coarse resolution, SH degree, D_theta's warm-up) are a `Phase1Schedule`
+(`FinishedSchedule` for a trainer that continues a finished model), both passed at
+construction. A trainer that adds to the loop (Phase 2) subclasses `Phase1Trainer` and
+overrides these hooks only: `auxiliary_loss` (losses added to the photometric one),
+`on_gaussians_changed` (after densification changed N), `update_learning_rates` (after the
+loop set its groups' rates) and `step` (to extend an iteration), plus `state` / `restore` /
+`from_state` for its checkpoint. Other modules read the trainer through public names
+(`image`, `background`), never its private attributes.
 """
 
 from __future__ import annotations
@@ -30,7 +41,7 @@ from sync4d.phase1.static import (
 )
 from sync4d.settings import choice, ranged
 
-__all__ = ["Phase1Config", "Phase1Trainer"]
+__all__ = ["FinishedSchedule", "Phase1Config", "Phase1Schedule", "Phase1Trainer"]
 
 
 @dataclass(frozen=True)
@@ -121,6 +132,55 @@ class Phase1Config:
     static: StaticConfig = field(default_factory=StaticConfig)
 
 
+class Phase1Schedule:
+    """Phase 1's iteration schedules, asked at every step: coarse iterations (`coarse_scale`
+    for the first `coarse_iterations`), the SH degree (one band more every
+    `sh_degree_interval`) and D_theta's static warm-up and rate ramp (`static_warmup`,
+    `lr_deform_warmup`)."""
+
+    def __init__(self, config: Phase1Config) -> None:
+        self.config = config
+
+    def coarse(self, iteration: int) -> bool:
+        """Whether `iteration` trains at `coarse_scale` (the first `coarse_iterations`)."""
+        c = self.config
+        return c.coarse_scale < 1.0 and iteration <= c.coarse_iterations
+
+    def sh_degree(self, iteration: int, full: int) -> int:
+        """SH degree used at `iteration` (at most `full`): one more every `sh_degree_interval`."""
+        return min(full, (iteration - 1) // self.config.sh_degree_interval)
+
+    def deform_active(self, iteration: int) -> bool:
+        """Whether D_theta deforms the Gaussians at `iteration` (not during the static
+        warm-up)."""
+        return iteration > self.config.static_warmup
+
+    def deform_lr_factor(self, iteration: int) -> float:
+        """The warm-up ramp's factor on D_theta's and the embeddings' rates, in (0, 1]."""
+        c = self.config
+        if c.lr_deform_warmup <= 0:
+            return 1.0
+        return min(1.0, max(1, iteration - c.static_warmup) / c.lr_deform_warmup)
+
+
+class FinishedSchedule:
+    """The schedules once Phase 1 is over, for a trainer that continues its model (Phase 2):
+    full resolution, the full SH degree, D_theta on at its full rate, whatever the config's
+    Phase 1 schedules say. `Phase1Schedule`'s methods."""
+
+    def coarse(self, iteration: int) -> bool:
+        return False
+
+    def sh_degree(self, iteration: int, full: int) -> int:
+        return full
+
+    def deform_active(self, iteration: int) -> bool:
+        return True
+
+    def deform_lr_factor(self, iteration: int) -> float:
+        return 1.0
+
+
 class Phase1Trainer:
     """Owns the optimizer, densifier and image cache for one `DeformableGaussians` model."""
 
@@ -134,7 +194,12 @@ class Phase1Trainer:
         config: Phase1Config | None = None,
         total_iterations: int | None = None,
         threads: int | None = None,
+        *,
+        densify: DensifyConfig | None = None,
+        schedule: Phase1Schedule | FinishedSchedule | None = None,
     ) -> None:
+        """`densify`: the densification strategy's settings (default `config.densify`);
+        `schedule`: the iteration schedules (default `Phase1Schedule(config)`)."""
         self.model = model
         self.scene = scene
         self.config = config or Phase1Config()
@@ -143,7 +208,8 @@ class Phase1Trainer:
         self.threads = threads
         self.extent = scene_extent(scene)
         self.iteration = 0
-        self.densifier = Densifier(self.config.densify, seed=self.config.seed)
+        self.schedule: Phase1Schedule | FinishedSchedule = schedule or Phase1Schedule(self.config)
+        self.densifier = Densifier(densify or self.config.densify, seed=self.config.seed)
         self._rng = random.Random(self.config.seed)
         self._images: dict[int, torch.Tensor] = {}
         self._background = torch.tensor(self.config.background, dtype=torch.float32)
@@ -174,23 +240,28 @@ class Phase1Trainer:
             fused=True,  # one multithreaded kernel for all groups: ~4x faster than the default
         )
 
-    def _image(self, index: int, frame: Frame) -> torch.Tensor:
+    @property
+    def background(self) -> torch.Tensor:
+        """The RGB [3] (float32) composited behind the Gaussians (`Phase1Config.background`)."""
+        return self._background
+
+    def image(self, index: int, frame: Frame) -> torch.Tensor:
+        """Training frame `index`'s target image [H, W, 3] (`frame`'s, composited on the
+        background), loaded once and cached."""
         if index not in self._images:
             self._images[index] = torch.from_numpy(frame.load_image(self.config.background))
         return self._images[index]
 
     def coarse(self) -> bool:
-        """Whether the current iteration trains at `coarse_scale` (the first
-        `coarse_iterations`)."""
-        c = self.config
-        return c.coarse_scale < 1.0 and self.iteration <= c.coarse_iterations
+        """Whether the current iteration trains at `coarse_scale` (`schedule`)."""
+        return self.schedule.coarse(self.iteration)
 
     def _coarse_view(self, index: int, frame: Frame) -> tuple[Camera, torch.Tensor]:
         """`frame`'s camera and target image at `coarse_scale` (the image area-averaged to
         the camera's size, cached until the coarse iterations end)."""
         camera = frame.camera.scaled(self.config.coarse_scale)
         if index not in self._coarse_images:
-            full = self._image(index, frame).permute(2, 0, 1).unsqueeze(0)
+            full = self.image(index, frame).permute(2, 0, 1).unsqueeze(0)
             small = F.interpolate(full, size=(camera.height, camera.width), mode="area")
             self._coarse_images[index] = small[0].permute(1, 2, 0).contiguous()
         return camera, self._coarse_images[index]
@@ -208,18 +279,16 @@ class Phase1Trainer:
         return self._decayed(c.lr_means, c.lr_means_final) * self.extent
 
     def deform_active(self) -> bool:
-        """Whether D_theta deforms the Gaussians at the current iteration (not during the
-        static warm-up)."""
-        return self.iteration > self.config.static_warmup
+        """Whether D_theta deforms the Gaussians at the current iteration (`schedule`)."""
+        return self.schedule.deform_active(self.iteration)
 
     def deform_lr_factor(self) -> float:
-        """The warm-up ramp's factor on D_theta's and the embeddings' rates, in (0, 1]."""
-        c = self.config
-        if c.lr_deform_warmup <= 0:
-            return 1.0
-        return min(1.0, max(1, self.iteration - c.static_warmup) / c.lr_deform_warmup)
+        """The warm-up ramp's factor on D_theta's and the embeddings' rates (`schedule`)."""
+        return self.schedule.deform_lr_factor(self.iteration)
 
-    def _update_learning_rates(self) -> None:
+    def update_learning_rates(self) -> None:
+        """Set the rates of this iteration: the means' and D_theta's decays, the ramp (a hook:
+        a subclass adds its own optimizers' rates after these)."""
         c = self.config
         ramp = self.deform_lr_factor()
         for g in self.optimizer.param_groups:
@@ -236,7 +305,7 @@ class Phase1Trainer:
         if self.densifier.reset_due(self.iteration):
             self.densifier.reset_opacity(self.model, self.optimizer)
         self.iteration += 1
-        self._update_learning_rates()
+        self.update_learning_rates()
         idx = self._rng.randrange(len(self.scene.train))
         frame = self.scene.train[idx]
         if self.coarse():
@@ -244,7 +313,7 @@ class Phase1Trainer:
             self.coarse_pixels += camera.width * camera.height
             self.coarse_full_pixels += frame.camera.width * frame.camera.height
         else:
-            camera, target = frame.camera, self._image(idx, frame)
+            camera, target = frame.camera, self.image(idx, frame)
             self._coarse_images.clear()
         self.pixels += frame.camera.width * frame.camera.height
         degree = self.sh_degree_now()
@@ -313,18 +382,20 @@ class Phase1Trainer:
         return self.last_static_update
 
     def sh_degree_now(self) -> int:
-        """SH degree used at the current iteration: one more every `sh_degree_interval`."""
-        return min(self.model.sh_degree, (self.iteration - 1) // self.config.sh_degree_interval)
+        """SH degree used at the current iteration (`schedule`)."""
+        return self.schedule.sh_degree(self.iteration, self.model.sh_degree)
 
     def auxiliary_loss(
         self, frame: Frame, means: torch.Tensor
     ) -> tuple[torch.Tensor | None, dict[str, float]]:
         """Loss terms added to the photometric loss for `frame`, given the deformed means
-        [N, 3] the render used, and scalars to report; Phase 1 has none (Phase 2 overrides)."""
+        [N, 3] the render used, and scalars to report; Phase 1 has none (a hook: Phase 2 sums
+        its loss terms here)."""
         return None, {}
 
     def on_gaussians_changed(self) -> None:
-        """Called after densification changed the number of Gaussians (Phase 2 re-assigns)."""
+        """Called after densification changed the number of Gaussians (a hook: Phase 2
+        re-assigns)."""
 
     def train(self, iterations: int, callback: Callable[[int, dict], None] | None = None) -> dict:
         """Run `iterations` steps, calling `callback(iteration, stats)` after each."""

@@ -1,8 +1,8 @@
 """Phase 2 (paper Sec. 3.2-3.4, Appendices A and C): per-object motion decomposition during
 training, on a Phase 1 model. Object labels (`assign`), the shared motion M_phi (`motion`), the
-trainer with the paper's regularisers (`trainer`), the photometric refinement of M_phi's start
-(`refine`, not in the paper) and the diagnostics and motion export (`diagnostics`). Imports
-Phase 1 and what Phase 1 imports, nothing above.
+paper's regularisers as loss-term objects (`terms`), the trainer that sums them (`trainer`),
+the photometric refinement of M_phi's start (`refine`, not in the paper) and the diagnostics
+and motion export (`diagnostics`). Imports Phase 1 and what Phase 1 imports, nothing above.
 """
 
 from sync4d.phase2.assign import AssignConfig, Assignment

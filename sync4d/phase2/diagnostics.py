@@ -95,7 +95,7 @@ def diagnostics(trainer: Phase2Trainer, shuffles: int = 5, seed: int = 0) -> dic
         ],  # fmt: skip
         "rigid_share": rho_all / nt,
         "residual_energy": energy / nt,
-        "modulated_fraction": float((m > 0.5).float().mean()) if trainer._ema_started else 0.0,
+        "modulated_fraction": float((m > 0.5).float().mean()) if trainer.ema_started else 0.0,
         "shuffle_ratio": float(np.mean(ratios)) if ratios else math.nan,
         "shuffle_ratios": ratios,
         "assignment": trainer.assignment.source,

@@ -73,7 +73,7 @@ class MotionConfig:
     #: closed-form fit follows D_theta's point correspondences, and D_theta may morph a turning
     #: shape instead of rotating its Gaussians (measured on the embedded scene: 9 of the box's 45
     #: degrees); the images pin the rotation down. Not in the paper.
-    refine_steps: int = ranged(0, 0)
+    refine_steps: int = ranged(0, 0, scales=1)
     #: Adam learning rate of the refinement (radians and metres per step) at each frame's first
     #: step; it is cosine-annealed to `refine_lr_final` over the frame's steps.
     refine_lr: float = ranged(0.01, 0.0, lo_open=True)
@@ -91,13 +91,13 @@ class MotionConfig:
     #: are averaged over a morph, so the rigidly turned template is blurred where the object
     #: turned most and pulls those poses toward the blur (embedded scene, phase1.seed 42: ball
     #: 2.00 -> 0.85 degrees with one round, docs/results/phase2-robustness.md). Not in the paper.
-    refine_texture_rounds: int = ranged(0, 0)
+    refine_texture_rounds: int = ranged(0, 0, scales=0)
     #: Adam learning rate of the texture fit (SH DC units per step).
     refine_colour_lr: float = ranged(0.005, 0.0, lo_open=True)
     #: Passes over every training view in each texture fit (one view per step).
     refine_colour_epochs: int = ranged(2, 0)
     #: Adam steps per frame when re-tracking after a texture fit; 0: `refine_steps`.
-    refine_retrack_steps: int = ranged(0, 0)
+    refine_retrack_steps: int = ranged(0, 0, scales=1)
     #: Adam learning rate at the first re-tracking step of each frame (annealed to
     #: `refine_lr_final` like the first pass); 0: `refine_lr`.
     refine_retrack_lr: float = ranged(0.0, 0.0)

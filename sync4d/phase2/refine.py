@@ -347,10 +347,10 @@ def _template_loss(
     means, quaternions and scales and base colours `sh_dc` [N, 1, 3]."""
     frame = trainer.scene.train[index]
     out = trainer.model.render(
-        frame.camera, t, sh_degree=trainer.model.sh_degree, background=trainer._background,
+        frame.camera, t, sh_degree=trainer.model.sh_degree, background=trainer.background,
         deformed=deformed, sh_dc=sh_dc, threads=trainer.threads,
     )  # fmt: skip
     return photometric_loss(
-        out.features, trainer._image(index, frame), trainer.config.lambda_l1,
+        out.features, trainer.image(index, frame), trainer.config.lambda_l1,
         trainer.config.lambda_dssim, threads=trainer.threads,
     )  # fmt: skip

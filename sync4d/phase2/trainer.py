@@ -6,14 +6,18 @@ x~_i(t) = M_phi(o(i), t)(x0_i) (Eq. 5), and the residual r_i(t) = x_i(t) - x~_i(
 enters five regularisers plus the identity prior on static objects. Rendering is untouched: it
 always uses D_theta's x_i(t).
 
-Staged activation (Appendix A): M_phi and the smoothness, rigid-share and identity terms from
-iteration `motion_start` (200), velocity coherence from `velocity_start` (300), the modulated
-residual energy from `residual_start` (600), and a linear warm-up of all auxiliary terms over
-[`warmup_start`, `warmup_end`] (500-1000). The paper's "400-iteration head start lets shared
-transforms capture the dominant rigid component first" needs M_phi to learn before the warm-up
-ends, so the warm-up scales only the gradient the auxiliary terms send into the scene (D_theta,
-Gaussians); M_phi always sees them at full weight from their start iteration. `simultaneous`
-switches every term on at iteration 0 without warm-up (the paper's failing ablation).
+The regularisers are loss-term objects (`sync4d.phase2.terms`: each its weight and start from
+this config), summed by `auxiliary_loss` in their order; `Phase2Trainer(terms=...)` replaces
+them. Staged activation (Appendix A): M_phi and the smoothness, rigid-share and identity terms
+from iteration `motion_start` (200), velocity coherence from `velocity_start` (300), the
+modulated residual energy from `residual_start` (600), and a linear warm-up of all auxiliary
+terms over [`warmup_start`, `warmup_end`] (500-1000). Each of these fields is declared
+`ranged(..., scales=0)`, so `fit --iters` scales it (`sync4d.config.phase2_budget`). The
+paper's "400-iteration head start lets shared transforms capture the dominant rigid component
+first" needs M_phi to learn before the warm-up ends, so the warm-up scales only the gradient
+the auxiliary terms send into the scene (D_theta, Gaussians); M_phi always sees them at full
+weight from their start iteration. `simultaneous` switches every term on at iteration 0
+without warm-up (the paper's failing ablation).
 
 Before the loop, `MotionConfig.init = "fit"` starts the SE(3) table at the closed-form fit of
 D_theta's motion, and `refine_steps` > 0 refines it photometrically (not in the paper;
@@ -28,6 +32,15 @@ canonical Gaussians onto those mean positions): M_phi masks them (no gradient), 
 moments are cleared and the refinement skips them. When every object is still the scene has
 no motion: with `skip_still_scene` (default) all are held and `skip_loop` marks Phase 2's
 iterations done without running them (`sync4d.pipeline.fit` says so). Counters: `skip_counts`.
+
+Shape: `Phase2Trainer` is Phase 1's loop (it subclasses `Phase1Trainer`) with its policies
+passed in at construction, not rewritten afterwards: the densifier's settings
+(`phase2_densify`: no pruning after Phase 1's stop; no densification without `densify`) and
+the `FinishedSchedule` (full resolution, full SH degree, D_theta on at its full rate). It
+overrides Phase 1's documented hooks only: `auxiliary_loss` (the terms), `on_gaussians_changed`
+(re-assignment), `update_learning_rates` (M_phi's rate) and `step` (M_phi's update), plus the
+checkpoint's `state` / `restore` / `from_state`. `refine` and `diagnostics` read it through
+public names (`image`, `background`, `ema_started`, ...).
 """
 
 from __future__ import annotations
@@ -41,10 +54,11 @@ import torch
 from torch import Tensor
 
 from sync4d.data.scene import Frame, Scene
+from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import FinishedSchedule, Phase1Config, Phase1Trainer
 from sync4d.phase2.assign import AssignConfig, Assignment, assign_objects, displacement_curves
-from sync4d.phase2.diagnostics import diagnostics, motion_export, rigid_share
+from sync4d.phase2.diagnostics import diagnostics, motion_export
 from sync4d.phase2.motion import (
     MotionConfig,
     ObjectMotion,
@@ -53,9 +67,10 @@ from sync4d.phase2.motion import (
     still_objects,
 )
 from sync4d.phase2.refine import refine_motion
+from sync4d.phase2.terms import LossTerm, TermContext, default_terms, scale_grad
 from sync4d.settings import ranged
 
-__all__ = ["Phase2Config", "Phase2Trainer", "frame_times"]
+__all__ = ["Phase2Config", "Phase2Trainer", "frame_times", "phase2_densify"]
 
 
 @dataclass(frozen=True)
@@ -84,15 +99,15 @@ class Phase2Config:
     #: Epsilon in the rigid share's denominator (metres).
     share_eps: float = ranged(1e-6, 0.0, lo_open=True)
     #: Iteration from which M_phi trains and the smoothness, rigid-share and identity terms act.
-    motion_start: int = ranged(200, 0)
+    motion_start: int = ranged(200, 0, scales=0)
     #: Iteration from which the velocity coherence term acts.
-    velocity_start: int = ranged(300, 0)
+    velocity_start: int = ranged(300, 0, scales=0)
     #: Start of the linear warm-up of the auxiliary terms' gradient into the scene.
-    warmup_start: int = ranged(500, 0)
+    warmup_start: int = ranged(500, 0, scales=0)
     #: End of that warm-up (full weight from here).
-    warmup_end: int = ranged(1000, 0)
+    warmup_end: int = ranged(1000, 0, scales=0)
     #: Iteration from which the modulated residual energy acts.
-    residual_start: int = ranged(600, 0)
+    residual_start: int = ranged(600, 0, scales=0)
     #: Keep densifying (clone/split/prune, opacity reset) on Phase 1's schedule, counted from
     #: Phase 2's first iteration; every change re-runs the assignment. Off by default: Phase 1's
     #: densification window is over when Phase 2 starts.
@@ -149,11 +164,16 @@ def frame_times(scene: Scene) -> np.ndarray:
     return np.unique(np.asarray([f.time for f in scene.train], dtype=np.float64))
 
 
-def _scale_grad(x: Tensor, scale: float) -> Tensor:
-    """`x` in the forward pass, with its gradient multiplied by `scale`."""
-    if scale >= 1.0:
-        return x
-    return x.detach() + scale * (x - x.detach())
+def phase2_densify(d: DensifyConfig, p: Phase2Config) -> DensifyConfig:
+    """The densifier settings of Phase 2 from Phase 1's `d`: Phase 2 refines a finished
+    reconstruction, so its rows change only through its own `densify` switch (on Phase 1's
+    schedule, counted from Phase 2's first iteration), never by Phase 1's pruning after
+    densification."""
+    d = dataclasses.replace(d, prune_after_stop=False)
+    if not p.densify:
+        never = 2**62
+        d = dataclasses.replace(d, start=never, opacity_reset_interval=never)
+    return d
 
 
 class _Positions:
@@ -184,22 +204,21 @@ class Phase2Trainer(Phase1Trainer):
         threads: int | None = None,
         assignment: Assignment | None = None,
         start_motion: bool = True,
+        terms: list[LossTerm] | None = None,
     ) -> None:
         """`assignment`: the object labels (default: `assign_objects`); `start_motion`: fit
         (and refine) M_phi's start when `MotionConfig.init` is "fit" (off when a checkpoint's
-        state replaces it)."""
+        state replaces it); `terms`: the regularisers, summed in order (default: the paper's,
+        `sync4d.phase2.terms.default_terms`)."""
         phase2 = phase2 or Phase2Config()
         total = phase2.iterations if total_iterations is None else total_iterations
-        super().__init__(model, scene, config, total, threads)
+        densify = phase2_densify((config or Phase1Config()).densify, phase2)
+        super().__init__(
+            model, scene, config, total, threads, densify=densify, schedule=FinishedSchedule()
+        )
         self.phase2 = phase2
-        # Phase 2 refines a finished reconstruction: its rows change only through its own
-        # `densify` switch (never by Phase 1's pruning after densification).
-        self.densifier.config = dataclasses.replace(self.densifier.config, prune_after_stop=False)
-        if not self.phase2.densify:
-            never = 2**62
-            self.densifier.config = dataclasses.replace(
-                self.densifier.config, start=never, opacity_reset_interval=never
-            )
+        #: The loss terms `auxiliary_loss` sums, in order.
+        self.terms: list[LossTerm] = default_terms(phase2) if terms is None else list(terms)
         self.times = frame_times(scene)
         self.assignment = assignment or assign_objects(
             model, scene, self.extent, self.phase2.assign
@@ -354,8 +373,10 @@ class Phase2Trainer(Phase1Trainer):
     # -- assignment state ----------------------------------------------------------------
     def _set_labels(self, labels: np.ndarray) -> None:
         self.labels = torch.as_tensor(labels, dtype=torch.long)
+        #: EMA of each Gaussian's residual magnitude (the modulation's, Eq. 8) and whether it
+        #: has had its first value since the labels were set.
         self.residual_ema = torch.zeros(len(labels))
-        self._ema_started = False
+        self.ema_started = False
 
     @torch.no_grad()
     def _static_objects(self) -> Tensor:
@@ -383,14 +404,6 @@ class Phase2Trainer(Phase1Trainer):
         self._set_labels(a.labels)
         self.hold_still_objects()
 
-    def sh_degree_now(self) -> int:
-        """Phase 1 has reached the full SH degree: Phase 2 renders with it throughout."""
-        return self.model.sh_degree
-
-    def coarse(self) -> bool:
-        """Phase 2 trains at full resolution throughout (Phase 1's coarse iterations are over)."""
-        return False
-
     # -- schedule --------------------------------------------------------------------------
     def _active(self, start: int) -> bool:
         return self.phase2.simultaneous or self.iteration >= start
@@ -407,58 +420,52 @@ class Phase2Trainer(Phase1Trainer):
         """Update the EMA of ||r_i|| (eta) and return m_i = sigmoid(z-score) [N] (Eq. 8)."""
         eta = self.phase2.eta
         r = residual_norm.detach()
-        if not self._ema_started:
+        if not self.ema_started:
             self.residual_ema = r.clone()
-            self._ema_started = True
+            self.ema_started = True
         else:
             self.residual_ema = eta * self.residual_ema + (1 - eta) * r
         ema = self.residual_ema
         return torch.sigmoid((ema - ema.mean()) / (ema.std(unbiased=False) + 1e-6))
 
     def auxiliary_loss(self, frame: Frame, means: Tensor) -> tuple[Tensor | None, dict[str, float]]:
+        """The sum of the loss terms (`terms`, in order) on `frame` from M_phi's start, given
+        D_theta's positions `means` [N, 3] the render used; reports each term as ``L_<name>``
+        and the mean rigid share as ``rho``."""
         p = self.phase2
         if not p.use_motion or not self._active(p.motion_start):
             return None, {}
-        j = self.motion.frame_index(frame.time)
-        x0 = self.model.means
-        # The scene side (D_theta, canonical means) gets the warm-up-scaled gradient.
-        w = self._warmup()
-        x = _scale_grad(means, w)
-        x0s = _scale_grad(x0, w)
-        x_obj = self.motion(x0s, self.labels, float(self.times[j]))
-        r = x - x_obj
+        ctx = self._term_context(frame, means)
         terms: dict[str, Tensor] = {}
-        terms["smooth"] = p.lambda_smooth * self.motion.smoothness(j)
-        terms["id"] = p.lambda_id * self.motion.identity_prior(j, self.static)
-        rho_i = rigid_share(x0s, x_obj, r, p.share_eps)
-        rho = rho_i.mean()
-        if p.hinge:
-            terms["share"] = p.lambda_share * torch.clamp(p.tau - rho, min=0.0) ** 2
-        if j > 0 and self._active(p.velocity_start):
-            t_prev = float(self.times[j - 1])
-            x_prev = _scale_grad(self.model.at_time(t_prev)[0], w)
-            x_obj_prev = self.motion(x0s, self.labels, t_prev)
-            d = (x - x_prev) - (x_obj - x_obj_prev)
-            terms["vel"] = p.lambda_vel * (d * d).sum(-1).mean()
-        rn = r.norm(dim=-1)
-        m = self.modulation_weights(rn) if p.modulation else torch.zeros_like(rn)
-        if self._active(p.residual_start):
-            terms["res"] = p.lambda_res * ((1.0 - m) * rn * rn).mean()
+        for term in self.terms:
+            term.observe(ctx)
+            if term.applies(ctx):
+                terms[term.name] = term.loss(ctx)
         total = sum(terms.values())
         stats = {f"L_{k}": float(v.detach()) for k, v in terms.items()}
-        stats["rho"] = float(rho.detach())
+        stats["rho"] = float(ctx.rho.detach())
         return total, stats
 
-    def deform_active(self) -> bool:
-        """D_theta is always on in Phase 2 (Phase 1's static warm-up is behind it)."""
-        return True
+    def _term_context(self, frame: Frame, means: Tensor) -> TermContext:
+        """The terms' view of this iteration: M_phi's positions of the canonical Gaussians at
+        `frame`'s stored time and the residuals of D_theta's `means`. The scene side
+        (D_theta, canonical means) gets the warm-up-scaled gradient."""
+        p = self.phase2
+        j = self.motion.frame_index(frame.time)
+        w = self._warmup()
+        x = scale_grad(means, w)
+        x0s = scale_grad(self.model.means, w)
+        x_obj = self.motion(x0s, self.labels, float(self.times[j]))
+        return TermContext(
+            iteration=self.iteration, simultaneous=p.simultaneous, motion=self.motion,
+            model=self.model, labels=self.labels, static=self.static, times=self.times, j=j,
+            w=w, x=x, x0=x0s, x_obj=x_obj, r=x - x_obj, share_eps=p.share_eps,
+            modulate=self.modulation_weights,
+        )  # fmt: skip
 
-    def deform_lr_factor(self) -> float:
-        """Phase 1's warm-up ramp of D_theta's rate is behind Phase 2: full rate."""
-        return 1.0
-
-    def _update_learning_rates(self) -> None:
-        super()._update_learning_rates()
+    def update_learning_rates(self) -> None:
+        """Phase 1's rates, then M_phi's (cosine from `motion.lr` to `motion.lr_final`)."""
+        super().update_learning_rates()
         mc = self.phase2.motion
         lr = cosine_lr(mc.lr, mc.lr_final, self.iteration / self.total)
         for g in self.motion_optimizer.param_groups:
@@ -510,7 +517,7 @@ class Phase2Trainer(Phase1Trainer):
             "motion_config": dataclasses.asdict(self.phase2.motion),
             "motion_rigid": self.motion.rigid,
             "times": [float(t) for t in self.times],
-            "ema_started": self._ema_started,
+            "ema_started": self.ema_started,
             "motion_adam_steps": steps,
         }
         return tensors, meta
@@ -557,7 +564,7 @@ class Phase2Trainer(Phase1Trainer):
                     "exp_avg_sq": tensors[f"motion_optim.{key}.exp_avg_sq"].clone(),
                 }
         self.residual_ema = tensors["phase2.residual_ema"].clone()
-        self._ema_started = bool(info["ema_started"])
+        self.ema_started = bool(info["ema_started"])
         self.static = tensors["phase2.static"].to(torch.bool).clone()
         # The stored flags (``motion.frozen``), unless the switches that set them are now off.
         p = self.phase2
