@@ -10,7 +10,7 @@ one `fit` runs in one process, so a change to Phase 2 is re-measured without Pha
 
 Each run is its own `python` process (ATEN_CPU_CAPABILITY is read when torch starts), with
 `--threads` torch and rasterizer threads; `--jobs` runs go at once. Each fits the scene and
-schedule of tests/test_phase2_end_to_end.py (the embedded scene, 128x128, 40 time steps, with
+schedule of tests/phase2/test_phase2_end_to_end.py (the embedded scene, 128x128, 40 time steps, with
 sync4d/configs/synthetic.toml: 3000 Phase 1 iterations, the refinement, 1000 Phase 2), seeded with
 `phase1.seed`; `--frames` changes the number of time steps. Prints a markdown table (errors
 per object, per seed, per kernel set, and whether each run holds the test's bounds) and
@@ -29,7 +29,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-#: The bounds tests/test_phase2_end_to_end.py asserts: (rotation degrees, centre % of extent).
+#: The bounds tests/phase2/test_phase2_end_to_end.py asserts: (rotation degrees, centre % of
+#: extent).
 MOVING_BOUND = (2.0, 2.0)
 STATIC_BOUND = (1.0, 0.5)
 SHUFFLE_BOUND = 1.5

@@ -30,7 +30,7 @@ Method:
   a watchdog kills the child if its RSS passes ``--reference-max-gb`` (default 18 GiB, capped
   at the memory available minus 1.5 GiB); larger configs at that thread count are then
   skipped. The reference uses gsplat's own conventions (alpha clamp 0.999) and sync4d its
-  defaults (0.99): these are timings, parity is tested in ``tests/test_parity_gsplat.py``.
+  defaults (0.99): these are timings, parity is tested in ``tests/raster/test_parity_gsplat.py``.
 * **Contention** — each measurement records ``other_load_cores``, the CPU cores other
   processes kept busy meanwhile (``/proc/stat`` minus this process and its children); above
   0.15 the progress line and the summary flag the timing as disturbed.

@@ -10,7 +10,7 @@ We locate the file with ``importlib.util.find_spec`` (the package's jax code is 
 check its SHA-256 against the pinned digest and read it with an unpickler that only admits the
 three numpy reconstruction hooks, so a tampered file cannot run code. The linear heads are
 identical to the official ``lpips`` package's ``weights/v0.1/alex.pth``, and given the same
-AlexNet weights that package's network gives the same distances (tests/test_lpips.py;
+AlexNet weights that package's network gives the same distances (tests/metrics/test_lpips.py;
 docs/metrics.md).
 
 ``$SYNC4D_LPIPS_WEIGHTS`` may point at the ``alexnet.ckpt`` file directly.

@@ -1,0 +1,103 @@
+"""The pipeline reports as events (`sync4d.events`): a small fit's sequence, silence without
+a subscriber, and the command line's renderer (`sync4d.progress.TerminalRenderer`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from support.datasets import write_blender
+from sync4d.config import apply_overrides, load_config, with_budget
+from sync4d.data import load_scene
+from sync4d.events import Advanced, Finished, Note, PhaseDone, Started, emit, note, subscribe
+from sync4d.pipeline import run_fit
+from sync4d.progress import TerminalRenderer
+
+SMALL = ["init_points=300", "eval_frames=2", "phases=1", "eval_every=3", "checkpoint_every=0"]
+
+
+def _fit(tmp_path: Path, name: str) -> dict:
+    root = tmp_path / "tiny"
+    if not root.exists():
+        write_blender(root, n=4, size=24)
+    cfg = apply_overrides(with_budget(load_config(None), 6), SMALL)
+    return run_fit(load_scene(root, 1.0, "test"), cfg, tmp_path / name, root, threads=1)
+
+
+def test_a_fit_reports_its_loop_phase_and_evaluation_as_events(tmp_path: Path, capsys) -> None:
+    seen: list = []
+    with subscribe(seen.append):
+        summary = _fit(tmp_path, "run")
+    out = capsys.readouterr()
+    assert out.out == "" and out.err == ""  # a subscriber that prints nothing: nothing printed
+
+    fit = [e for e in seen if getattr(e, "task", None) == "fit"]
+    assert fit[0] == Started("fit", 6, start=0, log_every=100)
+    assert [e.done for e in fit[1:-1]] == [1, 2, 3, 4, 5, 6]
+    assert set(fit[1].stats) == {"loss", "PSNR", "#G"} and fit[-1] == Finished("fit")
+    kinds = [type(e).__name__ for e in seen]
+    i_eval = next(i for i, e in enumerate(seen) if isinstance(e, Note) and "[eval @ 3]" in e.text)
+    assert seen[i_eval - 1] == fit[3] and seen[i_eval].stream == "err"  # after step 3
+    i_phase1 = kinds.index("PhaseDone")
+    skip_lines = seen[seen.index(Finished("fit")) + 1:i_phase1]  # what Phase 1 skipped
+    assert all(isinstance(e, Note) and e.text.startswith("fit: Phase 1") for e in skip_lines)
+    assert seen[i_phase1].phase == "phase1" and seen[i_phase1].summary["iteration"] == 6
+
+    # The final evaluation (LPIPS cannot run on 24x24 images: one note says why).
+    tail = [e for e in seen[i_phase1 + 1:] if not (isinstance(e, Note) and " n/a: " in e.text)]
+    assert tail[0] == Started("eval test", 4, log_every=4)
+    assert [e.done for e in tail[1:5]] == [1, 2, 3, 4] and tail[5] == Finished("eval test")
+    table, wrote, done = tail[6:]
+    assert table.stream == wrote.stream == "out" and table.detail and wrote.detail
+    assert "mean" in table.text and wrote.text.startswith("eval: wrote ")
+    assert done.phase == "eval" and done.summary["psnr"] == pytest.approx(summary["psnr"])
+
+
+def test_without_a_subscriber_the_pipeline_prints_nothing(tmp_path: Path, capsys) -> None:
+    _fit(tmp_path, "run")
+    out = capsys.readouterr()
+    assert out.out == "" and out.err == ""
+
+
+def test_the_terminal_renderer_prints_the_commands_lines(tmp_path: Path, capsys) -> None:
+    with TerminalRenderer().installed():
+        _fit(tmp_path, "run")
+    out = capsys.readouterr()
+    err = out.err.splitlines()
+    assert any(ln.startswith("fit 6/6 [") and "ETA" in ln for ln in err)
+    assert any(ln.startswith("[eval @ 3] test PSNR") for ln in err)
+    assert any(ln.startswith("eval test 4/4 [") for ln in err)
+    assert "mean" in out.out and "eval: wrote " in out.out
+    with TerminalRenderer(details=False).installed():  # bench fit: no tables
+        _fit(tmp_path, "again")
+    out = capsys.readouterr()
+    assert out.out == "" and "fit 6/6 [" in out.err
+
+
+def test_subscriptions_end_with_their_block(capsys) -> None:
+    first: list = []
+    second: list = []
+    note("nobody hears this")
+    with subscribe(first.append):
+        emit(Started("loop", 2))
+        with subscribe(second.append) as sub:
+            emit(Advanced("loop", 1, {"loss": "1.0"}))
+            sub.close()  # closing twice is harmless
+        note("done", "out", detail=True)
+    emit(Finished("loop"))
+    assert first == [Started("loop", 2), Advanced("loop", 1, {"loss": "1.0"}),
+                     Note("done", "out", True)]  # fmt: skip
+    assert second == [Advanced("loop", 1, {"loss": "1.0"})]
+    assert capsys.readouterr().err == ""
+    renderer = TerminalRenderer()
+    with renderer.installed():
+        emit(Started("loop", 2, log_every=1))
+        emit(Advanced("loop", 1))
+        note("between")  # through the open bar: on its own line
+        emit(Advanced("loop", 2))
+        emit(Finished("loop"))
+        emit(PhaseDone("phase1", {"iteration": 2}))  # the notes carry the text
+    err = capsys.readouterr().err.splitlines()
+    assert [ln.split(" [")[0] for ln in err] == ["loop 1/2", "between", "loop 2/2"]
+    assert renderer.bars == {}
