@@ -57,7 +57,7 @@ class AssignConfig:
     #: Count background (label 0) hits in the consistency denominator, so the majority over
     #: all K + 1 labels decides. Appendix C's formula counts object labels only (False); that
     #: hands static Gaussians occluded by an object in a few views (e.g. the ground behind it)
-    #: to the object (tests/test_assign.py shows the case), so True is the default.
+    #: to the object (tests/phase2/test_assign.py shows the case), so True is the default.
     background_votes: bool = True
     #: Unsupervised assignment: Gaussians whose displacement never exceeds this fraction of the
     #: scene extent are background; K is searched in [1, max_clusters].

@@ -125,7 +125,7 @@ class Phase2Config:
     #: while a trained static row, which Adam moves by about its rate per step on noise
     #: gradients, makes its Gaussians count about 0.5 (oracle scene, init fit: mean rho 0.37
     #: held vs 0.73; moving rows differ by up to 2e-3 after 10 steps, and are bit-identical
-    #: without the hinge and the modulation: tests/test_phase2_static.py).
+    #: without the hinge and the modulation: tests/phase2/test_phase2_static.py).
     freeze_static: bool = False
     #: When no object moves (each passes the test below), hold every object at its constant
     #: transform and skip Phase 2's loop: its checkpoint is Phase 1's model with those
