@@ -6,7 +6,7 @@ registry (one entry per layout, in detection order). Malformed input raises `Dat
 naming the file and the problem.
 """
 
-from importlib import import_module
+from sync4d.lazy import lazy_exports
 
 #: Public names and the module that defines each, imported on first use (the registry, which
 #: `sync4d --help` reads, needs neither numpy nor a loader).
@@ -15,11 +15,4 @@ _EXPORTS = {
     "load_scene": "detect",
 }  # fmt: skip
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):  # noqa: ANN202 - PEP 562 module attribute
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'sync4d.data' has no attribute {name!r}")
-    module = import_module(f"sync4d.data.{_EXPORTS[name]}")
-    return getattr(module, name)
+__all__, __getattr__ = lazy_exports(__name__, _EXPORTS)

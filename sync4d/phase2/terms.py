@@ -19,6 +19,7 @@ fields, added to `TERMS` (or passed to `Phase2Trainer(terms=...)`). Its start fi
 
 from __future__ import annotations
 
+import abc
 from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING, ClassVar
@@ -102,7 +103,7 @@ def scale_grad(x: Tensor, scale: float) -> Tensor:
 
 
 @dataclass(frozen=True)
-class LossTerm:
+class LossTerm(abc.ABC):
     """One Phase 2 regulariser: `weight` times its `value` from iteration `start` on.
     Subclasses name themselves (`name`) and their `Phase2Config` fields (`weight_key`,
     `start_key`) and give `value`."""
@@ -119,15 +120,17 @@ class LossTerm:
         return cls(getattr(p, cls.weight_key), getattr(p, cls.start_key))
 
     def observe(self, ctx: TermContext) -> None:
-        """Called on every iteration the auxiliary losses run, before `applies`."""
+        """Called on every iteration the auxiliary losses run, before `applies`; a term
+        that keeps state between iterations overrides it (nothing to do by default)."""
+        return None
 
     def applies(self, ctx: TermContext) -> bool:
         """Whether the term acts at this iteration: from `start` on."""
         return ctx.active(self.start)
 
+    @abc.abstractmethod
     def value(self, ctx: TermContext) -> Tensor:
         """The unweighted loss (a scalar)."""
-        raise NotImplementedError
 
     def loss(self, ctx: TermContext) -> Tensor:
         """`weight` times `value`."""

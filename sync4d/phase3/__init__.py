@@ -6,7 +6,7 @@ interface, 28-D kinematic features, a per-object closed-form ridge map, blending
 smoothing, and queries that answer which object and when. Evaluation follows Appendix F.
 """
 
-from importlib import import_module
+from sync4d.lazy import lazy_exports
 
 #: Public names and the module that defines each, imported on first use (a query needs neither
 #: torch nor the rasterizer, so `sync4d.phase3.query` stays light).
@@ -17,11 +17,4 @@ _EXPORTS = {
     "build_field": "build", "QueryError": "query", "answer": "query", "query": "query",
 }  # fmt: skip
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):  # noqa: ANN202 - PEP 562 module attribute
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'sync4d.phase3' has no attribute {name!r}")
-    module = import_module(f"sync4d.phase3.{_EXPORTS[name]}")
-    return getattr(module, name)
+__all__, __getattr__ = lazy_exports(__name__, _EXPORTS)

@@ -5,7 +5,7 @@ the pipeline, which fill it. Names are imported on first use, so `sync4d.runs.na
 without torch (a query needs none).
 """
 
-from importlib import import_module
+from sync4d.lazy import lazy_exports
 
 #: Public names and the module that defines each.
 _EXPORTS = {
@@ -18,10 +18,4 @@ _EXPORTS = {
     **dict.fromkeys(("Run", "RunError", "load_run"), "folder"),
 }  # fmt: skip
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):  # noqa: ANN202 - PEP 562 module attribute
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'sync4d.runs' has no attribute {name!r}")
-    return getattr(import_module(f"sync4d.runs.{_EXPORTS[name]}"), name)
+__all__, __getattr__ = lazy_exports(__name__, _EXPORTS)
