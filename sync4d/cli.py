@@ -47,8 +47,9 @@ The grammar, the same for every command:
   * A run is made and extended by fit alone, and fit always names it --out RUN: a new run
     (fit DATA --out RUN), or one continued (--resume), refit from Phase 2 (--phases 2) or
     given its language field (--phases 3), where DATA is optional: the run records it.
-  * Every other command that reads a run takes it first, as RUN (eval, render, query, bench
-    raster, bench phase3); --data DATA names the run's dataset if it has moved."""
+  * Every other command that reads a run takes it first, as RUN (eval, render, query, export,
+    bench raster, bench phase3); --data DATA names the run's dataset if it has moved.
+  * export writes several files at once, so each of its options names one (--scene FILE)."""
 
 
 @dataclass(frozen=True)
@@ -220,6 +221,37 @@ def _query_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-plot", action="store_true", help="write no timeline PNG")
 
 
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", help="run folder written by 'fit'")
+    p.add_argument("--scene", default=None, metavar="FILE.json",
+                   help="the scene description (needs the language field: fit --out RUN "
+                   "--phases 3); embeddings go beside it in FILE.embeddings.safetensors")
+    p.add_argument("--prompt", default=None, metavar="FILE.txt",
+                   help="a plain-text summary of the scene description for an LLM")
+    p.add_argument("--vocab", default=None, metavar="FILE",
+                   help="vocabulary (one entry per line, or a JSON list): each object's "
+                   "nearest entries, and where each entry is active")
+    p.add_argument("--query", nargs="+", default=None, metavar="TEXT",
+                   help="queries whose active frames go into the description")
+    p.add_argument("--ply", default=None, metavar="FILE.ply",
+                   help="the Gaussians as a 3DGS PLY (gsplat's layout plus object_id)")
+    p.add_argument("--spz", default=None, metavar="FILE.spz",
+                   help="the Gaussians as SPZ (compressed, lossy; no object ids)")
+    p.add_argument("--time", type=float, default=None, metavar="T",
+                   help="with --ply / --spz: the scene deformed to time T in [0, 1] "
+                   "(default: the canonical Gaussians)")
+    p.add_argument("--sequence", default=None, metavar="FILE.ply|FILE.zip",
+                   help="the scene over time: .ply is brush's delta-frame PLY, .zip one PLY "
+                   "per time")
+    p.add_argument("--frames", type=positive_int, default=None, metavar="N",
+                   help="with --sequence: N evenly spaced times (default: the run's frames)")
+    p.add_argument("--decimals", type=positive_int, default=6, metavar="D",
+                   help="decimal places of the scene description's numbers (default 6)")
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help=_encoder_help("the encoder the field was built with, if it moved: "))
+    add_threads(p)
+
+
 def _bench_phase3_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("runs", nargs="+", metavar="RUN", help="Phase 2 run folders")
     p.add_argument("--encoder", default=None, metavar="DIR",
@@ -301,6 +333,18 @@ COMMANDS: tuple[Command, ...] = (
         "Rank a run's objects for each text query and give the frames where each is active, "
         "from the Phase 3 field (fit --out RUN --phases 3). Writes a timeline PNG per query.",
         "sync4d.commands.query", _query_arguments,
+    ),
+    Command(
+        "export", ("export RUN --scene FILE.json [--prompt FILE.txt] [--vocab FILE]",
+                   "export RUN --ply FILE.ply | --spz FILE.spz [--time T]",
+                   "export RUN --sequence FILE.ply|FILE.zip [--frames N]"),
+        "write a run as files other tools read: scene description, LLM prompt, PLY, SPZ",
+        "Write the scene description of a run with a language field (objects, per-frame "
+        "tracks, motion segments, contacts and other events, language slots; JSON valid "
+        "against the schema shipped in sync4d/export, deterministic), a plain-text summary of "
+        "it for an LLM, and the Gaussians as 3DGS PLY or SPZ at a time, or as a 4D sequence "
+        "(brush's delta-frame PLY, or a zip of PLYs). Each option names the file it writes.",
+        "sync4d.commands.export", _export_arguments,
     ),
     Command(
         "bench raster", ("bench raster [RUN]",),

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["BACKGROUND_WORDS", "PREDICATES", "MatchedPredicate", "Predicate", "clean_runs",
-           "evaluate", "match_predicates", "smooth_in_time"]  # fmt: skip
+           "evaluate", "match_predicates", "smooth_in_time", "smoothed_motion"]  # fmt: skip
 
 #: Words that name the background (label 0) as a relation target.
 BACKGROUND_WORDS = ("ground", "floor", "plate", "table", "background", "surface", "scene")
@@ -220,14 +220,27 @@ def evaluate(
     return clean_runs(raw, cfg.phrase_min_frames)
 
 
-def _evaluate(m, features, centroids, gaps, gap_labels, labels, radius, up, right, times, cfg):
-    k, t = centroids.shape[:2]
-    c = smooth_in_time(centroids, times, cfg.phrase_smooth)
+def smoothed_motion(
+    centroids: np.ndarray, times: np.ndarray, radius: np.ndarray, sigma: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """What the predicates read of the motion: the centroids [K, T, 3] smoothed in time by
+    `sigma` (`smooth_in_time`), their velocity [K, T, 3] (world units per unit time) and the
+    scene's reference speed s_ref (95th percentile of every object's speed, at least 5 % of
+    the median object `radius` [K] per unit time, so a still scene has no motion)."""
+    t = centroids.shape[1]
+    c = smooth_in_time(centroids, times, sigma)
     vel = np.gradient(c, times, axis=1, edge_order=2 if t >= 3 else 1) if t > 1 \
         else np.zeros_like(c)
     speed = np.linalg.norm(vel, axis=-1)
     floor = 0.05 * float(np.median(radius)) if len(radius) else 1e-3
     s_ref = max(float(np.percentile(speed, 95)) if speed.size else 0.0, floor)
+    return c, vel, s_ref
+
+
+def _evaluate(m, features, centroids, gaps, gap_labels, labels, radius, up, right, times, cfg):
+    k, t = centroids.shape[:2]
+    c, vel, s_ref = smoothed_motion(centroids, times, radius, cfg.phrase_smooth)
+    speed = np.linalg.norm(vel, axis=-1)
     name = m.predicate.name
     if name == "moving":
         return speed > cfg.moving_speed * s_ref

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from sync4d.phase3.config import Phase3Config
 
 __all__ = ["DEFAULT_SCORER", "SCORERS", "SCORER_TABLE", "QueryError", "Scorer", "TextCache",
+           "field_settings",
            "answer", "query"]
 
 
@@ -265,7 +266,7 @@ _QUERY_KEYS = ("w_static", "w_temporal", "activation", "static_only", "moving_sp
                "phrase_smooth", "phrase_min_frames")  # fmt: skip
 
 
-def _settings(field: Field) -> SimpleNamespace:
+def field_settings(field: Field) -> SimpleNamespace:
     """The settings the field was built with, as attributes (no torch import for a query)."""
     missing = [k for k in _QUERY_KEYS if k not in field.config]
     if missing:
@@ -285,7 +286,7 @@ def answer(
         raise QueryError("empty query: give a text such as \"the red ball while it is falling\"")
     if scorer not in SCORERS:
         raise QueryError(f"unknown scorer {scorer!r}: expected one of {', '.join(SCORERS)}")
-    cfg = cfg or _settings(field)
+    cfg = cfg or field_settings(field)
     rule = rule or cfg.activation
     sc, matched, rest = SCORER_TABLE[scorer].score(field, text, rule, cfg, cache)
     order = np.argsort(-sc.score, kind="stable")

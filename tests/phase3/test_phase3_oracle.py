@@ -12,59 +12,17 @@ import json
 import numpy as np
 import pytest
 
+from support.encoders import ColourEncoder
 from support.oracle import oracle_phase2_run
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.build import FieldError, build_field, load_field
 from sync4d.phase3.config import Phase3Config
-from sync4d.phase3.encoders.encoder import Encoder, EncoderError, normalise_rows
+from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.evaluation.evaluate import evaluate_queries, state_queries
 from sync4d.phase3.evaluation.metrics import temporal_iou
 from sync4d.phase3.query import QueryError, TextCache, answer
-
-COLOURS = {"red": (1.0, 0.1, 0.1), "green": (0.1, 0.8, 0.1), "blue": (0.1, 0.2, 1.0)}
-
-
-class ColourEncoder(Encoder):
-    """Images: the mean colour of the crop's saturated pixels; texts: the colour words they
-    name (a tiny closed vocabulary, exact and deterministic)."""
-
-    kind = "test-colour"
-    closed_vocabulary = True
-
-    def __init__(self) -> None:
-        self.images = 0
-        self.texts = 0
-
-    @property
-    def dim(self) -> int:
-        return 4
-
-    @property
-    def fingerprint(self) -> str:
-        return "colour-v1"
-
-    def encode_images(self, images):
-        self.images += len(images)
-        out = []
-        for im in images:
-            px = im.reshape(-1, 3)
-            sat = px.max(1) - px.min(1)
-            sel = px[sat > 0.25] if (sat > 0.25).sum() > 3 else px
-            out.append(np.r_[sel.mean(0), 0.05])
-        return normalise_rows(np.stack(out))
-
-    def encode_texts(self, texts):
-        self.texts += len(texts)
-        out = []
-        for t in texts:
-            v = np.array([0.0, 0.0, 0.0, 0.05])
-            for word, rgb in COLOURS.items():
-                if word in t.split():
-                    v[:3] += rgb
-            out.append(v)
-        return normalise_rows(np.stack(out))
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,136 @@
+"""``sync4d export RUN ...``: a run as files other tools read (docs/export.md). Each option names
+the file it writes:
+
+* ``--scene FILE.json``: the scene description (objects, tracks, motion segments, events,
+  language slots; JSON Schema in the package) and its embeddings side file;
+* ``--prompt FILE.txt``: a plain-text summary for an LLM, made from that JSON alone, with its
+  token count;
+* ``--ply FILE.ply`` / ``--spz FILE.spz``: the Gaussians at ``--time T`` (default: canonical);
+* ``--sequence FILE.ply|FILE.zip``: the scene over time (``--frames N``, default the run's
+  stored frames), as brush's delta-frame PLY or a zip of per-time PLYs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+from sync4d.files import write_text_atomic
+
+__all__ = ["main", "read_vocab"]
+
+
+class _Usage(ValueError):
+    """A command line that asks for nothing, or for something that does not fit."""
+
+
+def read_vocab(path: str | Path) -> list[str]:
+    """The entries of a vocabulary file: a JSON list of strings, or a text file with one entry
+    per line (blank lines and lines starting with # skipped). ValueError naming the file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise _Usage(f"{path}: cannot read the vocabulary file ({e})") from None
+    if text.lstrip().startswith("["):
+        try:
+            items = json.loads(text)
+        except ValueError as e:
+            raise _Usage(f"{path}: not valid JSON ({e}); give a JSON list of strings or one "
+                         "entry per line") from None  # fmt: skip
+        if not all(isinstance(x, str) for x in items):
+            raise _Usage(f"{path}: a JSON vocabulary must be a list of strings")
+    else:
+        items = [ln for ln in text.splitlines() if not ln.lstrip().startswith("#")]
+    entries = [" ".join(x.split()) for x in items if x.strip()]
+    if not entries:
+        raise _Usage(f"{path}: the vocabulary file has no entries (one per line)")
+    return list(dict.fromkeys(entries))
+
+
+def _scene(args: argparse.Namespace, run, out: list[str]) -> None:
+    """Write the scene description (and the prompt) that `args` ask for."""
+    from sync4d.export.describe import SceneSettings, describe
+    from sync4d.export.prompt import count_tokens, prompt_text
+    from sync4d.export.scene import load, write_scene
+    from sync4d.phase3.query import TextCache
+    from sync4d.phase3.store import load_field
+
+    field = load_field(run.path)
+    vocab = read_vocab(args.vocab) if args.vocab else []
+    queries = list(dict.fromkeys(" ".join(q.split()) for q in args.query or []))
+    cache = TextCache(run.path, field, args.encoder) if vocab or queries else None
+    doc, emb = describe(run, field, cache=cache, vocab=vocab, queries=queries,
+                        settings=SceneSettings(decimals=args.decimals))  # fmt: skip
+    if cache is not None:
+        cache.save()
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(args.scene) if args.scene else Path(tmp) / "scene.json"
+        write_scene(path, doc, emb, decimals=args.decimals)
+        if args.scene:
+            out.append(f"scene: {path} ({len(doc['objects'])} objects, "
+                       f"{len(doc['metadata']['frames']['times'])} frames, "
+                       f"{len(doc['events'])} events; embeddings in "
+                       f"{path.with_name(json.loads(path.read_text())['embeddings']['file'])})")
+        if args.prompt:
+            text = prompt_text(load(path, embeddings=False).doc)
+            write_text_atomic(Path(args.prompt), text)
+            n, tokenizer = count_tokens(text)
+            out.append(f"prompt: {args.prompt} ({n:,} tokens by {tokenizer})")
+
+
+def _splats(args: argparse.Namespace, run, out: list[str]) -> None:
+    """Write the splat files that `args` ask for."""
+    from sync4d.export import splats as sp
+
+    when = "canonical" if args.time is None else f"t = {args.time:g}"
+    if args.ply or args.spz:
+        g = sp.splats_at(run, args.time)
+        if args.ply:
+            sp.write_ply(args.ply, g)
+            out.append(f"ply: {args.ply} ({len(g.means):,} Gaussians, {when})")
+        if args.spz:
+            sp.write_spz(args.spz, g)
+            out.append(f"spz: {args.spz} ({len(g.means):,} Gaussians, {when})")
+    if args.sequence:
+        times = sp.default_times(run, args.frames)
+        sp.write_sequence(args.sequence, run, times)
+        out.append(f"sequence: {args.sequence} ({len(times)} frames)")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run `export` with parsed `args`; the exit status."""
+    from sync4d.export.scene import SceneError
+    from sync4d.export.splats import ExportError
+    from sync4d.phase3.encoders.encoder import EncoderError
+    from sync4d.phase3.query import QueryError
+    from sync4d.phase3.store import FieldError
+    from sync4d.runs import CheckpointError, RunError, load_run
+
+    out: list[str] = []
+    try:
+        if not (args.scene or args.prompt or args.ply or args.spz or args.sequence):
+            raise _Usage("nothing to export: give --scene FILE.json, --prompt FILE.txt, "
+                         "--ply FILE.ply, --spz FILE.spz or --sequence FILE.ply|FILE.zip")
+        if (args.vocab or args.query) and not (args.scene or args.prompt):
+            raise _Usage("--vocab and --query fill the scene description: add --scene "
+                         "FILE.json or --prompt FILE.txt")  # fmt: skip
+        if args.time is not None and not 0.0 <= args.time <= 1.0:
+            raise _Usage(f"--time {args.time}: times are normalised, give one in [0, 1]")
+        if args.threads:
+            import torch
+
+            torch.set_num_threads(args.threads)
+        run = load_run(args.run)
+        if args.scene or args.prompt:
+            _scene(args, run, out)
+        _splats(args, run, out)
+    except (_Usage, RunError, CheckpointError, FieldError, EncoderError, QueryError, SceneError,
+            ExportError, OSError) as e:  # fmt: skip
+        print(f"export: {e}", file=sys.stderr)
+        return 2
+    print("\n".join(out))
+    return 0

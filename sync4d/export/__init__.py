@@ -1,0 +1,23 @@
+"""Results out (issue 42): a run as files other tools read.
+
+* the **scene description** (`describe` builds it, `scene` writes and loads it, `schema` holds
+  its JSON Schema, `prompt` turns it into text for an LLM): objects, tracks, motion segments,
+  pairwise events and language slots of a Phase 2 run with a language field;
+* **splat files** (`splats`): the Gaussians, canonical or deformed to a time, as 3DGS PLY
+  (gsplat's property order plus ``object_id``), SPZ, and 4D sequences.
+
+Above the phases and the run folder (it reads `load_run` and `load_field`), beside the
+pipeline; the command line's `export` and the viewer use it. docs/export.md has the formats.
+"""
+
+from sync4d.lazy import lazy_exports
+
+#: Public names and the module that defines each, imported on first use.
+_EXPORTS = {
+    "SceneSettings": "describe", "describe": "describe",
+    **dict.fromkeys(("SceneDescription", "SceneError", "SceneObject", "Track", "load",
+                     "write_scene"), "scene"),
+    "prompt_text": "prompt", "count_tokens": "prompt",
+}  # fmt: skip
+
+__all__, __getattr__ = lazy_exports(__name__, _EXPORTS)

@@ -1,0 +1,312 @@
+"""The scene description of a run with a language field, as plain data (docs/export.md).
+
+`describe(run, field, ...)` reads what Phases 2 and 3 already hold and arranges it for a reader
+that is not sync4d (a person, a script, a multimodal LLM):
+
+* **objects**: each foreground object of the field (its Phase 2 label, which is the mask label
+  when masks drove the assignment, and name), its Gaussian count, its extent (2nd-98th
+  percentile box of its Gaussians, canonical and over time), its mean rigid share, and the
+  vocabulary entries nearest its static embedding (cosine, the field's encoder);
+* **tracks**, per object and stored frame: M_phi's centroid, rotation (the rotation of the
+  polar decomposition in affine mode; unit quaternion w-x-y-z, sign kept continuous in time)
+  and translation, velocity and acceleration (Appendix B dims 6-11), visibility, and all 28
+  kinematic dims under their names (`sync4d.phase3.kinematics.FEATURE_NAMES`);
+* **segments**: per object, the intervals where each motion state holds ("at rest", "moving",
+  "rising", "falling", "turning"), evaluated by the very predicates `query` uses for motion
+  phrases (`sync4d.phase3.motion_phrases`) with the thresholds the field was built with, so
+  the description and the query answers agree;
+* **events** between two objects, or an object and the background (id 0): ``approach`` and
+  ``separation`` (the centroid distance, or for the background the object's height above the
+  surface under it, falls or grows faster than ``closing_speed`` times the scene's reference
+  speed) and ``contact`` (the robust gap below ``contact_gap`` times the object's radius);
+  runs shorter than ``phrase_min_frames`` are dropped, one-frame gaps closed;
+* **language slots**: for each vocabulary entry and query, the object the default scorer ranks
+  first and the frames where it is active (Appendix F's rule of the field);
+* **embeddings** (static [K, D], e_sync [K, T, D], the texts' [V, D]) go to a safetensors side
+  file, referenced from the description by name and SHA-256, never inline.
+
+Intervals are inclusive frame ranges [start, end] of the stored frames, with their times t0, t1
+(normalised time in [0, 1]). Everything is in the dataset's world units and axes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sync4d import __version__
+from sync4d.export.schema import SceneError
+from sync4d.files import file_sha256
+from sync4d.phase3 import motion_phrases as mp
+from sync4d.phase3.evaluation.metrics import intervals
+from sync4d.phase3.kinematics import FEATURE_NAMES
+from sync4d.phase3.query import TextCache, answer, field_settings
+from sync4d.phase3.store import Field
+from sync4d.runs import Run
+
+__all__ = ["EVENT_KINDS", "SEGMENT_STATES", "THRESHOLD_KEYS", "SceneSettings", "describe"]
+
+#: Format name and version of the description (`metadata.format`, `metadata.version`).
+FORMAT = "sync4d.scene"
+VERSION = 1
+#: The motion states of the segments, in their order in the file.
+SEGMENT_STATES = ("at rest", "moving", "rising", "falling", "turning")
+#: The pairwise event kinds, in their order in the file.
+EVENT_KINDS = ("approach", "contact", "separation")
+#: The Phase 3 settings the segments and events read (recorded under `metadata.thresholds`).
+THRESHOLD_KEYS = ("moving_speed", "rest_speed", "vertical_speed", "closing_speed",
+                  "contact_gap", "phrase_smooth", "phrase_min_frames", "activation")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SceneSettings:
+    """What the description keeps: number precision and how many vocabulary matches."""
+
+    #: Decimal places of every number in the JSON (fixed precision: same run, same bytes).
+    decimals: int = 6
+    #: Vocabulary entries listed per object (nearest first).
+    vocab_top: int = 3
+    #: Percentiles of an object's Gaussian positions that bound its extent (floaters aside).
+    extent_percentiles: tuple[float, float] = (2.0, 98.0)
+
+
+def _span(a: int, b: int, times: np.ndarray) -> dict:
+    return {"start": a, "end": b, "t0": float(times[a]), "t1": float(times[b])}
+
+
+def _quaternions(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions w-x-y-z [T, 4] of rotations `r` [T, 3, 3], w >= 0 at the first frame
+    and the sign kept continuous (q and -q are one rotation)."""
+    out = np.zeros((len(r), 4))
+    for i, m in enumerate(r):
+        tr = np.trace(m)
+        # Shepperd: from the largest of w^2, x^2, y^2, z^2 (4 * each, minus 1)
+        d = np.array([tr, m[0, 0] - m[1, 1] - m[2, 2], m[1, 1] - m[0, 0] - m[2, 2],
+                      m[2, 2] - m[0, 0] - m[1, 1]])  # fmt: skip
+        j = int(np.argmax(d))
+        s = 2.0 * math.sqrt(max(1.0 + d[j], 1e-300))
+        if j == 0:
+            q = [s / 4, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+        elif j == 1:
+            q = [(m[2, 1] - m[1, 2]) / s, s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+        elif j == 2:
+            q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s]
+        else:
+            q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4]
+        q = np.asarray(q) / np.linalg.norm(q)
+        prev = out[i - 1] if i else np.array([1.0, 0.0, 0.0, 0.0])
+        out[i] = -q if q @ prev < 0 else q
+    return out
+
+
+def _rotations(linear: np.ndarray, rigid: bool) -> np.ndarray:
+    """M_phi's rotation [T, 3, 3]: the linear part itself (SE(3)) or its polar rotation."""
+    if rigid:
+        return linear
+    u, _, vt = np.linalg.svd(linear)
+    u[..., :, 2] *= np.sign(np.linalg.det(u @ vt))[..., None]
+    return u @ vt
+
+
+def _positions(run: Run, times: np.ndarray) -> list[np.ndarray]:
+    """Every Gaussian's position [N, 3] at each of `times` (D_theta, what renders)."""
+    with torch.no_grad():
+        return [run.model.at_time(float(t))[0].double().numpy() for t in times]
+
+
+def _box(x: np.ndarray, pct: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    if len(x) == 0:
+        return np.zeros(3), np.zeros(3)
+    return np.percentile(x, pct[0], axis=0), np.percentile(x, pct[1], axis=0)
+
+
+def _runs(active: np.ndarray, min_frames: int) -> list[tuple[int, int]]:
+    """Intervals of `active` [T] after closing one-frame gaps and dropping short runs."""
+    return intervals(mp.clean_runs(np.asarray(active, bool)[None], min_frames)[0])
+
+
+def _segments(field: Field, cfg) -> list[list[dict]]:
+    """Per object, the intervals of each state of `SEGMENT_STATES`, in time order."""
+    by_name = {p.name: p for p in mp.PREDICATES}
+    out: list[list[dict]] = [[] for _ in field.labels]
+    for state in SEGMENT_STATES:
+        m = mp.MatchedPredicate(by_name[state], state, 1.0)
+        act = mp.evaluate(m, field.features, field.centroids, field.gaps, field.gap_labels,
+                          field.labels, field.radius, field.up, field.right, field.times,
+                          cfg)  # fmt: skip
+        for k in range(len(field.labels)):
+            out[k] += [{"state": state, **_span(a, b, field.times)} for a, b in intervals(act[k])]
+    for segs in out:
+        segs.sort(key=lambda s: (s["start"], SEGMENT_STATES.index(s["state"])))
+    return out
+
+
+def _events(field: Field, cfg) -> list[dict]:
+    """Approach, contact and separation intervals of every pair of objects and of every object
+    with the background, sorted by start frame."""
+    times, labels, radius = field.times, field.labels, field.radius
+    c, _, s_ref = mp.smoothed_motion(field.centroids, times, radius, cfg.phrase_smooth)
+    closing_tol = cfg.closing_speed * s_ref
+    minf = int(cfg.phrase_min_frames)
+    t = len(times)
+
+    def rate(d: np.ndarray) -> np.ndarray:
+        return np.gradient(d, times) if t > 1 else np.zeros(t)
+
+    def add(kind: str, a: int, b: int, active: np.ndarray, dist: np.ndarray) -> None:
+        for s, e in _runs(active, minf):
+            events.append({"kind": kind, "objects": [a, b], **_span(s, e, times),
+                           "distance": [float(dist[s]), float(dist[e])]})  # fmt: skip
+
+    events: list[dict] = []
+    gl = list(field.gap_labels)
+    for k, a in enumerate(labels):
+        tol = cfg.contact_gap * float(radius[k])
+        if 0 in gl:  # the background: the object's height above the surface under it
+            g = np.asarray(field.gaps[k, gl.index(0)], np.float64)
+            ok = np.isfinite(g)
+            if ok.any():
+                g = np.where(ok, g, np.interp(times, times[ok], g[ok]))
+                gs = mp.smooth_in_time(g[None], times, cfg.phrase_smooth)[0]
+                add("approach", a, 0, -rate(gs) > closing_tol, g)
+                add("contact", a, 0, g < tol, g)
+                add("separation", a, 0, rate(gs) > closing_tol, g)
+        for j in range(k + 1, len(labels)):
+            b = labels[j]
+            d = np.linalg.norm(c[k] - c[j], axis=-1)
+            add("approach", a, b, -rate(d) > closing_tol, d)
+            gap = np.full(t, np.inf)
+            if b in gl:
+                gap = np.minimum(gap, np.where(np.isfinite(field.gaps[k, gl.index(b)]),
+                                               field.gaps[k, gl.index(b)] / tol, np.inf))
+            if a in gl:
+                tol_b = cfg.contact_gap * float(radius[j])
+                gap = np.minimum(gap, np.where(np.isfinite(field.gaps[j, gl.index(a)]),
+                                               field.gaps[j, gl.index(a)] / tol_b, np.inf))
+            add("contact", a, b, gap < 1.0, d)
+            add("separation", a, b, rate(d) > closing_tol, d)
+    events.sort(key=lambda e: (e["start"], EVENT_KINDS.index(e["kind"]), e["objects"]))
+    return events
+
+
+def _cameras(run: Run) -> list[dict]:
+    out = []
+    for c in run.cameras:
+        out.append({
+            "name": c["name"], "split": c["split"], "time": c["time"],
+            "world_to_camera": np.asarray(c["viewmat"], np.float64).reshape(4, 4).tolist(),
+            "fx": c["fx"], "fy": c["fy"], "cx": c["cx"], "cy": c["cy"],
+            "width": c["width"], "height": c["height"],
+        })  # fmt: skip
+    return out
+
+
+def describe(
+    run: Run, field: Field, *, cache: TextCache | None = None, vocab: Sequence[str] = (),
+    queries: Sequence[str] = (), settings: SceneSettings = SceneSettings(),
+) -> tuple[dict, dict[str, np.ndarray]]:  # fmt: skip
+    """The description of `run` (a Phase 2 run) and its language `field` as JSON-ready data
+    (numbers not yet rounded: `sync4d.export.scene.write_scene` does that), and the embeddings
+    for the side file: ``static`` [K, D], ``sync`` [K, T, D] and ``texts`` [V, D] (the
+    `vocab` entries, then the `queries`). `cache` encodes the texts (needed when `vocab` or
+    `queries` are given)."""
+    if run.motion is None or run.labels is None:
+        raise SceneError(f"{run.checkpoint}: a scene description needs a Phase 2 run; "
+                         f"run `fit --out {run.path} --phases 2` first")  # fmt: skip
+    times = np.asarray(field.times, np.float64)
+    if run.times is not None and len(run.times) != len(times):
+        raise SceneError(f"{run.path}: the field has {len(times)} frames and M_phi "
+                         f"{len(run.times)}; rebuild the field with `fit --out {run.path} "
+                         "--phases 3`")  # fmt: skip
+    texts = [*vocab, *queries]
+    if texts and cache is None:
+        raise SceneError("describe: vocabulary entries and queries need a text cache")
+    cfg = field_settings(field)
+    linear, offsets = run.motion.trajectory()
+    positions = _positions(run, times)
+    canonical = run.model.means.detach().double().numpy()
+    feats = field.features
+    pct = settings.extent_percentiles
+    text_emb = cache.get(texts) if texts else np.zeros((0, field.dim), np.float32)
+    vsims = field.static @ text_emb[: len(vocab)].T if len(vocab) else None
+    slots: list[list[dict]] = [[] for _ in field.labels]
+    for i, text in enumerate(texts):
+        ans = answer(field, text, cache=cache)
+        top = ans["objects"][0]
+        k = field.labels.index(top["label"])
+        slots[k].append({"text": text, "source": "vocab" if i < len(vocab) else "query",
+                         "score": top["score"], "intervals": top["intervals"]})  # fmt: skip
+    objects, tracks = [], []
+    for k, label in enumerate(field.labels):
+        sel = run.labels == label
+        boxes = [_box(x[sel], pct) for x in positions]
+        lo0, hi0 = _box(canonical[sel], pct)
+        rot = _rotations(linear[label].astype(np.float64), bool(run.motion.rigid))
+        matches = []
+        if vsims is not None:
+            order = np.argsort(-vsims[k], kind="stable")[: settings.vocab_top]
+            matches = [{"text": vocab[v], "similarity": float(vsims[k, v])} for v in order]
+        objects.append({
+            "id": int(label), "label": int(label), "name": field.names[k],
+            "gaussians": int(sel.sum()),
+            "extent": {"canonical": {"min": lo0.tolist(), "max": hi0.tolist()},
+                       "size_max": np.max([hi - lo for lo, hi in boxes], axis=0).tolist()},
+            "radius": float(field.radius[k]),
+            "rigid_share": float(np.mean(feats[k, :, 4])),
+            "observed_frames": int(field.observed[k].sum()),
+            "vocabulary": matches,
+            "slots": slots[k],
+        })  # fmt: skip
+        tracks.append({
+            "id": int(label),
+            "centroid": field.centroids[k].tolist(),
+            "rotation": _quaternions(rot).tolist(),
+            "translation": offsets[label].astype(np.float64).tolist(),
+            "velocity": feats[k, :, 6:9].tolist(),
+            "acceleration": feats[k, :, 9:12].tolist(),
+            "visible": field.visible[k].tolist(),
+            "observed": [bool(x) for x in field.observed[k]],
+            "box_min": [lo.tolist() for lo, _ in boxes],
+            "box_max": [hi.tolist() for _, hi in boxes],
+            "kinematics": {name: feats[k, :, d].tolist() for d, name in enumerate(FEATURE_NAMES)},
+        })  # fmt: skip
+    segments = _segments(field, cfg)
+    for obj, segs in zip(objects, segments, strict=True):
+        obj["segments"] = segs
+    all_pos = canonical[run.labels > 0] if (run.labels > 0).any() else canonical
+    lo, hi = _box(all_pos, (1.0, 99.0))
+    ckpt = Path(run.checkpoint)
+    metadata = {
+        "format": FORMAT, "version": VERSION, "sync4d": __version__,
+        "run": {"name": Path(run.path).name, "kind": run.kind, "iteration": run.iteration,
+                "dataset": Path(str(run.settings.get("data") or "")).name},
+        "checkpoint": {"file": ckpt.name,
+                       "sha256": file_sha256(ckpt) if ckpt.is_file() else None},
+        "encoder": {"kind": field.encoder.get("kind"),
+                    "fingerprint": field.encoder.get("fingerprint"), "dim": field.dim,
+                    "closed_vocabulary": bool(field.encoder.get("closed_vocabulary", False))},
+        "units": {"length": "world units of the dataset", "time": "normalised, 0 to 1",
+                  "angle": "radians", "velocity": "length per unit of normalised time",
+                  "acceleration": "length per unit of normalised time squared"},
+        "axes": {"up": field.up.tolist(), "right": field.right.tolist(),
+                 "cameras": "world_to_camera is row-major 4x4 with OpenCV axes (x right, "
+                            "y down, z forward); intrinsics in pixels"},
+        "scale": {"bounds": [lo.tolist(), hi.tolist()],
+                  "extent": float(np.linalg.norm(hi - lo))},
+        "frames": {"count": len(times), "times": times.tolist()},
+        "cameras": _cameras(run),
+        "thresholds": {k: getattr(cfg, k) for k in THRESHOLD_KEYS},
+    }  # fmt: skip
+    doc = {"metadata": metadata, "objects": objects, "tracks": tracks,
+           "events": _events(field, cfg), "texts": texts}  # fmt: skip
+    embeddings = {
+        "static": np.ascontiguousarray(field.static, np.float32),
+        "sync": np.ascontiguousarray(field.sync, np.float32),
+        "texts": np.ascontiguousarray(text_emb, np.float32).reshape(len(texts), field.dim),
+    }
+    return doc, embeddings

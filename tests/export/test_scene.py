@@ -1,0 +1,186 @@
+"""The scene description on an oracle Phase 2 run of the embedded scene (Gaussians moved by the
+true motion, M_phi fitted in closed form, a colour encoder): valid against the schema, its
+segments and events against `ground_truth.json`, byte-identical twice, loaded back to the same
+numbers, and one clear error for each malformed file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+
+from support.encoders import ColourEncoder
+from support.oracle import oracle_phase2_run
+from sync4d.data import synthetic as syn
+from sync4d.export.describe import describe
+from sync4d.export.prompt import count_tokens, prompt_text
+from sync4d.export.scene import SceneError, embeddings_path, load, write_scene
+from sync4d.export.schema import schema
+from sync4d.phase3.build import build_field
+from sync4d.phase3.config import Phase3Config
+from sync4d.phase3.evaluation.metrics import temporal_iou
+from sync4d.phase3.query import TextCache
+
+VOCAB = ["red", "blue", "green"]
+
+
+@pytest.fixture(scope="module")
+def oracle(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("export")
+    run, root = oracle_phase2_run(tmp)
+    enc = ColourEncoder()
+    field = build_field(run, Phase3Config(), enc, threads=1)
+    field.save(run.path)
+    cache = TextCache(run.path, field, enc)
+    doc, emb = describe(run, field, cache=cache, vocab=VOCAB, queries=["the blue object"])
+    path = write_scene(tmp / "out" / "scene.json", doc, emb)
+    return {"run": run, "field": field, "cache": cache, "root": root, "path": path,
+            "tmp": tmp}  # fmt: skip
+
+
+def _frames(times: np.ndarray, spans) -> np.ndarray:
+    m = np.zeros(len(times), bool)
+    for t0, t1 in spans:
+        m |= (times >= t0 - 1e-9) & (times <= t1 + 1e-9)
+    return m
+
+
+def _predicted(times: np.ndarray, items: list[dict]) -> np.ndarray:
+    m = np.zeros(len(times), bool)
+    for s in items:
+        m[s["start"]:s["end"] + 1] = True
+    return m
+
+
+def test_the_export_is_valid_against_the_shipped_schema(oracle):
+    doc = json.loads(oracle["path"].read_text())
+    jsonschema.Draft202012Validator(schema()).validate(doc)
+    meta = doc["metadata"]
+    assert meta["format"] == "sync4d.scene" and meta["frames"]["count"] == 21
+    assert [o["name"] for o in doc["objects"]] == ["red ball", "blue box", "green pillar"]
+    assert [t["id"] for t in doc["tracks"]] == [1, 2, 3]
+    assert len(doc["tracks"][0]["kinematics"]) == 28
+    # each object's nearest vocabulary entry is its colour
+    assert [o["vocabulary"][0]["text"] for o in doc["objects"]] == VOCAB
+    # embeddings live in the side file, never inline
+    assert embeddings_path(oracle["path"]).is_file()
+    assert doc["embeddings"]["arrays"]["sync"] == [3, 21, 4]
+    assert "static" not in json.dumps(doc["objects"])
+
+
+def test_segments_and_events_match_the_ground_truth(oracle):
+    scene = load(oracle["path"])
+    times = scene.times
+    gt = syn.load_ground_truth(oracle["root"])
+    # ground truth state -> (object, what the description says)
+    said = {
+        "rising": lambda o: [s for s in o.segments if s["state"] == "rising"],
+        "falling": lambda o: [s for s in o.segments if s["state"] == "falling"],
+        "at rest": lambda o: [s for s in o.segments if s["state"] == "at rest"],
+        "standing still": lambda o: [s for s in o.segments if s["state"] == "at rest"],
+        "sliding": lambda o: [s for s in o.segments if s["state"] == "moving"],
+        "rolling on the ground": lambda o: [e for e in scene.events if e["kind"] == "contact"
+                                            and e["objects"] == [o.id, 0]],
+    }  # fmt: skip
+    tious = {}
+    for obj_id in (1, 2, 3):
+        for state in {s for k, s, _, _ in gt.states if k == obj_id}:
+            truth = _frames(times, [(a, b) for k, s, a, b in gt.states
+                                    if k == obj_id and s == state])  # fmt: skip
+            pred = _predicted(times, said[state](scene.object(obj_id)))
+            tious[(obj_id, state)] = temporal_iou(pred, truth)
+    assert min(tious.values()) >= 0.75, tious
+    # the pillar never moves: at rest throughout, on the ground, nothing else of its own
+    pillar = scene.object("green pillar")
+    assert [(s["state"], s["start"], s["end"]) for s in pillar.segments] == [("at rest", 0, 20)]
+    # the ball and the box approach while their centres draw together
+    d = np.linalg.norm(gt.translations[0] - gt.translations[1], axis=1)
+    rows = [int(np.argmin(np.abs(gt.times - t))) for t in times]
+    closing = np.gradient(d[rows], times) < 0
+    approach = _predicted(times, [e for e in scene.events
+                                  if e["kind"] == "approach" and e["objects"] == [1, 2]])
+    assert approach.sum() >= 0.5 * closing.sum()
+    assert (approach & ~closing).sum() == 0, (approach, closing)
+    # the hop: the ball leaves the ground, rises away from it, comes back and lands
+    hop = [e["kind"] for e in scene.events if e["objects"] == [1, 0]]
+    assert hop == ["contact", "separation", "approach", "contact"]
+
+
+def test_two_exports_are_byte_identical(oracle):
+    o = oracle
+    doc, emb = describe(o["run"], o["field"], cache=o["cache"], vocab=VOCAB,
+                        queries=["the blue object"])  # fmt: skip
+    again = write_scene(o["tmp"] / "again" / "scene.json", doc, emb)
+    assert again.read_bytes() == o["path"].read_bytes()
+    assert embeddings_path(again).read_bytes() == embeddings_path(o["path"]).read_bytes()
+
+
+def test_load_gives_back_the_same_numbers(oracle):
+    field, scene = oracle["field"], load(oracle["path"])
+    for k, obj in enumerate(scene.objects):
+        tr = obj.track
+        np.testing.assert_allclose(tr.centroid, field.centroids[k], atol=5e-7)
+        np.testing.assert_allclose(tr.velocity, field.features[k, :, 6:9], atol=5e-7)
+        np.testing.assert_allclose(tr.kinematics["speed"], field.features[k, :, 0], atol=5e-7)
+        np.testing.assert_array_equal(tr.observed, field.observed[k])
+        np.testing.assert_allclose(np.linalg.norm(tr.rotation, axis=1), 1.0, atol=2e-6)
+    np.testing.assert_array_equal(scene.embeddings["static"], field.static)
+    np.testing.assert_array_equal(scene.embeddings["sync"], field.sync)
+    assert scene.embeddings["texts"].shape == (4, field.dim)
+    # the box turns 45 degrees about z: its last quaternion says so
+    w = scene.object("blue box").track.rotation[-1, 0]
+    assert np.degrees(2 * np.arccos(w)) == pytest.approx(45.0, abs=2.0)
+
+
+def test_malformed_descriptions_get_one_clear_error(oracle, tmp_path):
+    text = oracle["path"].read_text()
+    bad = tmp_path / "truncated.json"
+    bad.write_text(text[: len(text) // 2])
+    with pytest.raises(SceneError, match="truncated.json.*not valid JSON"):
+        load(bad)
+    doc = json.loads(text)
+    del doc["tracks"][0]["centroid"]
+    wrong = tmp_path / "wrong.json"
+    wrong.write_text(json.dumps(doc))
+    with pytest.raises(SceneError, match=r"wrong.json.*at tracks/0.*centroid"):
+        load(wrong)
+    doc = json.loads(text)
+    doc["tracks"][1]["visible"] = doc["tracks"][1]["visible"][:-1]
+    short = tmp_path / "short.json"
+    short.write_text(json.dumps(doc))
+    with pytest.raises(SceneError, match="short.json.*object 2.*20 'visible' rows for 21"):
+        load(short)
+    # a side file that is not the one the description names
+    copy = tmp_path / "scene.json"
+    copy.write_text(text)
+    side = embeddings_path(copy)
+    side.write_bytes(embeddings_path(oracle["path"]).read_bytes()[:-8] + b"x" * 8)
+    with pytest.raises(SceneError, match="embeddings side file does not match"):
+        load(copy)
+    with pytest.raises(SceneError, match="no such scene description"):
+        load(tmp_path / "missing.json")
+
+
+def test_the_prompt_comes_from_the_json_alone(oracle):
+    text = oracle["path"].read_text()
+    prompt = prompt_text(json.loads(text))
+    assert prompt == prompt_text(load(oracle["path"]).doc)
+    for name in ("red ball", "blue box", "green pillar"):
+        assert f"- {name} (id" in prompt
+    assert "green pillar (id 3)" in prompt and "static" in prompt
+    assert "red ball touches the background 2 times" in prompt
+    assert "rising 0.35-" in prompt
+    n, tokenizer = count_tokens(prompt)
+    assert 100 < n < 5000 and "WordPiece" in tokenizer
+
+
+def test_a_phase1_run_has_no_description(oracle):
+    run = oracle["run"]
+    phase1 = type(run)(path=run.path, checkpoint=Path(run.checkpoint), kind="sync4d.phase1",
+                       model=run.model, meta={}, background=[1.0] * 3, cameras=[],
+                       settings={})  # fmt: skip
+    with pytest.raises(SceneError, match="needs a Phase 2 run"):
+        describe(phase1, oracle["field"])
