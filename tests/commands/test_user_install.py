@@ -116,6 +116,12 @@ def test_user_install_first_run(tmp_path: Path) -> None:
         out = _run(["sh", str(ROOT / "examples/query.sh"), "runs/first"], work, env)
         assert "red ball" in out, out[-2000:]
         _run(["sh", str(ROOT / "examples/eval_run.sh"), "runs/first"], work, env)
+        # export reads the schema shipped in the wheel and writes files viewers open
+        print(_run(["sh", str(ROOT / "examples/export.sh"), "runs/first", "out"], work, env))
+        assert "red ball" in (work / "out/prompt.txt").read_text()
+        for name in ("scene.json", "scene.embeddings.safetensors", "canonical.ply", "t0.5.ply",
+                     "t0.5.spz", "sequence.ply"):
+            assert (work / "out" / name).stat().st_size > 0, name
 
         # Shell completion from the installed command.
         script = _run(["sync4d", "completion", "bash"], work, env)
