@@ -103,8 +103,8 @@ def _splats(args: argparse.Namespace, run, out: list[str]) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run `export` with parsed `args`; the exit status."""
-    from sync4d.export.scene import SceneError
     from sync4d.export.errors import ExportError
+    from sync4d.export.scene import SceneError
     from sync4d.phase3.encoders.encoder import EncoderError
     from sync4d.phase3.query import QueryError
     from sync4d.phase3.store import FieldError

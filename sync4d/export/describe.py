@@ -18,8 +18,9 @@ that is not sync4d (a person, a script, a multimodal LLM):
 * **events** between two objects, or an object and the background (id 0): ``approach`` and
   ``separation`` (the centroid distance, or for the background the object's height above the
   surface under it, falls or grows faster than ``closing_speed`` times the scene's reference
-  speed) and ``contact`` (the robust gap below ``contact_gap`` times the object's radius);
-  runs shorter than ``phrase_min_frames`` are dropped, one-frame gaps closed;
+  speed) and ``contact`` (the robust gap below ``contact_gap`` times the object's radius:
+  evidence "gap"; or, with the background, a fall that turns straight into a rise: evidence
+  "rebound"); runs shorter than ``phrase_min_frames`` are dropped, one-frame gaps closed;
 * **language slots**: for each vocabulary entry and query, the object the default scorer ranks
   first and the frames where it is active (Appendix F's rule of the field);
 * **embeddings** (static [K, D], e_sync [K, T, D], the texts' [V, D]) go to a safetensors side
@@ -49,7 +50,8 @@ from sync4d.phase3.query import TextCache, answer, field_settings
 from sync4d.phase3.store import Field
 from sync4d.runs import Run
 
-__all__ = ["EVENT_KINDS", "SEGMENT_STATES", "THRESHOLD_KEYS", "SceneSettings", "describe"]
+__all__ = ["EVENT_KINDS", "SEGMENT_STATES", "THRESHOLD_KEYS", "SceneSettings", "describe",
+           "motion_segments", "pairwise_events"]
 
 #: Format name and version of the description (`metadata.format`, `metadata.version`).
 FORMAT = "sync4d.scene"
@@ -130,7 +132,7 @@ def _runs(active: np.ndarray, min_frames: int) -> list[tuple[int, int]]:
     return intervals(mp.clean_runs(np.asarray(active, bool)[None], min_frames)[0])
 
 
-def _segments(field: Field, cfg) -> list[list[dict]]:
+def motion_segments(field: Field, cfg) -> list[list[dict]]:
     """Per object, the intervals of each state of `SEGMENT_STATES`, in time order."""
     by_name = {p.name: p for p in mp.PREDICATES}
     out: list[list[dict]] = [[] for _ in field.labels]
@@ -146,7 +148,23 @@ def _segments(field: Field, cfg) -> list[list[dict]]:
     return out
 
 
-def _events(field: Field, cfg) -> list[dict]:
+def _rebounds(down: np.ndarray, up: np.ndarray, min_frames: int) -> np.ndarray:
+    """Frames [T] bool where an object comes down onto the surface under it and goes straight
+    back up: from the last frame of an approach run to the first of the separation run that
+    follows within `min_frames` frames. Nothing turns a fall into a rise in mid-air, so the
+    object touched the surface there, however large the reconstruction leaves the measured
+    gap (a small ball's lowest Gaussians sit above the plate's surface Gaussians)."""
+    out = np.zeros(len(down), bool)
+    falls = _runs(down, min_frames)
+    rises = _runs(up, min_frames)
+    for _, end in falls:
+        nxt = [s for s, _ in rises if end < s <= end + min_frames]
+        if nxt:
+            out[end:nxt[0] + 1] = True
+    return out
+
+
+def pairwise_events(field: Field, cfg) -> list[dict]:
     """Approach, contact and separation intervals of every pair of objects and of every object
     with the background, sorted by start frame."""
     times, labels, radius = field.times, field.labels, field.radius
@@ -158,10 +176,20 @@ def _events(field: Field, cfg) -> list[dict]:
     def rate(d: np.ndarray) -> np.ndarray:
         return np.gradient(d, times) if t > 1 else np.zeros(t)
 
-    def add(kind: str, a: int, b: int, active: np.ndarray, dist: np.ndarray) -> None:
-        for s, e in _runs(active, minf):
-            events.append({"kind": kind, "objects": [a, b], **_span(s, e, times),
-                           "distance": [float(dist[s]), float(dist[e])]})  # fmt: skip
+    def add(kind: str, a: int, b: int, active: np.ndarray, dist: np.ndarray,
+            rebound: np.ndarray | None = None) -> None:  # fmt: skip
+        runs = _runs(active, minf)
+        if rebound is not None and rebound.any():  # rebounds need no minimum length
+            mask = np.zeros(t, bool)
+            for s, e in runs:
+                mask[s:e + 1] = True
+            runs = intervals(mask | rebound)
+        for s, e in runs:
+            ev = {"kind": kind, "objects": [a, b], **_span(s, e, times),
+                  "distance": [float(dist[s]), float(dist[e])]}  # fmt: skip
+            if kind == "contact":
+                ev["evidence"] = "gap" if bool(np.any(active[s:e + 1])) else "rebound"
+            events.append(ev)
 
     events: list[dict] = []
     gl = list(field.gap_labels)
@@ -173,9 +201,10 @@ def _events(field: Field, cfg) -> list[dict]:
             if ok.any():
                 g = np.where(ok, g, np.interp(times, times[ok], g[ok]))
                 gs = mp.smooth_in_time(g[None], times, cfg.phrase_smooth)[0]
-                add("approach", a, 0, -rate(gs) > closing_tol, g)
-                add("contact", a, 0, g < tol, g)
-                add("separation", a, 0, rate(gs) > closing_tol, g)
+                down, up = -rate(gs) > closing_tol, rate(gs) > closing_tol
+                add("approach", a, 0, down, g)
+                add("contact", a, 0, g < tol, g, _rebounds(down, up, minf))
+                add("separation", a, 0, up, g)
         for j in range(k + 1, len(labels)):
             b = labels[j]
             d = np.linalg.norm(c[k] - c[j], axis=-1)
@@ -275,7 +304,7 @@ def describe(
             "box_max": [hi.tolist() for _, hi in boxes],
             "kinematics": {name: feats[k, :, d].tolist() for d, name in enumerate(FEATURE_NAMES)},
         })  # fmt: skip
-    segments = _segments(field, cfg)
+    segments = motion_segments(field, cfg)
     for obj, segs in zip(objects, segments, strict=True):
         obj["segments"] = segs
     all_pos = canonical[run.labels > 0] if (run.labels > 0).any() else canonical
@@ -303,7 +332,7 @@ def describe(
         "thresholds": {k: getattr(cfg, k) for k in THRESHOLD_KEYS},
     }  # fmt: skip
     doc = {"metadata": metadata, "objects": objects, "tracks": tracks,
-           "events": _events(field, cfg), "texts": texts}  # fmt: skip
+           "events": pairwise_events(field, cfg), "texts": texts}  # fmt: skip
     embeddings = {
         "static": np.ascontiguousarray(field.static, np.float32),
         "sync": np.ascontiguousarray(field.sync, np.float32),

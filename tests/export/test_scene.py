@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import jsonschema
 import numpy as np
@@ -15,7 +16,7 @@ import pytest
 from support.encoders import ColourEncoder
 from support.oracle import oracle_phase2_run
 from sync4d.data import synthetic as syn
-from sync4d.export.describe import describe
+from sync4d.export.describe import describe, pairwise_events
 from sync4d.export.prompt import count_tokens, prompt_text
 from sync4d.export.scene import SceneError, embeddings_path, load, write_scene
 from sync4d.export.schema import schema
@@ -184,3 +185,44 @@ def test_a_phase1_run_has_no_description(oracle):
                        settings={})  # fmt: skip
     with pytest.raises(SceneError, match="needs a Phase 2 run"):
         describe(phase1, oracle["field"])
+
+
+def _bouncing_field(lowest_gap: float):
+    """A ball of radius 0.1 bouncing twice on the background (parabolic hops), whose measured
+    height above the plate never falls below `lowest_gap`, and a second ball at rest on it."""
+    times = np.linspace(0.0, 1.0, 61)
+    phase = (times * 2.0) % 1.0  # two hops, bounces at t = 0.5 and t = 1.0
+    height = lowest_gap + 1.2 * phase * (1.0 - phase) * 4.0 * 0.25
+    centroids = np.zeros((2, len(times), 3))
+    centroids[0, :, 2] = 0.1 + height
+    centroids[1, :, :] = [1.0, 0.0, 0.1]
+    gaps = np.full((2, 3, len(times)), 1.0)
+    gaps[0, 0], gaps[1, 0] = height, 0.0
+    return SimpleNamespace(times=times, labels=[1, 2], radius=np.array([0.1, 0.1]),
+                           centroids=centroids, gaps=gaps, gap_labels=[0, 1, 2])
+
+
+@pytest.mark.parametrize("lowest_gap", [0.0, 0.09])
+def test_each_bounce_is_a_contact_with_the_background(lowest_gap):
+    """The ball comes down and goes straight back up at t = 0.5: a contact, measured by the gap
+    when it closes (0.0) and by the rebound when the reconstruction leaves it open (0.09 is 0.9
+    radii, above contact_gap's 0.6): a small ball's bounces on bouncingballs look like that."""
+    field = _bouncing_field(lowest_gap)
+    events = pairwise_events(field, Phase3Config())
+    ball = [e for e in events if e["objects"] == [1, 0]]
+    contacts = [e for e in ball if e["kind"] == "contact"]
+    bounce = [c for c in contacts if c["t0"] <= 0.5 <= c["t1"]]
+    assert len(bounce) == 1 and bounce[0]["t1"] - bounce[0]["t0"] <= 0.1, contacts
+    assert bounce[0]["evidence"] == ("gap" if lowest_gap == 0.0 else "rebound")
+    kinds = [e["kind"] for e in ball if 0.1 < e["t0"] < 0.9 or 0.1 < e["t1"] < 0.9]
+    assert kinds == ["separation", "approach", "contact", "separation", "approach"], ball
+    # the ball at rest touches the plate throughout, by its gap
+    rest = [e for e in events if e["objects"] == [2, 0]]
+    assert [(e["kind"], e["start"], e["end"], e["evidence"]) for e in rest] == [
+        ("contact", 0, 60, "gap")]
+    # a fall that ends in mid-air with no rise after it is no contact
+    field.gaps[0, 0, 31:] = field.gaps[0, 0, 30]
+    field.centroids[0, 31:, 2] = field.centroids[0, 30, 2]
+    late = [e for e in pairwise_events(field, Phase3Config())
+            if e["objects"] == [1, 0] and e["kind"] == "contact" and e["t0"] >= 0.45]
+    assert late == [] or lowest_gap == 0.0, late
