@@ -249,7 +249,8 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
                    help="decimal places of the scene description's numbers (default 6)")
     p.add_argument("--encoder", default=None, metavar="DIR",
                    help=_encoder_help("the encoder the field was built with, if it moved: "))
-    add_threads(p)
+    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
+                   help="CPU threads for torch (default: all cores)")
 
 
 def _bench_phase3_arguments(p: argparse.ArgumentParser) -> None:

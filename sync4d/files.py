@@ -53,6 +53,17 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def _new_file_mode(path: Path) -> int:
+    """The permissions `path` gets: those of the file it replaces, else what a plain
+    `open(path, "w")` gives (0o666 less the umask), not mkstemp's private 0o600."""
+    try:
+        return path.stat().st_mode & 0o777
+    except OSError:
+        mask = os.umask(0)
+        os.umask(mask)
+        return 0o666 & ~mask
+
+
 def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
     """Write `path` through `write(tmp)` (which writes the whole file at the temporary path
     `tmp`), then fsync it, rename it over `path` and fsync the folder. On any failure the
@@ -67,6 +78,7 @@ def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
     os.close(fd)
     tmp = Path(name)
     try:
+        os.chmod(tmp, _new_file_mode(path))
         write(tmp)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
