@@ -48,7 +48,7 @@ The grammar, the same for every command:
     (fit DATA --out RUN), or one continued (--resume), refit from Phase 2 (--phases 2) or
     given its language field (--phases 3), where DATA is optional: the run records it.
   * Every other command that reads a run takes it first, as RUN (eval, render, query, export,
-    bench raster, bench phase3); --data DATA names the run's dataset if it has moved.
+    bench raster, bench phase3, view); --data DATA names the run's dataset if it has moved.
   * export writes several files at once, so each of its options names one (--scene FILE)."""
 
 
@@ -253,6 +253,22 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
                    help="CPU threads for torch (default: all cores)")
 
 
+def _view_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", help="run folder (one still training is reloaded as "
+                   "it saves)")
+    p.add_argument("--port", type=positive_int, default=8080, metavar="P",
+                   help="the port to serve on (default 8080)")
+    p.add_argument("--host", default="127.0.0.1", metavar="ADDR",
+                   help="the address to listen on (default 127.0.0.1: this machine only; "
+                   "0.0.0.0 shares it on the network)")
+    p.add_argument("--keep-open", action="store_true",
+                   help="keep serving after the last browser tab closes (default: stop)")
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help=_encoder_help("the encoder the field was built with, if it moved: "))
+    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
+                   help="CPU threads for torch and the rasterizer (default: all cores)")
+
+
 def _bench_phase3_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("runs", nargs="+", metavar="RUN", help="Phase 2 run folders")
     p.add_argument("--encoder", default=None, metavar="DIR",
@@ -346,6 +362,16 @@ COMMANDS: tuple[Command, ...] = (
         "it for an LLM, and the Gaussians as 3DGS PLY or SPZ at a time, or as a 4D sequence "
         "(brush's delta-frame PLY, or a zip of PLYs). Each option names the file it writes.",
         "sync4d.commands.export", _export_arguments,
+    ),
+    Command(
+        "view", ("view RUN [--port P] [--host ADDR]",),
+        "open a run in the browser: scrub time, see each object move, ask a question",
+        "Serve a run's Gaussians on a local web page (viser): a time slider with play and "
+        "speed, the dataset's cameras, the objects (show, isolate, highlight) and their "
+        "tracks, a query box that ranks the objects and lights up the answer while it is "
+        "active, and a button that renders the current view through sync4d's rasterizer "
+        "into RUN/renders. Ctrl-C, or closing the last tab, stops it.",
+        "sync4d.commands.view", _view_arguments,
     ),
     Command(
         "bench raster", ("bench raster [RUN]",),

@@ -30,6 +30,7 @@ __all__ = [
     "file_sha256",
     "write_atomic",
     "write_text_atomic",
+    "writer_of",
 ]
 
 #: The lock file of a run folder: held (flock) by the process writing the run; its text says who.
@@ -192,6 +193,25 @@ def _describe(holder: str) -> str:
                 f"{info['since']})")  # fmt: skip
     except (ValueError, KeyError, TypeError):
         return "another process"
+
+
+def writer_of(run_dir: str | Path) -> str | None:
+    """Who holds `run_dir`'s lock ("'fit' (pid 12 on host, since ...)"), None when nobody does
+    (readers such as the viewer check, and take no lock)."""
+    path = Path(run_dir) / LOCK_FILE
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return _describe(os.pread(fd, 4096, 0).decode("utf-8", "replace"))
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager

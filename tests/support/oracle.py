@@ -16,7 +16,7 @@ from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.motion import MotionConfig
 from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
-from sync4d.runs import Run
+from sync4d.runs import CHECKPOINT_NAME, Run, camera_records, save_checkpoint
 
 #: The scene of the Phase 2 oracle tests (64 px, 8 frames).
 PHASE2_SCENE = small_synthetic(size=64, frames=8, test_every=4)
@@ -73,11 +73,13 @@ def oracle_points(
 
 def oracle_phase2_run(
     tmp: Path, model_cls: type[OracleGaussians] = OracleGaussians,
-    scene_config: syn.SyntheticConfig = PHASE3_SCENE,
+    scene_config: syn.SyntheticConfig = PHASE3_SCENE, save: bool = False,
 ):  # fmt: skip
     """An oracle Phase 2 run of the embedded scene (`scene_config`) written under `tmp` (no
     checkpoint): Gaussians on the objects and the plate (`oracle_points`) moved by
-    `model_cls`, M_phi fitted to them. Returns (run, scene root)."""
+    `model_cls`, M_phi fitted to them. Returns (run, scene root). `save`: also write its
+    checkpoint (with the cameras and the dataset), so `load_run` reads the folder (where the
+    model's motion is plain D_theta's: none) and a field built on `run` records it."""
     root = syn.write_synthetic_scene(tmp / "scene", scene_config)
     scene = load_scene(root)
     points, labels = oracle_points(per_object=400, fill=0.95, ground=1500, ground_z=0.0)
@@ -89,6 +91,9 @@ def oracle_phase2_run(
                        Phase2Config(motion=MotionConfig(init="fit")), 100, threads=1)  # fmt: skip
     run_dir = tmp / "run"
     run_dir.mkdir()
+    if save:  # a run folder as `fit` leaves it (the model reads back as plain D_theta)
+        save_checkpoint(tr, run_dir / CHECKPOINT_NAME,
+                        extra={"data": str(root), "cameras": camera_records(scene)})
     names = {0: "background", 1: "red ball", 2: "blue box", 3: "green pillar"}
     run = Run(path=run_dir, checkpoint=run_dir / "checkpoint.safetensors", kind="sync4d.phase2",
               model=model, meta={}, background=[1.0, 1.0, 1.0], cameras=[],

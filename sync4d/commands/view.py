@@ -1,0 +1,133 @@
+"""``sync4d view RUN``: the run in the browser (`sync4d.viewer`): its Gaussians at any time, the
+objects and their tracks, queries that light up the answer, renders of the current view.
+
+The server listens on loopback unless ``--host`` says otherwise; it stops on Ctrl-C (or
+SIGTERM), and when the last browser tab has been closed for a few seconds (``--keep-open``
+keeps it). A run still being trained is shown as its latest checkpoint and reloaded as it saves.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import signal
+import socket
+import sys
+import time
+from pathlib import Path
+
+from sync4d.files import writer_of
+from sync4d.runs.names import CHECKPOINT_NAME
+
+__all__ = ["main", "port_problem"]
+
+#: Seconds without any browser before the server stops (a page reload reconnects sooner).
+LINGER_SECONDS = 5.0
+
+
+class _Refused(RuntimeError):
+    """A view that cannot start; the message says why and what to do."""
+
+
+def port_problem(host: str, port: int) -> str | None:
+    """Why `host`:`port` cannot be served (in use, not an address of this machine), or None."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            if e.errno == errno.EADDRINUSE:
+                return (f"port {port} on {host} is in use (another viewer or server); pick "
+                        f"another with --port")  # fmt: skip
+            return f"cannot listen on {host}:{port} ({e.strerror or e}); check --host and --port"
+    return None
+
+
+def _check_run(run_dir: Path) -> str | None:
+    """A note for a run being written, or `_Refused` for one that cannot be shown."""
+    if not run_dir.is_dir():
+        raise _Refused(f"{run_dir}: no such run folder; train one with "
+                       f"`sync4d fit DATA --out {run_dir}`")  # fmt: skip
+    writer = writer_of(run_dir)
+    if not (run_dir / CHECKPOINT_NAME).is_file():
+        if writer:
+            raise _Refused(f"{run_dir} has no checkpoint yet: it is being written by {writer}; "
+                           "open the viewer after its first save")  # fmt: skip
+        raise _Refused(f"{run_dir}: no {CHECKPOINT_NAME} (not a run folder, or its training "
+                       f"never saved); train it with `sync4d fit DATA --out {run_dir}`")
+    if writer:
+        return (f"{run_dir} is being written by {writer}: showing its latest checkpoint, "
+                "reloaded as it saves")  # fmt: skip
+    return None
+
+
+def _serve(viewer, server, keep_open: bool) -> None:
+    """Wait for Ctrl-C, SIGTERM, or (unless `keep_open`) the last browser to leave."""
+    seen, empty_since = False, None
+    while True:
+        time.sleep(0.25)
+        if keep_open:
+            continue
+        clients = len(server.get_clients())
+        seen = seen or clients > 0
+        if clients:
+            empty_since = None
+        elif seen:
+            empty_since = empty_since or time.monotonic()
+            if time.monotonic() - empty_since > LINGER_SECONDS:
+                print("view: the last browser tab closed; stopping", file=sys.stderr)
+                return
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    """SIGTERM ends the server as Ctrl-C does."""
+    raise KeyboardInterrupt
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run `view` with parsed `args`; the exit status."""
+    from sync4d.phase3.encoders.encoder import EncoderError
+    from sync4d.runs import CheckpointError, RunError
+
+    run_dir = Path(args.run)
+    try:
+        note = _check_run(run_dir)
+        problem = port_problem(args.host, args.port)
+        if problem:
+            raise _Refused(problem)
+        try:
+            import viser
+        except ImportError:
+            raise _Refused("the viewer needs viser: pip install viser") from None
+        if args.threads:
+            import torch
+
+            torch.set_num_threads(args.threads)
+        from sync4d.viewer.app import Viewer
+        from sync4d.viewer.state import ViewerState
+
+        state = ViewerState(run_dir, args.encoder)
+    except (_Refused, RunError, CheckpointError, EncoderError) as e:
+        print(f"view: {e}", file=sys.stderr)
+        return 2
+    if note:
+        print(f"view: {note}", file=sys.stderr)
+    if state.field is None:
+        print(f"view: queries are off: {state.field_message}", file=sys.stderr)
+    server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    viewer = None
+    try:
+        viewer = Viewer(server, state, threads=args.threads)
+        shown = "localhost" if args.host in ("127.0.0.1", "localhost") else args.host
+        print(f"view: {state.run_dir} at http://{shown}:{server.get_port()} "
+              f"(Ctrl-C stops it{'' if args.keep_open else '; so does closing the last tab'})",
+              flush=True)  # fmt: skip
+        _serve(viewer, server, args.keep_open)
+    except KeyboardInterrupt:
+        print("view: stopped", file=sys.stderr)
+    finally:
+        if viewer is not None:
+            viewer.stop()
+        server.stop()
+        signal.signal(signal.SIGTERM, previous)
+    return 0
