@@ -51,7 +51,7 @@ endif
 
 PIP_FLAGS := --disable-pip-version-check $(if $(CI),--progress-bar off --no-input)
 
-.PHONY: setup lavapipe test test-quick lint bench fit clean distclean FORCE
+.PHONY: setup lavapipe browser test test-quick lint bench fit clean distclean FORCE
 
 setup: $(EXT_STAMP)
 
@@ -104,6 +104,22 @@ lavapipe:
 		[ -z "$(CI)" ]; \
 	fi
 
+# The viewer's browser test drives Debian's Chromium through its chromedriver: installed when
+# missing, like lavapipe (a failed install fails CI; elsewhere the browser test skips).
+browser:
+	@if command -v chromium >/dev/null && command -v chromedriver >/dev/null; then \
+		echo ">>> chromium: present"; \
+	elif command -v apt-get >/dev/null; then \
+		echo ">>> installing chromium and chromium-driver for the viewer's browser test"; \
+		sudo=""; [ "$$(id -u)" = 0 ] || sudo=sudo; \
+		$$sudo apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$sudo apt-get install -y -qq chromium chromium-driver \
+			|| { echo "chromium install failed"; [ -z "$(CI)" ]; }; \
+	else \
+		echo ">>> no apt-get: install Chromium and chromedriver to run the browser test"; \
+		[ -z "$(CI)" ]; \
+	fi
+
 # Deterministic thread counts for the test suite (2-core CI machines); exported to every recipe
 # this target runs, including its prerequisites.
 test test-quick: export OMP_NUM_THREADS := 2
@@ -111,14 +127,15 @@ test test-quick: export MKL_NUM_THREADS := 2
 test test-quick: export RAYON_NUM_THREADS := 2
 # In CI the wgpu tests must find an adapter (lavapipe); Mesa wants a runtime dir.
 test test-quick: export SYNC4D_REQUIRE_GPU := $(if $(CI),1,0)
+test test-quick: export SYNC4D_REQUIRE_BROWSER := $(if $(CI),1,0)
 test test-quick: export XDG_RUNTIME_DIR := $(or $(XDG_RUNTIME_DIR),/tmp)
-test: setup lavapipe
+test: setup lavapipe browser
 	cargo test --workspace --release
 	$(VPY) -m pytest -q
 
 # The inner loop: everything but the tests marked slow (each over 30 s) and the gsplat
 # reference comparisons.
-test-quick: setup lavapipe
+test-quick: setup lavapipe browser
 	cargo test --workspace --release
 	$(VPY) -m pytest -q -m "not slow and not reference"
 

@@ -283,6 +283,18 @@ def _bench_phase3_arguments(p: argparse.ArgumentParser) -> None:
     add_threads(p)
 
 
+def _bench_view_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", help="run folder")
+    p.add_argument("--moves", type=positive_int, default=30, metavar="N",
+                   help="slider moves to time (default 30)")
+    p.add_argument("--query", default="the red ball", metavar="TEXT",
+                   help="a query to time too, when the run has a field (default: the red ball)")
+    p.add_argument("--out", default="bench-view.json", metavar="FILE.json",
+                   help="results JSON (default bench-view.json)")
+    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
+                   help="CPU threads for torch (default: all cores)")
+
+
 def _encoder_convert_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default="google/siglip-base-patch16-224", metavar="NAME",
                    help="Hugging Face model id or a local save_pretrained folder "
@@ -394,6 +406,13 @@ COMMANDS: tuple[Command, ...] = (
         "Build each run's language field in a temporary folder (the run is not touched) and "
         "time its steps and text queries, cold and cached; writes a JSON.",
         "sync4d.bench.phase3", _bench_phase3_arguments,
+    ),
+    Command(
+        "bench view", ("bench view RUN",),
+        "the viewer's time-slider latency on a run",
+        "Serve a run in the viewer and time slider moves to new and to cached times (from "
+        "the change to the splats sent) and a query; prints a table and writes a JSON.",
+        "sync4d.bench.view", _bench_view_arguments,
     ),
     Command(
         "encoder convert", ("encoder convert --out DIR [--model NAME]",),

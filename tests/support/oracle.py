@@ -100,3 +100,24 @@ def oracle_phase2_run(
               settings={"data": str(root)}, motion=tr.motion, labels=labels, names=names,
               times=tr.times)  # fmt: skip
     return run, root
+
+
+def oracle_run_folder(tmp: Path, queries: tuple[str, ...] = ()) -> Path:
+    """The oracle Phase 2 run saved as a run folder (`oracle_phase2_run(save=True)`) with its
+    language field built by the colour encoder (`support.encoders.ColourEncoder`), and the
+    texts of `queries` already in the field's text cache, so the run's own query code answers
+    them without loading an encoder (the colour encoder is no registered kind)."""
+    from support.encoders import ColourEncoder
+    from sync4d.phase3.build import build_field
+    from sync4d.phase3.config import Phase3Config
+    from sync4d.phase3.query import TextCache, answer
+
+    run, _ = oracle_phase2_run(tmp, save=True)
+    enc = ColourEncoder()
+    field = build_field(run, Phase3Config(), enc, threads=1)
+    field.save(run.path)
+    cache = TextCache(run.path, field, enc)
+    for q in queries:
+        answer(field, q, cache=cache)
+    cache.save()
+    return run.path

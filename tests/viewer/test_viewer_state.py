@@ -12,12 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from support.encoders import ColourEncoder
-from support.oracle import oracle_phase2_run
+from support.oracle import oracle_run_folder
 from sync4d.data.scene import Camera
-from sync4d.phase3.build import build_field
-from sync4d.phase3.config import Phase3Config
-from sync4d.phase3.query import TextCache, answer
 from sync4d.phase3.store import FieldError
 from sync4d.runs import CHECKPOINT_NAME, load_run
 from sync4d.viewer.state import HIGHLIGHT, ViewerState
@@ -27,14 +23,7 @@ QUERY = "the red ball rising"
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    run, _ = oracle_phase2_run(tmp_path_factory.mktemp("viewer"), save=True)
-    enc = ColourEncoder()
-    field = build_field(run, Phase3Config(), enc, threads=1)
-    field.save(run.path)
-    cache = TextCache(run.path, field, enc)  # the viewer finds the query's texts cached
-    answer(field, QUERY, cache=cache)
-    cache.save()
-    return run.path
+    return oracle_run_folder(tmp_path_factory.mktemp("viewer"), (QUERY,))
 
 
 def test_splats_per_object_match_the_model(run_dir):
