@@ -101,7 +101,8 @@ class Viewer:
                 data=(st.times, np.zeros_like(st.times), np.zeros_like(st.times)),
                 series=({"label": "time"}, {"label": "similarity", "stroke": "#1f77b4"},
                         {"label": "active", "stroke": "#e6b800", "fill": "#e6b80040"}),
-                height=140, visible=False,
+                scales={"x": {"time": False}, "y": {"auto": True}}, height=140,
+                visible=False,
             )  # fmt: skip
             self.next = gui.add_button("Next active", disabled=True)
         self.ask.on_click(lambda _: self._ask())

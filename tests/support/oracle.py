@@ -12,12 +12,16 @@ import torch
 from support.scenes import small_synthetic
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
-from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.gaussians import DeformableGaussians, rgb_to_sh_dc
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.motion import MotionConfig
 from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 from sync4d.runs import CHECKPOINT_NAME, Run, camera_records, save_checkpoint
 
+#: Base colour of the oracle Gaussians of each label in a saved oracle run (plate, red ball,
+#: blue box, green pillar).
+OBJECT_COLOURS = {0: (0.85, 0.85, 0.8), 1: (0.85, 0.15, 0.15), 2: (0.15, 0.25, 0.85),
+                  3: (0.2, 0.7, 0.25)}  # fmt: skip
 #: The scene of the Phase 2 oracle tests (64 px, 8 frames).
 PHASE2_SCENE = small_synthetic(size=64, frames=8, test_every=4)
 #: The scene of the oracle Phase 2 run (48 px, 21 frames).
@@ -92,6 +96,10 @@ def oracle_phase2_run(
     run_dir = tmp / "run"
     run_dir.mkdir()
     if save:  # a run folder as `fit` leaves it (the model reads back as plain D_theta)
+        with torch.no_grad():  # the objects' own colours, for what shows the splats
+            for label, rgb in OBJECT_COLOURS.items():
+                model.sh_dc[torch.as_tensor(labels == label), 0] = rgb_to_sh_dc(
+                    torch.tensor(rgb))
         save_checkpoint(tr, run_dir / CHECKPOINT_NAME,
                         extra={"data": str(root), "cameras": camera_records(scene)})
     names = {0: "background", 1: "red ball", 2: "blue box", 3: "green pillar"}
