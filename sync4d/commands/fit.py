@@ -32,7 +32,7 @@ from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
 from sync4d.files import LOCK_FILE, RunBusy, RunLock, WriteFailed
 from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.store import FieldError
-from sync4d.pipeline import FitInterrupted, restart_phase2, run_fit
+from sync4d.pipeline import FitInterrupted, TrainingDiverged, restart_phase2, run_fit
 from sync4d.pipeline.phase3 import build_phase3, phase3_config
 from sync4d.pipeline.record import (
     CADENCE_KEYS,
@@ -56,6 +56,7 @@ from sync4d.runs import (
     RunError,
     checkpoint_kind,
 )
+from sync4d.watchdog import NonFinite
 
 __all__ = ["main"]
 
@@ -191,6 +192,13 @@ def main(args: argparse.Namespace) -> int:
             EncoderError, FieldError) as e:  # fmt: skip
         print(f"fit: {e}", file=sys.stderr)
         return 2
+    except TrainingDiverged as e:
+        print(f"fit: {e}", file=sys.stderr)
+        return 3
+    except NonFinite as e:  # outside a training loop: the refinement, Phase 3's solve
+        print(f"fit: {e}. Nothing was saved from it: the run keeps its last good checkpoint "
+              "(and no new language field).", file=sys.stderr)  # fmt: skip
+        return 3
     except FitInterrupted:
         return 130
     finally:

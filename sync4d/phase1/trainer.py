@@ -26,11 +26,12 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
+from sync4d import watchdog
 from sync4d.data.scene import Camera, Frame, Scene
 from sync4d.metrics import psnr
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.densify import Densifier, DensifyConfig
-from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
 from sync4d.phase1.init import scene_extent
 from sync4d.phase1.losses import photometric_loss
 from sync4d.phase1.static import (
@@ -334,11 +335,15 @@ class Phase1Trainer:
             sparse = motion_sparsity(self.model.last_offsets, self.extent,
                                      self.model.num_gaussians, s.sparsity_below)  # fmt: skip
             loss = loss + s.sparsity * sparse
+        loss = watchdog.check_loss(self.phase_name, self.iteration, loss)
         loss.backward()
+        params, units = self.watched()
+        watchdog.check_grads(self.phase_name, self.iteration, params, units)
         with torch.no_grad():
             self.densifier.accumulate(out.means2d.grad, out.radii, camera.width, camera.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        watchdog.check_params(self.phase_name, self.iteration, params, units)
         changed = self.densifier.step(self.model, self.optimizer, self.iteration, self.extent)
         if any(changed.values()):
             self.on_gaussians_changed()
@@ -353,6 +358,14 @@ class Phase1Trainer:
         if c.static.enabled:
             stats["static"] = float(self.model.static.sum())
         return stats
+
+    #: The name the watchdog gives this trainer's failures.
+    phase_name = "Phase 1"
+
+    def watched(self) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+        """The parameters the watchdog checks each step (name -> tensor) and the unit of their
+        rows (per-Gaussian tensors: "Gaussians")."""
+        return dict(self.model.named_parameters()), dict.fromkeys(PER_GAUSSIAN, "Gaussians")
 
     def static_check_due(self, densified: bool) -> bool:
         """Whether the static set is re-checked after this iteration: from `static.start` on,

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sync4d import watchdog
 from sync4d.events import Advanced, Finished, Started, emit
 from sync4d.geometry import axis_angle_to_quat, matrix_to_rotvec, quat_multiply, rotvec_to_matrix
 from sync4d.phase1.gaussians import DeformableGaussians
@@ -292,8 +293,11 @@ def _track_frame(
             drawn += 1
             pose = template.pose(w_j, d_j, deformed)
             loss = _template_loss(trainer, index, t, pose, template.sh_dc)
+            loss = watchdog.check_loss("Phase 2 refinement", j, loss)
             loss.backward()
             loss_value += float(loss.detach()) / per_step
+        watchdog.check_grads("Phase 2 refinement", j, {"rotation": w_j, "shift": d_j},
+                             {"rotation": "objects", "shift": "objects"})  # fmt: skip
         opt.step()
     return (w_j.detach().clone(), d_j.detach().clone()), loss_value
 

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sync4d import watchdog
 from sync4d.data.scene import Frame, Scene
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
@@ -471,10 +472,15 @@ class Phase2Trainer(Phase1Trainer):
         for g in self.motion_optimizer.param_groups:
             g["lr"] = lr
 
+    #: The name the watchdog gives this trainer's failures.
+    phase_name = "Phase 2"
+
     def step(self) -> dict[str, float]:
         """One Phase 2 iteration: the Phase 1 step with the auxiliary losses, plus an M_phi
         update once M_phi is active."""
         stats = super().step()
+        motion = dict(self.motion.named_parameters(prefix="motion"))
+        units = dict.fromkeys(motion, "objects")
         if self.phase2.use_motion and self._active(self.phase2.motion_start):
             # Held rows get exact zero gradients (every path to M_phi's parameters goes
             # through `transform_at` or `rows_at`) and their Adam moments were cleared when
@@ -485,7 +491,15 @@ class Phase2Trainer(Phase1Trainer):
             self.motion_updates += len(frozen) - held
             self.motion_updates_skipped += held
         self.motion_optimizer.zero_grad(set_to_none=True)
+        watchdog.check_params(self.phase_name, self.iteration, motion, units)
         return stats
+
+    def watched(self) -> tuple[dict[str, Tensor], dict[str, str]]:
+        """Phase 1's parameters and M_phi's (``motion.*``, rows: objects): their gradients are
+        checked before either optimizer steps."""
+        params, units = super().watched()
+        motion = dict(self.motion.named_parameters(prefix="motion"))
+        return {**params, **motion}, {**units, **dict.fromkeys(motion, "objects")}
 
     # -- checkpoint state -------------------------------------------------------------------
     def state(self) -> tuple[dict[str, Tensor], dict]:

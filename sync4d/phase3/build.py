@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sync4d import watchdog
 from sync4d.events import PhaseDone, emit
 from sync4d.phase3 import field as fm
 from sync4d.phase3.config import Phase3Config
@@ -121,6 +122,10 @@ def build_field(
     pred, w = fm.predict_embeddings(std, e_obs, obs.observed, static, cfg.ridge_lambda)
     mixed = fm.blend(pred, e_obs, obs.observed, cfg.beta, cfg.beta_on)
     sync = fm.temporal_ema(mixed, cfg.ema_gamma)
+    for name, arr in (("the kinematic features", feats), ("the standardised features", std),
+                      ("the ridge map W_k", w), ("the predicted embeddings", pred),
+                      ("the synchronised embeddings", sync)):  # fmt: skip
+        watchdog.check_array("Phase 3", name, arr)
     timings["field_s"] = time.perf_counter() - t2
     timings["total_s"] = time.perf_counter() - t0
     timings["crops"] = len(obs.crops)

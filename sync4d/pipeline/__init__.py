@@ -10,6 +10,7 @@ fingerprint, stored config) and the checks that decide whether a run may continu
 from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
 from sync4d.pipeline.fit import (
     FitInterrupted,
+    TrainingDiverged,
     resolve_data,
     restart_phase2,
     resume_trainer,
@@ -20,6 +21,7 @@ from sync4d.pipeline.fit import (
 
 __all__ = [
     "FitInterrupted",
+    "TrainingDiverged",
     "evaluate_frames",
     "evaluate_run",
     "resolve_data",

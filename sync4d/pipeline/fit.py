@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sync4d import watchdog
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
 from sync4d.data import DatasetError, Scene
 from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
@@ -51,6 +52,7 @@ from sync4d.runs.names import (
 
 __all__ = [
     "FitInterrupted",
+    "TrainingDiverged",
     "INIT_SOURCES",
     "resolve_data",
     "restart_phase2",
@@ -75,6 +77,31 @@ def set_threads(threads: int | None) -> int:
 
 class FitInterrupted(Exception):
     """Training stopped by Ctrl-C, SIGTERM or SIGHUP after saving its checkpoint."""
+
+
+class TrainingDiverged(RuntimeError):
+    """A NaN or inf stopped training (`sync4d.watchdog`); the message says where, what the run
+    folder keeps and what to try."""
+
+
+def _stopped(e: watchdog.NonFinite, trainer: Phase1Trainer, save, ckpt: Path) -> TrainingDiverged:
+    """The error for `e`, after saving the trainer's state when it is still the previous
+    iteration's (`e.clean`: the optimizer moved nothing), so the run keeps its last good state;
+    a state the optimizer already wrote is never saved."""
+    if e.clean:
+        trainer.iteration -= 1  # the failed iteration did not happen
+        trainer.optimizer.zero_grad(set_to_none=True)
+        save()
+        kept = f"its state after iteration {trainer.iteration} is saved in {ckpt}"
+    elif ckpt.exists():
+        last = read_checkpoint(ckpt)[1].get("iteration")
+        kept = f"{ckpt} keeps the last good checkpoint (iteration {last})"
+    else:
+        kept = "no checkpoint was written"
+    run = ckpt.parent
+    return TrainingDiverged(f"{e}. Nothing poisoned was saved: {kept}. Start over with the "
+                            f"change (`sync4d fit ... --out {run} --force`), or retry as it "
+                            f"was (`sync4d fit --out {run} --resume`).")  # fmt: skip
 
 
 def _train_loop(
@@ -144,6 +171,9 @@ def _train_loop(
                     save()
         except KeyboardInterrupt:  # raised by a step itself, not by our handler
             stop.requested = stop.requested or int(signal.SIGINT)
+        except watchdog.NonFinite as e:
+            emit(Finished(desc))
+            raise _stopped(e, trainer, save, ckpt) from None
         finally:
             emit(Finished(desc))
         save()

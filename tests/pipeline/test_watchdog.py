@@ -1,0 +1,110 @@
+"""The watchdog (`sync4d.watchdog`): a NaN injected into each phase stops it with one message
+naming the tensor, the iteration and the rows, and the run keeps a loadable, finite checkpoint
+(the state before the failure, or the last good one); never a poisoned one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from support.datasets import write_blender
+from support.scenes import small_synthetic
+from sync4d import watchdog
+from sync4d.cli import main
+from sync4d.data import synthetic as syn
+from sync4d.runs import CHECKPOINT_NAME, read_checkpoint
+
+SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=300", "--set",
+            "eval_every=0", "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2",
+            "--set", "checkpoint_every=3"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("watchdog") / "tiny"
+    write_blender(root, n=4, size=24)
+    return root
+
+
+@pytest.fixture(scope="module")
+def moving(tmp_path_factory) -> Path:
+    """The embedded scene, small: its objects move, so Phase 2 trains and refines."""
+    return syn.write_synthetic_scene(tmp_path_factory.mktemp("watchdog") / "objects",
+                                     small_synthetic())
+
+
+OBJECTS = ["--set", "init_points=3000", "--set", "init_from=random", "--set",
+           "phase2.still_position=0", "--set", "phase2.still_rotation=0", "--set",
+           "phase2.static_fraction=0"]  # every object counts as moving
+
+
+def _iteration(run: Path) -> int:
+    tensors, meta = read_checkpoint(run / CHECKPOINT_NAME)  # checks every tensor is finite
+    assert all(torch.isfinite(t).all() for t in tensors.values() if t.is_floating_point())
+    return int(meta["iteration"])
+
+
+def test_a_nan_gradient_stops_phase1_and_keeps_the_state_before_it(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    with watchdog.injected("Phase 1", 5, "grad:means"):
+        assert main(["fit", str(data), "--out", str(run), *SETTINGS, "--phases", "1"]) == 3
+    err = capsys.readouterr().err
+    assert "Phase 1 stopped at iteration 5: the gradient of 'means' is NaN or inf in 1 " \
+           "Gaussians (0)" in err, err
+    assert "Try: lower the learning rates" in err and "after iteration 4 is saved" in err
+    assert "Traceback" not in err
+    assert _iteration(run) == 4
+    assert main(["fit", "--out", str(run), "--resume", "--threads", "1"]) == 0  # it goes on
+
+
+def test_a_nan_after_the_optimizer_step_keeps_the_last_good_checkpoint(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    with watchdog.injected("Phase 1", 8, "param:quats"):
+        assert main(["fit", str(data), "--out", str(run), *SETTINGS, "--phases", "1"]) == 3
+    err = capsys.readouterr().err
+    assert "iteration 8: the value of 'quats' is NaN or inf in 1 Gaussians" in err, err
+    assert "keeps the last good checkpoint (iteration 6)" in err
+    assert _iteration(run) == 6
+
+
+@pytest.mark.parametrize(("phase", "target"), [("Phase 2", "loss"),
+                                               ("Phase 2 refinement", "loss")])
+def test_phase2_and_its_refinement_stop_on_a_nan(moving, tmp_path, capsys, phase, target):
+    run = tmp_path / "run"
+    refine = ["--set", "phase2.motion.init=fit", "--set", "phase2.motion.refine_steps=2"]
+    iteration = 3 if phase == "Phase 2" else 0  # the refinement counts stored frames
+    with watchdog.injected(phase, iteration, target):
+        assert main(["fit", str(moving), "--out", str(run), *SETTINGS, *OBJECTS, *refine]) == 3
+    err = capsys.readouterr().err
+    assert f"{phase} stopped at iteration {iteration}: the loss is NaN or inf" in err, err
+    assert "Try: lower" in err and "Traceback" not in err
+    _iteration(run)  # a finite checkpoint: Phase 1's, or Phase 2's state before the failure
+
+
+def test_phase3_stops_on_a_nan_in_its_solve(moving, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["fit", str(moving), "--out", str(run), *SETTINGS, *OBJECTS]) == 0
+    with watchdog.injected("Phase 3", 0, "array:the ridge map W_k"):
+        assert main(["fit", "--out", str(run), "--phases", "3", "--threads", "1"]) == 3
+    err = capsys.readouterr().err
+    assert "Phase 3 stopped: the ridge map W_k is NaN or inf in 1 objects (0)" in err, err
+    assert "ridge_lambda" in err and not (run / "phase3" / "field.json").exists()
+
+
+def test_the_checks_name_the_rows():
+    good = {"means": torch.zeros(5, 3, requires_grad=True)}
+    good["means"].grad = torch.zeros(5, 3)
+    watchdog.check_grads("Phase 1", 1, good)
+    good["means"].grad[[1, 3], 2] = float("inf")
+    with pytest.raises(watchdog.NonFinite, match=r"'means' is NaN or inf in 2 elements \(1, 3\)"):
+        watchdog.check_grads("Phase 1", 1, good)
+    huge = {"w": torch.full((4,), 3e38)}  # finite: their float64 sum is too
+    watchdog.check_params("Phase 2", 2, huge)
+    huge["w"][2] = float("nan")
+    with pytest.raises(watchdog.NonFinite, match=r"value of 'w' is NaN or inf in 1 elements \(2\)"):
+        watchdog.check_params("Phase 2", 2, huge)
+    with pytest.raises(watchdog.NonFinite, match=r"Phase 3 stopped: W is NaN or inf in 1 objects"):
+        watchdog.check_array("Phase 3", "W", np.array([[0.0, 1.0], [np.nan, 2.0]]))
