@@ -40,8 +40,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FEATURE_NAMES", "NUM_FEATURES", "RELATIONAL_DIMS", "Tracks", "kinematic_features",
-           "relational_counts", "rotation_angle"]  # fmt: skip
+__all__ = ["FEATURE_NAMES", "NUM_FEATURES", "RANK_TIE", "RELATIONAL_DIMS", "Tracks",
+           "continuous_angle", "kinematic_features", "relational_counts",
+           "rotation_angle"]  # fmt: skip
 
 NUM_FEATURES = 28
 #: Short name of each of the 28 dimensions, in order.
@@ -56,6 +57,13 @@ FEATURE_NAMES = (
 RELATIONAL_DIMS = (21, 24, 25, 26, 27)
 #: Time constant (frames) of the smoothed speed and acceleration (dims 14, 15).
 EMA_FRAMES = 5.0
+#: Speeds closer than this fraction of the reference speed s_ref count as equal in the speed
+#: rank and is-fastest (dims 21, 22), so float noise among objects at rest flips neither; an
+#: object no faster than that is never the fastest.
+RANK_TIE = 0.01
+#: ... and closer than this fraction of the largest distance between the objects' canonical
+#: centroids per unit of time (a scene where nothing moves has an s_ref of noise alone).
+STILL_SPEED = 1e-3
 
 
 @dataclass
@@ -100,6 +108,33 @@ def rotation_angle(r: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
+def continuous_angle(r: np.ndarray) -> np.ndarray:
+    """Rotation angle [K, T] of rotations `r` [K, T, 3, 3] kept continuous in time (dim 16):
+    the angle of each frame's unit quaternion, its sign chosen to follow the previous frame's,
+    as 2 atan2(|v|, w) in [0, 2 pi]. `rotation_angle` folds angles above pi back (a turn of
+    200 degrees reads 160); this one goes on through pi, up to a full turn."""
+    k, t = r.shape[:2]
+    m = r.reshape(-1, 3, 3)
+    w = np.sqrt(np.maximum(0.0, 1.0 + np.trace(m, axis1=1, axis2=2))) / 2.0
+    v = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], 1)
+    # the axis from the antisymmetric part (|v| = 2 sin(angle)), its length from the angle
+    sin_half = np.sqrt(np.maximum(0.0, 1.0 - w * w))
+    norm = np.linalg.norm(v, axis=1)
+    axis = np.where(norm[:, None] > 1e-12, v / np.maximum(norm, 1e-300)[:, None], 0.0)
+    # near pi the antisymmetric part vanishes: the axis from the symmetric part instead
+    near_pi = norm < 1e-6
+    if near_pi.any():
+        sym = (m[near_pi] + np.eye(3)) / 2.0
+        idx = np.argmax(np.diagonal(sym, axis1=1, axis2=2), axis=1)
+        col = sym[np.arange(len(idx)), :, idx]
+        axis[near_pi] = col / np.maximum(np.linalg.norm(col, axis=1), 1e-300)[:, None]
+    q = np.concatenate([w[:, None], axis * sin_half[:, None]], 1).reshape(k, t, 4)
+    for f in range(1, t):
+        flip = np.einsum("ki,ki->k", q[:, f], q[:, f - 1]) < 0
+        q[flip, f] *= -1.0
+    return 2.0 * np.arctan2(np.linalg.norm(q[..., 1:], axis=-1), q[..., 0])
+
+
 def _gradient(x: np.ndarray, times: np.ndarray) -> np.ndarray:
     """d x / d t along axis 1 of `x` [K, T, ...] (0 with a single frame)."""
     if x.shape[1] < 2:
@@ -122,6 +157,15 @@ def _ema(x: np.ndarray, frames: float = EMA_FRAMES) -> np.ndarray:
     for f in range(1, x.shape[1]):
         out[:, f] = (1.0 - w) * out[:, f - 1] + w * x[:, f]
     return out
+
+
+def _rank_tie(tr: Tracks, s_ref: float) -> float:
+    """Speeds closer than this count as equal in dims 21-22: `RANK_TIE` of the reference speed,
+    and at least `STILL_SPEED` of the distance between the objects per unit time, so that in a
+    scene where nothing moves (s_ref itself is noise) float noise does not decide either."""
+    c = np.asarray(tr.canonical_centroids, np.float64)
+    spread = float(np.linalg.norm(c[:, None] - c[None, :], axis=-1).max()) if len(c) else 0.0
+    return max(RANK_TIE * s_ref, STILL_SPEED * spread) + 1e-12
 
 
 def kinematic_features(tr: Tracks) -> np.ndarray:
@@ -153,17 +197,19 @@ def kinematic_features(tr: Tracks) -> np.ndarray:
     f[..., 13] = _backward_delta(np.asarray(tr.rigid_share, dtype=np.float64))
     f[..., 14] = _ema(speed)
     f[..., 15] = _ema(accel)
-    f[..., 16] = rotation_angle(rot)
+    f[..., 16] = continuous_angle(rot)
     f[..., 17] = np.linalg.norm(tr.offsets, axis=-1)
     f[..., 18] = tr.residual_std
     if not tr.rigid:
         f[..., 19] = np.linalg.norm(tr.linear - np.eye(3), axis=(-2, -1))
     s_ref = float(np.percentile(speed, 95)) if speed.size else 0.0
     f[..., 20] = speed / (s_ref + 1e-12)
+    tie = _rank_tie(tr, s_ref)
     if k > 1:
-        slower = (speed[:, None, :] > speed[None, :, :]).sum(1)  # [K, T]
+        slower = (speed[:, None, :] > speed[None, :, :] + tie).sum(1)  # [K, T]
         f[..., 21] = slower / (k - 1)
-    f[..., 22] = (speed >= speed.max(0, keepdims=True)).astype(np.float64)
+    fastest = (speed >= speed.max(0, keepdims=True) - tie) & (speed > tie)
+    f[..., 22] = fastest.astype(np.float64)
     f[..., 23] = np.arange(t) / max(t - 1, 1)
     if k > 1:
         d = np.linalg.norm(c[:, None] - c[None, :], axis=-1)  # [K, K, T]
