@@ -93,8 +93,16 @@ class SyntheticConfig:
     #: Every object holds its pose of time 0 at every time: a scene with no motion (tests of
     #: what sync4d skips when nothing moves; ground_truth.json's named states do not apply).
     still: bool = False
+    #: The box's colour while it slides ("" keeps it blue throughout): a state that changes the
+    #: object's appearance with its motion, which the paper's appearance-only scorer can find
+    #: and its static-only ablation cannot (tests/phase3/test_phase3_claims.py). One of
+    #: `SLIDING_COLOURS`.
+    sliding_colour: str = ""
 
     def __post_init__(self) -> None:
+        if self.sliding_colour and self.sliding_colour not in SLIDING_COLOURS:
+            raise ValueError(f"sliding_colour must be '' or one of {sorted(SLIDING_COLOURS)}, "
+                             f"not {self.sliding_colour!r}")  # fmt: skip
         if self.ground_texture not in ("plain", "blobs"):
             raise ValueError(
                 f"ground_texture must be 'plain' or 'blobs', not {self.ground_texture!r}"
@@ -119,6 +127,10 @@ OBJECTS = (
     _Object(3, "green pillar", "green", "box", (0.15, 0.15, 0.45), True),
 )
 
+#: Colours the box can take while it slides (`SyntheticConfig.sliding_colour`).
+SLIDING_COLOURS = {"yellow": (0.95, 0.85, 0.1), "red": (0.9, 0.15, 0.1)}
+#: The box's slide: start and end times.
+SLIDE = (0.2, 0.8)
 #: The ball's hop: take-off, apex and landing times.
 HOP = (0.35, 0.55, 0.75)
 #: Apex height of the hop above resting on the ground (metres).
@@ -130,9 +142,9 @@ STATES: tuple[tuple[int, str, float, float], ...] = (
     (1, "rising", HOP[0], HOP[1]),
     (1, "falling", HOP[1], HOP[2]),
     (1, "rolling on the ground", HOP[2], 1.0),
-    (2, "at rest", 0.0, 0.2),
-    (2, "sliding", 0.2, 0.8),
-    (2, "at rest", 0.8, 1.0),
+    (2, "at rest", 0.0, SLIDE[0]),
+    (2, "sliding", SLIDE[0], SLIDE[1]),
+    (2, "at rest", SLIDE[1], 1.0),
     (3, "standing still", 0.0, 1.0),
 )
 
@@ -162,7 +174,7 @@ def object_poses(t: float) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     x = -0.25 + 0.5 * t
     ball = (_rot_y((x + 0.25) / r), np.array([x, 0.5, z]))
     # Box: rests, slides with an eased profile while turning 45 degrees, rests.
-    s = _smoothstep((t - 0.2) / 0.6)
+    s = _smoothstep((t - SLIDE[0]) / (SLIDE[1] - SLIDE[0]))
     start, end = np.array([0.45, -0.45]), np.array([0.05, -0.45])
     xy = start + s * (end - start)
     box = (_rot_z(math.pi / 4 * s), np.array([xy[0], xy[1], OBJECTS[1].size[2]]))
@@ -364,6 +376,8 @@ def _render(cfg: SyntheticConfig, c2w: np.ndarray, t: float) -> tuple[np.ndarray
             n_local[np.arange(len(pl)), axis] = np.sign(rel[np.arange(len(pl)), axis])
             tiles = (np.floor(pl / 0.2).sum(-1)) % 2
             colour = {"blue": [0.15, 0.3, 0.9], "green": [0.2, 0.75, 0.25]}[obj.colour]
+            if obj.label == 2 and cfg.sliding_colour and SLIDE[0] < t < SLIDE[1]:
+                colour = list(SLIDING_COLOURS[cfg.sliding_colour])
             dark = np.asarray(colour) * 0.6
             base = np.where(tiles[:, None] > 0, colour, dark)
             rgb[near] = _shade(base, n_local)
@@ -389,6 +403,8 @@ def _config_dict(cfg: SyntheticConfig) -> dict:
         del d["backdrop_radius"]
     if not d["still"]:
         del d["still"]
+    if not d["sliding_colour"]:
+        del d["sliding_colour"]
     return d
 
 
