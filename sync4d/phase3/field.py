@@ -45,16 +45,34 @@ def static_embeddings(obs: np.ndarray, observed: np.ndarray) -> np.ndarray:
     return _unit(mean) * (observed.any(1)[:, None])
 
 
+#: A feature that varies, over an object's observed frames, by less than this fraction of how
+#: much it varies over the whole scene carries no signal for that object: it is standardised to
+#: 0 rather than blown up from float noise (an object at rest: speeds and accelerations of float
+#: noise would become unit-variance features, and its unobserved frames' noise any z-score).
+#: In a scene where nothing moves at all the noise is the scene's whole spread and stays.
+CONSTANT_FEATURE = 1e-3
+#: The kinematic dims that are components of one vector (velocity 6-8, acceleration 9-11).
+VECTOR_DIMS = ((6, 7, 8), (9, 10, 11))
+
+
 def standardise(features: np.ndarray, observed: np.ndarray) -> np.ndarray:
     """f~ [K, T, F + 1]: per-object standardised `features` [K, T, F] (mean and standard
-    deviation over the observed frames, sigma + 1e-8) with a bias column of ones appended."""
+    deviation over the observed frames, sigma + 1e-8; a feature constant for the object, see
+    `CONSTANT_FEATURE`, is 0) with a bias column of ones appended."""
     k, t, nf = features.shape
     out = np.ones((k, t, nf + 1))
+    seen = observed if observed.any() else np.ones_like(observed)
+    scene_sd = features[seen].std(0)  # [F]: each feature's spread over the scene
+    for group in VECTOR_DIMS:  # a vector's components: judged by the whole vector's spread
+        if max(group) < nf:
+            scene_sd[list(group)] = scene_sd[list(group)].max()
     for j in range(k):
         sel = observed[j] if observed[j].any() else np.ones(t, bool)
         mu = features[j, sel].mean(0)
         sd = features[j, sel].std(0)
-        out[j, :, :nf] = (features[j] - mu) / (sd + 1e-8)
+        z = (features[j] - mu) / (sd + 1e-8)
+        constant = sd <= CONSTANT_FEATURE * scene_sd + 1e-12
+        out[j, :, :nf] = np.where(constant[None], 0.0, z)
     return out
 
 
