@@ -49,6 +49,10 @@ class DeformConfig:
     layers: int = ranged(4, 1)
     #: Output scale of the position offset dx (world units).
     scale_position: float = ranged(0.10, 0.0)
+    #: World units per unit of D_theta's position input: it reads x0 / position_unit. 1 (the
+    #: paper: the raw position) suits scenes the size of D-NeRF's; `fit` advises a value for a
+    #: scene of another size, with `scale_position` (docs/results/stability.md).
+    position_unit: float = ranged(1.0, 0.0, lo_open=True)
     #: Output scale of the rotation vector dw (radians).
     scale_rotation: float = ranged(0.10, 0.0)
     #: Output scale of the log-scale offset dl.
@@ -132,8 +136,9 @@ class DeformationMLP(nn.Module):
         if t.dim() == 0:
             t = t.expand(n)
         c = self.config
+        pos = x0 if c.position_unit == 1.0 else x0 / c.position_unit
         h = torch.cat(
-            [position_encoding(x0, c.position_bands), z, time_encoding(t, c.bands)], dim=-1
+            [position_encoding(pos, c.position_bands), z, time_encoding(t, c.bands)], dim=-1
         )
         if c.precision == "bfloat16" and h.device.type == "cpu":
             first, rest = self.trunk[:2], self.trunk[2:]

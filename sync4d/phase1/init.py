@@ -121,23 +121,27 @@ def initial_model(
     box_fraction: float = 0.33,
     seed: int = 42,
     near: float = 0.01,
+    init_scale: float = 0.02,
 ) -> DeformableGaussians:
     """Canonical Gaussians for `scene`: its points (and colours) when it has a point cloud
     (COLMAP), otherwise `num_random` points uniform in a cube of half-size `box_fraction` times
     the camera distance around the point the cameras look at (D-NeRF: about [-1.3, 1.3]^3);
-    `near`: the model's near clipping plane (world units)."""
+    `near`: the model's near clipping plane, `init_scale` every Gaussian's initial scale (world
+    units)."""
     g = torch.Generator().manual_seed(seed)
     if scene.points is not None and len(scene.points) > 0:
         pts = torch.as_tensor(np.asarray(scene.points), dtype=torch.float32)
         cols = scene.point_colors
         colors = None if cols is None else torch.as_tensor(np.asarray(cols), dtype=torch.float32)
         return DeformableGaussians(
-            pts, colors, sh_degree=sh_degree, config=deform, generator=g, near=near
-        )
+            pts, colors, sh_degree=sh_degree, config=deform, generator=g, near=near,
+            init_scale=init_scale,
+        )  # fmt: skip
     focus, dist = scene_focus(scene)
     half = box_fraction * dist
     lo = torch.as_tensor(focus - half, dtype=torch.float32)
     hi = torch.as_tensor(focus + half, dtype=torch.float32)
     return DeformableGaussians.random_in_box(
-        num_random, lo, hi, generator=g, sh_degree=sh_degree, config=deform, near=near
-    )
+        num_random, lo, hi, generator=g, sh_degree=sh_degree, config=deform, near=near,
+        init_scale=init_scale,
+    )  # fmt: skip

@@ -61,6 +61,11 @@ class Phase1Config:
     #: than the default: each camera's own housing, reconstructed from the cameras facing it,
     #: sits a few centimetres in front of its lens and would cover its whole view.
     near: float = ranged(0.01, 0.0, lo_open=True, what="distance")
+    #: Initial scale of every Gaussian, world units (Appendix A: 0.02). Like `near` and
+    #: `deform.scale_position` it is an absolute length, the paper's for scenes the size of
+    #: D-NeRF's (cameras about 4 units from the objects); `fit` says what to set for a scene
+    #: of another size (`sync4d.pipeline.fit.length_advice`; docs/results/stability.md).
+    init_scale: float = ranged(0.02, 0.0, lo_open=True, what="distance")
     #: Where the initial Gaussians come from: "points" (the dataset's point cloud, e.g.
     #: COLMAP's), "triangulate" (SIFT matches of the training cameras at one instant,
     #: triangulated with the dataset's poses; multi-view captures), "random" (`init_points`

@@ -23,7 +23,7 @@ from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
 from sync4d.data import DatasetError, Scene
 from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
 from sync4d.files import RunLock, write_atomic, write_text_atomic
-from sync4d.phase1.init import initial_model
+from sync4d.phase1.init import initial_model, scene_extent
 from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.diagnostics import format_diagnostics
 from sync4d.phase2.trainer import Phase2Trainer
@@ -54,6 +54,7 @@ __all__ = [
     "FitInterrupted",
     "TrainingDiverged",
     "INIT_SOURCES",
+    "length_advice",
     "resolve_data",
     "restart_phase2",
     "resume_trainer",
@@ -77,6 +78,36 @@ def set_threads(threads: int | None) -> int:
 
 class FitInterrupted(Exception):
     """Training stopped by Ctrl-C, SIGTERM or SIGHUP after saving its checkpoint."""
+
+
+#: The scene extent (3DGS: 1.1 times the cameras' radius) the absolute lengths' defaults are
+#: for: D-NeRF's scenes (cameras 4.03 units from the objects) and the embedded one.
+REFERENCE_EXTENT = 4.4
+#: Scenes whose extent is off the reference by more than this factor get `length_advice`.
+LENGTH_TOLERANCE = 10.0
+
+
+def length_advice(extent: float, p1) -> str | None:
+    """A note for a scene whose size is far from the one the absolute lengths (`near`,
+    `init_scale`, `deform.scale_position`, `deform.position_unit`) are for: the settings that
+    scale them to it, or None
+    when the scene is within `LENGTH_TOLERANCE` of `REFERENCE_EXTENT` or they were set already.
+    Measured (docs/results/stability.md): the embedded scene scaled by 1e-3 loses 6.3 dB with
+    the defaults, and matches the unscaled one with the lengths scaled alike."""
+    ratio = extent / REFERENCE_EXTENT
+    d = p1.deform
+    lengths = (p1.near, p1.init_scale, d.scale_position, d.position_unit)
+    defaults = lengths == (0.01, 0.02, 0.1, 1.0)
+    if not defaults or 1.0 / LENGTH_TOLERANCE <= ratio <= LENGTH_TOLERANCE:
+        return None
+    return (
+        f"fit: this scene is {ratio:.3g} times the size the absolute lengths' defaults are for "
+        f"(extent {extent:.3g} world units against {REFERENCE_EXTENT}); to train it as the "
+        f"default-sized scene trains, scale them with it: --set near={0.01 * ratio:.3g} --set "
+        f"phase1.init_scale={0.02 * ratio:.3g} --set "
+        f"phase1.deform.scale_position={0.1 * ratio:.3g} --set "
+        f"phase1.deform.position_unit={ratio:.3g}"
+    )
 
 
 class TrainingDiverged(RuntimeError):
@@ -358,8 +389,11 @@ def _run_fit(
         scene = with_initial_points(scene, cfg)
         model = initial_model(
             scene, p1.init_points, p1.sh_degree, p1.deform, p1.init_box_fraction, p1.seed,
-            near=p1.near,
+            near=p1.near, init_scale=p1.init_scale,
         )  # fmt: skip
+        advice = length_advice(scene_extent(scene), p1)
+        if advice:
+            note(advice)
         trainer = Phase1Trainer(model, scene, p1, p1.iterations, threads=n_threads)
     elif kind is None:
         raise ConfigError(
