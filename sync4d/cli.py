@@ -283,6 +283,17 @@ def _bench_phase3_arguments(p: argparse.ArgumentParser) -> None:
     add_threads(p)
 
 
+def _sweep_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("manifest", metavar="MANIFEST.toml",
+                   help="the jobs: [[job]] entries and/or a [grid] (docs/sweep.md)")
+    p.add_argument("--out", required=True, metavar="SWEEP",
+                   help="folder of the sweep: runs/, logs/, results.csv/json, psnr-time.png")
+    p.add_argument("--address", default=None, metavar="auto|HOST:PORT",
+                   help="join a running Ray cluster (default: a local Ray in this process)")
+    p.add_argument("--cpus", type=positive_int, default=None, metavar="N",
+                   help="CPUs the local Ray may use (default: all)")
+
+
 def _bench_view_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", metavar="RUN", help="run folder")
     p.add_argument("--moves", type=positive_int, default=30, metavar="N",
@@ -384,6 +395,17 @@ COMMANDS: tuple[Command, ...] = (
         "active, and a button that renders the current view through sync4d's rasterizer "
         "into RUN/renders. Ctrl-C, or closing the last tab, stops it.",
         "sync4d.commands.view", _view_arguments,
+    ),
+    Command(
+        "sweep", ("sweep MANIFEST.toml --out SWEEP [--address auto|HOST:PORT]",),
+        "fit many scenes, configs and seeds on Ray, locally or on a cluster",
+        "Run every job of a manifest (dataset, config, overrides, seeds, phases; or a grid of "
+        "them) as a Ray task with its CPU count declared and torch, rayon and OpenMP threads "
+        "pinned to it, each into a normal run folder under SWEEP/runs; finished runs are not "
+        "run again, interrupted ones resume, failed ones are reported with their log's tail. "
+        "Writes a table (CSV, JSON, printed) and a plot of test PSNR against training time. "
+        "Needs Ray: pip install 'sync4d[sweep]'.",
+        "sync4d.sweep", _sweep_arguments,
     ),
     Command(
         "bench raster", ("bench raster [RUN]",),
