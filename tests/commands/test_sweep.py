@@ -99,3 +99,19 @@ def test_manifest_errors_are_named(tmp_path, capsys):
     bad.write_text("[defaults]\niters = 3\n")
     assert main(["sweep", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "no jobs" in capsys.readouterr().err
+
+
+def test_an_interrupted_job_continues_from_its_checkpoint(folder, tmp_path):
+    """A run folder with a checkpoint but no final evaluation (the sweep was stopped mid-fit):
+    the job resumes it with `fit --resume` instead of starting over."""
+    from sync4d.sweep import Job, run_job
+
+    job = Job(name="cut", data=str(folder / "tiny"), iters=12, phases="1",
+              overrides=("init_points=300", "eval_every=0"))  # fmt: skip
+    assert run_job(job, tmp_path)["status"] == "done"
+    (tmp_path / "runs" / "cut" / "eval.json").unlink()  # as if stopped before its evaluation
+    result = run_job(job, tmp_path)
+    log = (tmp_path / "logs" / "cut.log").read_text()
+    assert result["status"] == "done" and "fit --out" in log and "--resume" in log
+    assert (tmp_path / "runs" / "cut" / "eval.json").is_file()
+    assert run_job(job, tmp_path)["status"] == "skipped"
