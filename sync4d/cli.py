@@ -95,6 +95,18 @@ def _encoder_help(prefix: str = "", default: bool = False) -> str:
     return f"{prefix}{describe_specs(summaries=True)}{last}"
 
 
+def _add_field_encoder(p: argparse.ArgumentParser) -> None:
+    """--encoder of a command that reads a built field: the encoder, if it moved."""
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help=_encoder_help("the encoder the field was built with, if it moved: "))
+
+
+def _add_cpu_threads(p: argparse.ArgumentParser, what: str) -> None:
+    """--threads alone (no --backend: a command that composites nothing on a GPU)."""
+    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
+                   help=f"CPU threads for {what} (default: all cores)")
+
+
 def _add_rule(p: argparse.ArgumentParser, prefix: str) -> None:
     """--rule: the activation rules of `sync4d.phase3.evaluation.metrics.RULES`."""
     from sync4d.phase3.evaluation.metrics import RULES
@@ -213,8 +225,7 @@ def _query_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scorer", choices=SCORERS, default=DEFAULT_SCORER,
                    help=f"{scorers} (default {DEFAULT_SCORER})")
     _add_rule(p, "")
-    p.add_argument("--encoder", default=None, metavar="DIR",
-                   help=_encoder_help("the encoder the field was built with, if it moved: "))
+    _add_field_encoder(p)
     p.add_argument("--json", action="store_true", help="print the answers as JSON")
     p.add_argument("--plot", default=None, metavar="DIR",
                    help="folder for the timeline PNGs (default RUN/phase3)")
@@ -247,10 +258,8 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --sequence: N evenly spaced times (default: the run's frames)")
     p.add_argument("--decimals", type=positive_int, default=6, metavar="D",
                    help="decimal places of the scene description's numbers (default 6)")
-    p.add_argument("--encoder", default=None, metavar="DIR",
-                   help=_encoder_help("the encoder the field was built with, if it moved: "))
-    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
-                   help="CPU threads for torch (default: all cores)")
+    _add_field_encoder(p)
+    _add_cpu_threads(p, "torch")
 
 
 def _view_arguments(p: argparse.ArgumentParser) -> None:
@@ -263,10 +272,8 @@ def _view_arguments(p: argparse.ArgumentParser) -> None:
                    "0.0.0.0 shares it on the network)")
     p.add_argument("--keep-open", action="store_true",
                    help="keep serving after the last browser tab closes (default: stop)")
-    p.add_argument("--encoder", default=None, metavar="DIR",
-                   help=_encoder_help("the encoder the field was built with, if it moved: "))
-    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
-                   help="CPU threads for torch and the rasterizer (default: all cores)")
+    _add_field_encoder(p)
+    _add_cpu_threads(p, "torch and the rasterizer")
 
 
 def _bench_phase3_arguments(p: argparse.ArgumentParser) -> None:
@@ -302,8 +309,7 @@ def _bench_view_arguments(p: argparse.ArgumentParser) -> None:
                    help="a query to time too, when the run has a field (default: the red ball)")
     p.add_argument("--out", default="bench-view.json", metavar="FILE.json",
                    help="results JSON (default bench-view.json)")
-    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
-                   help="CPU threads for torch (default: all cores)")
+    _add_cpu_threads(p, "torch")
 
 
 def _encoder_convert_arguments(p: argparse.ArgumentParser) -> None:
