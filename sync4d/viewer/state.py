@@ -22,6 +22,7 @@ from PIL import Image
 
 from sync4d.data.scene import Camera
 from sync4d.export.splats import default_times, splats_at
+from sync4d.geometry import quat_to_matrix
 from sync4d.phase1.gaussians import SH_C0
 from sync4d.phase3.query import TextCache, answer
 from sync4d.phase3.store import Field, FieldError, load_field
@@ -70,13 +71,7 @@ class SplatArrays:
 
 def _covariances(quats: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
     """R diag(s^2) R^T [N, 3, 3] from quaternions w-x-y-z [N, 4] and log-scales [N, 3]."""
-    q = quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
-    w, x, y, z = q.T
-    r = np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], axis=1).reshape(-1, 3, 3)  # fmt: skip
+    r = quat_to_matrix(torch.as_tensor(quats, dtype=torch.float64)).numpy()
     s2 = np.exp(2.0 * log_scales)
     return np.einsum("nij,nj,nkj->nik", r, s2, r).astype(np.float32)
 
@@ -243,12 +238,7 @@ class ViewerState:
         axes: x right, y down, z forward), vertical field of view `fov` (radians) and `aspect`
         (width / height) at time `t` through sync4d's rasterizer; writes and returns
         ``RUN/renders/view_t<t>_<n>.png``."""
-        w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
-        r = np.array([
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ])  # fmt: skip
+        r = quat_to_matrix(torch.as_tensor(wxyz, dtype=torch.float64)).numpy()
         view = np.eye(4)
         view[:3, :3] = r.T
         view[:3, 3] = -r.T @ np.asarray(position, np.float64)
