@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from support.datasets import write_blender
+from support.ports import free_port
 from sync4d.cli import main
 
 ray = pytest.importorskip("ray", reason="sync4d sweep needs Ray (pip install 'sync4d[sweep]')")
@@ -67,9 +67,7 @@ def test_a_local_sweep_runs_reports_a_failure_and_resumes(folder, capsys):
 @pytest.mark.slow
 def test_a_sweep_joins_a_running_ray_cluster(folder, tmp_path, capsys):
     ray_cli = shutil.which("ray") or str(Path(sys.executable).parent / "ray")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     env = {**os.environ, "RAY_ENABLE_UV_RUN_RUNTIME_ENV": "0"}
     subprocess.run([ray_cli, "start", "--head", "--node-ip-address", "127.0.0.1", "--port",
                     str(port), "--num-cpus", "2", "--include-dashboard", "false",

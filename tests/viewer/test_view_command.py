@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from support.oracle import oracle_run_folder
+from support.ports import free_port
 from sync4d.cli import main
 from sync4d.files import RunLock
 
@@ -24,11 +25,6 @@ from sync4d.files import RunLock
 def run_dir(tmp_path_factory) -> Path:
     return oracle_run_folder(tmp_path_factory.mktemp("view_cmd"))
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _start(args: list[str]) -> tuple[subprocess.Popen, str]:
@@ -49,7 +45,7 @@ def test_a_missing_run_and_a_run_without_a_checkpoint(tmp_path, capsys):
     assert "no such run folder" in capsys.readouterr().err
     young = tmp_path / "young"
     with RunLock(young, "fit"):
-        assert main(["view", str(young), "--port", str(_free_port())]) == 2
+        assert main(["view", str(young), "--port", str(free_port())]) == 2
     err = capsys.readouterr().err
     assert "no checkpoint yet" in err and "'fit' (pid" in err and "first save" in err
 
@@ -68,7 +64,7 @@ def test_a_busy_port_is_named(run_dir, capsys):
 def test_the_server_stops_cleanly_on_a_signal(run_dir, tmp_path, sig):
     bare = tmp_path / "bare"  # no language field: served, with the command that builds it
     shutil.copytree(run_dir, bare, ignore=shutil.ignore_patterns("phase3"))
-    port = _free_port()
+    port = free_port()
     proc, line = _start([str(bare), "--port", str(port), "--threads", "1"])
     assert f"http://localhost:{port}" in line
     with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as page:
@@ -81,7 +77,7 @@ def test_the_server_stops_cleanly_on_a_signal(run_dir, tmp_path, sig):
 
 
 def test_a_run_being_trained_is_served_with_a_note(run_dir):
-    port = _free_port()
+    port = free_port()
     with RunLock(run_dir, "fit"):
         proc, _ = _start([str(run_dir), "--port", str(port), "--threads", "1"])
         proc.send_signal(signal.SIGINT)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +17,7 @@ import pytest
 
 from support import browser as br
 from support.oracle import oracle_run_folder
+from support.ports import free_port
 
 QUERY = "the red ball rising"
 REQUIRED = os.environ.get("SYNC4D_REQUIRE_BROWSER") == "1"
@@ -28,11 +28,6 @@ pytestmark = pytest.mark.skipif(
     "chromium-driver)",
 )
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _lit(img: np.ndarray) -> int:
@@ -49,7 +44,7 @@ def _drawn(img: np.ndarray) -> int:
 def test_the_viewer_in_a_browser(tmp_path_factory):
     run_dir = oracle_run_folder(tmp_path_factory.mktemp("browser_run"), (QUERY,))
     shots = tmp_path_factory.mktemp("screenshots")
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RAYON_NUM_THREADS": "1"}
     out, err_path = shots / "view-stdout.txt", shots / "view-stderr.txt"
     with open(out, "w") as so, open(err_path, "w") as se:
