@@ -33,6 +33,7 @@ from sync4d.options import (
     add_bench_raster_options,
     add_threads,
     add_training_options,
+    background_colour,
     positive_float,
     positive_int,
 )
@@ -183,6 +184,10 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=None, metavar="DATA",
                    help="dataset folder, if it moved since training")
     p.add_argument("--split", choices=("test", "train"), default="test")
+    p.add_argument("--background", type=background_colour, default=None, metavar="COLOUR",
+                   help="composite render and ground truth on this colour instead of the "
+                   "run's own: white, black or R,G,B in [0, 1] (Deformable-3DGS and SC-GS "
+                   "score D-NeRF on black); writes RUN/eval-<colour>.json")
     p.add_argument("--queries", default=None, metavar="ANNOTATIONS",
                    help="evaluate Phase 3's temporal queries instead (Acc, vIoU, tIoU, "
                    "Appendix F): our query JSON or 4D LangSplat's annotations folder")
@@ -312,6 +317,22 @@ def _bench_view_arguments(p: argparse.ArgumentParser) -> None:
     _add_cpu_threads(p, "torch")
 
 
+def _bench_step_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", help="run folder (its Gaussians are stepped)")
+    p.add_argument("--variant", action="append", default=None, metavar="NAME[:KEY=VALUE,...]",
+                   help="a motion variant: overrides of the run's config (repeatable; default: "
+                   "gaussians and nodes:phase1.motion=nodes)")  # fmt: skip
+    p.add_argument("--steps", type=positive_int, default=10, metavar="N",
+                   help="steps timed per round and variant (default 10)")
+    p.add_argument("--rounds", type=positive_int, default=3, metavar="R",
+                   help="rounds, each variant in turn (default 3)")
+    p.add_argument("--data", default=None, metavar="DATA",
+                   help="the run's dataset, if it has moved")
+    p.add_argument("--out", default="bench-step.json", metavar="FILE.json",
+                   help="results JSON (default bench-step.json)")
+    _add_cpu_threads(p, "torch and the rasterizer")
+
+
 def _encoder_convert_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default="google/siglip-base-patch16-224", metavar="NAME",
                    help="Hugging Face model id or a local save_pretrained folder "
@@ -434,6 +455,14 @@ COMMANDS: tuple[Command, ...] = (
         "Build each run's language field in a temporary folder (the run is not touched) and "
         "time its steps and text queries, cold and cached; writes a JSON.",
         "sync4d.bench.phase3", _bench_phase3_arguments,
+    ),
+    Command(
+        "bench step", ("bench step RUN",),
+        "where a Phase 1 step's time goes, per motion model (D_theta per Gaussian or nodes)",
+        "Step a run's Gaussians with each variant of its config in turn and time the whole "
+        "step, the motion (D_theta, the node blend) and the rasterizer, forward and backward; "
+        "prints a table and writes a JSON.",
+        "sync4d.bench.step", _bench_step_arguments,
     ),
     Command(
         "bench view", ("bench view RUN",),

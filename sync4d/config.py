@@ -154,6 +154,7 @@ def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
         iterations=iterations,
         densify=densify,
         static=static,
+        nodes=_scale_marked(cfg.phase1.nodes, r),
         sh_degree_interval=scaled(cfg.phase1.sh_degree_interval),
         static_warmup=scaled(cfg.phase1.static_warmup, 0),
         coarse_iterations=scaled(cfg.phase1.coarse_iterations, 0),

@@ -78,6 +78,8 @@ def _replace_rows(optimizer: torch.optim.Optimizer, model: DeformableGaussians, 
         setattr(model, name, new)
     # Per-Gaussian flags follow the same rows (split and cloned children inherit them).
     model.static = fn("static", model.static, False)
+    if model.nodes is not None:  # children blend their parent's nodes until the next refresh
+        model.nodes.index = fn("node_index", model.nodes.index, False)
 
 
 class Densifier:

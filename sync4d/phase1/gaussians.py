@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from sync4d import raster
 from sync4d.data.scene import Camera
 from sync4d.phase1.deform import DeformationMLP, DeformConfig, deform_gaussians
+from sync4d.phase1.nodes import NodeConfig, NodeMotion
 
 __all__ = ["DeformableGaussians", "PER_GAUSSIAN", "rgb_to_sh_dc", "SH_C0"]
 
@@ -90,6 +91,28 @@ class DeformableGaussians(nn.Module):
         #: call (None before one, and when every Gaussian is static): the motion-sparsity
         #: loss reads them (`sync4d.phase1.static.motion_sparsity`).
         self.last_offsets: tuple[Tensor, Tensor, Tensor] | None = None
+        #: The control nodes that carry the motion once `use_nodes` was called
+        #: (`sync4d.phase1.nodes`); None: D_theta moves every Gaussian (the paper).
+        self.nodes: NodeMotion | None = None
+
+    @property
+    def motion(self) -> str:
+        """"nodes" when control nodes carry the motion, else "gaussians" (D_theta per
+        Gaussian)."""
+        return "gaussians" if self.nodes is None else "nodes"
+
+    def use_nodes(self, config: NodeConfig, generator: torch.Generator | None = None
+                  ) -> NodeMotion:  # fmt: skip
+        """Hand the motion to control nodes sampled among the Gaussians
+        (`NodeMotion.sample`: each node copies its Gaussian's position and embedding, so
+        D_theta gives it that Gaussian's motion); the static set is cleared (the nodes make
+        D_theta's cost independent of N). Returns the nodes."""
+        opacities = torch.sigmoid(self.opacity_logits.detach())
+        self.nodes = NodeMotion.sample(self.means.detach(), self.embeddings.detach(), opacities,
+                                       config, generator)  # fmt: skip
+        self.static = torch.zeros(self.num_gaussians, dtype=torch.bool)
+        self.last_offsets = None
+        return self.nodes
 
     @classmethod
     def random_in_box(
@@ -110,6 +133,9 @@ class DeformableGaussians(nn.Module):
         tensors.update({f"deform.{k}": v.detach() for k, v in self.deform.state_dict().items()})
         meta = {"sh_degree": self.sh_degree, "near": self.near,
                 "deform_config": dataclasses.asdict(self.config)}  # fmt: skip
+        if self.nodes is not None:  # absent: D_theta per Gaussian (and older files)
+            tensors.update(self.nodes.state())
+            meta.update({"motion": "nodes", "node_config": self.nodes.settings()})
         return tensors, meta
 
     @classmethod
@@ -137,6 +163,12 @@ class DeformableGaussians(nn.Module):
                 raise ValueError(f"'gaussians.static' has shape {list(static.shape)}, expected "
                                  f"[{model.num_gaussians}]")  # fmt: skip
             model.static = static > 0.5
+        motion = meta.get("motion", "gaussians")
+        if motion == "nodes":
+            model.nodes = NodeMotion.from_state(tensors, meta["node_config"],
+                                                model.num_gaussians, model.config.embed_dim)
+        elif motion != "gaussians":
+            raise ValueError(f"unknown motion model {motion!r} (expected 'gaussians' or 'nodes')")
         deform = {k.removeprefix("deform."): v for k, v in tensors.items()
                   if k.startswith("deform.")}  # fmt: skip
         try:
@@ -157,6 +189,9 @@ class DeformableGaussians(nn.Module):
         if not deform:
             return self.means, q0, torch.exp(self.log_scales)
         n = self.num_gaussians
+        if self.nodes is not None:  # D_theta on the nodes, blended onto the Gaussians
+            self.deform_rows += self.nodes.count
+            return self.nodes.deformed(self.deform, self.means, q0, self.log_scales, t)
         if self.static.shape != (n,):  # rows changed outside the densifier
             if bool(self.static.any()):
                 raise RuntimeError(f"static mask has {self.static.shape[0]} rows for {n} "

@@ -34,6 +34,7 @@ from sync4d.phase1.densify import Densifier, DensifyConfig
 from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
 from sync4d.phase1.init import scene_extent
 from sync4d.phase1.losses import photometric_loss
+from sync4d.phase1.nodes import NodeConfig, NodeMotion, arap_loss, densify_nodes
 from sync4d.phase1.static import (
     StaticConfig,
     StaticUpdate,
@@ -56,6 +57,12 @@ class Phase1Config:
     #: Spherical-harmonics degree of the Gaussians' colours (0-3).
     sh_degree: int = ranged(3, 0, 3)
     deform: DeformConfig = field(default_factory=DeformConfig)
+    #: What D_theta moves: "gaussians" (the paper: every Gaussian) or "nodes" (a few hundred
+    #: control nodes whose rigid motions each Gaussian blends, after a coarse stage of
+    #: per-Gaussian D_theta; `nodes`, `sync4d.phase1.nodes`).
+    motion: str = choice("gaussians", ("gaussians", "nodes"))
+    #: The control nodes of `motion = "nodes"`.
+    nodes: NodeConfig = field(default_factory=NodeConfig)
     #: Near clipping plane of every render (training, evaluation, `render`), world units;
     #: Gaussians whose centre is closer to the camera are not drawn. Capture domes need more
     #: than the default: each camera's own housing, reconstructed from the cameras facing it,
@@ -245,6 +252,77 @@ class Phase1Trainer:
             eps=1e-15,
             fused=True,  # one multithreaded kernel for all groups: ~4x faster than the default
         )
+        if m.nodes is not None:
+            self._add_node_groups()
+        #: The last ARAP loss (None before nodes carry the motion).
+        self.last_arap: float | None = None
+
+    def _add_node_groups(self) -> None:
+        """The node parameters' Adam groups, after D_theta's (`node_positions`,
+        `node_radii`, `node_embeddings`): a trainer built on a node model has them from the
+        start, one that switches to nodes appends them in the same order."""
+        nodes, c = self.model.nodes, self.config
+        assert nodes is not None
+        for name, p, lr in (
+            ("node_positions", nodes.positions, c.nodes.lr_position * self.extent),
+            ("node_radii", nodes.log_radii, c.nodes.lr_radius),
+            ("node_embeddings", nodes.embeddings, c.lr_embed),
+        ):
+            self.optimizer.add_param_group({"params": [p], "name": name, "lr": lr})
+
+    def nodes_due(self) -> bool:
+        """Whether control nodes take the motion over at the current iteration
+        (`motion = "nodes"`, the coarse stage of `nodes.init_after` iterations over)."""
+        c = self.config
+        return (c.motion == "nodes" and self.model.nodes is None
+                and self.iteration > c.nodes.init_after)  # fmt: skip
+
+    def start_nodes(self) -> None:
+        """Sample the control nodes (`DeformableGaussians.use_nodes`, seeded from the run's
+        seed) and give them Adam groups."""
+        generator = torch.Generator().manual_seed(self.config.seed + 1)
+        self.model.use_nodes(self.config.nodes, generator)
+        self._add_node_groups()
+
+    def node_losses(self, t: float) -> torch.Tensor | None:
+        """`nodes.arap_weight` times the ARAP loss between the node motion at the frame's
+        time `t` (the render's) and at a second training time drawn from a generator
+        seeded by the iteration (so a resumed run draws the same); None without nodes."""
+        nodes, c = self.model.nodes, self.config.nodes
+        if nodes is None or c.arap_weight <= 0 or nodes.last_motion is None:
+            return None
+        times = self._train_times()
+        t2 = times[random.Random(self.config.seed * 1_000_003 + self.iteration)
+                   .randrange(len(times))]  # fmt: skip
+        if len(times) > 1 and t2 == t:
+            t2 = times[(times.index(t2) + 1) % len(times)]
+        arap = arap_loss(nodes.positions, nodes.edges, nodes.last_motion,
+                         nodes.motion(self.model.deform, t2))  # fmt: skip
+        self.last_arap = float(arap.detach())
+        return c.arap_weight * arap
+
+    def _train_times(self) -> list[float]:
+        """The sorted distinct times of the training frames."""
+        if not hasattr(self, "_times_cache"):
+            self._times_cache = sorted({float(f.time) for f in self.scene.train})
+        return self._times_cache
+
+    def nodes_step(self) -> None:
+        """After the optimizer step: adaptive nodes on Gaussian densification steps (before
+        the densifier resets its statistics) until `nodes.densify_until`, and the
+        nearest-node tables' refresh every `nodes.refresh_every` iterations."""
+        nodes, c = self.model.nodes, self.config.nodes
+        if nodes is None:
+            return
+        d = self.densifier.config
+        it = self.iteration
+        densify = d.start <= it < d.stop and it % d.interval == 0 and it > 0
+        if densify and it <= c.densify_until and self.densifier.count.shape[0] == \
+                self.model.num_gaussians:  # fmt: skip
+            grad = self.densifier.grad_accum / self.densifier.count.clamp_min(1)
+            densify_nodes(nodes, self.model.means.detach(), grad, self.optimizer)
+        elif it % c.refresh_every == 0:
+            nodes.refresh(self.model.means.detach())
 
     @property
     def background(self) -> torch.Tensor:
@@ -302,8 +380,11 @@ class Phase1Trainer:
                 g["lr"] = self._position_lr()
             elif g["name"] == "deform":
                 g["lr"] = ramp * self._decayed(c.lr_deform, c.lr_deform_final)
-            elif g["name"] == "embeddings":
+            elif g["name"] in ("embeddings", "node_embeddings"):
                 g["lr"] = ramp * self._decayed(c.lr_embed, c.lr_embed_final)
+            elif g["name"] == "node_positions":
+                final = c.nodes.lr_position * c.lr_means_final / c.lr_means
+                g["lr"] = self._decayed(c.nodes.lr_position, final) * self.extent
 
     def step(self) -> dict[str, float]:
         """One iteration on a random training frame; returns loss, PSNR and N."""
@@ -311,6 +392,8 @@ class Phase1Trainer:
         if self.densifier.reset_due(self.iteration):
             self.densifier.reset_opacity(self.model, self.optimizer)
         self.iteration += 1
+        if self.nodes_due():
+            self.start_nodes()
         self.update_learning_rates()
         idx = self._rng.randrange(len(self.scene.train))
         frame = self.scene.train[idx]
@@ -340,6 +423,9 @@ class Phase1Trainer:
             sparse = motion_sparsity(self.model.last_offsets, self.extent,
                                      self.model.num_gaussians, s.sparsity_below)  # fmt: skip
             loss = loss + s.sparsity * sparse
+        arap = self.node_losses(frame.time) if self.deform_active() else None
+        if arap is not None:
+            loss = loss + arap
         loss = watchdog.check_loss(self.phase_name, self.iteration, loss)
         loss.backward()
         params, units = self.watched()
@@ -349,6 +435,7 @@ class Phase1Trainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         watchdog.check_params(self.phase_name, self.iteration, params, units)
+        self.nodes_step()
         changed = self.densifier.step(self.model, self.optimizer, self.iteration, self.extent)
         if any(changed.values()):
             self.on_gaussians_changed()
@@ -360,8 +447,10 @@ class Phase1Trainer:
             "gaussians": float(self.model.num_gaussians),
             **extra_stats,
         }
-        if c.static.enabled:
+        if c.static.enabled and self.model.nodes is None:
             stats["static"] = float(self.model.static.sum())
+        if self.model.nodes is not None:
+            stats["nodes"] = float(self.model.nodes.count)
         return stats
 
     #: The name the watchdog gives this trainer's failures.
@@ -370,7 +459,9 @@ class Phase1Trainer:
     def watched(self) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
         """The parameters the watchdog checks each step (name -> tensor) and the unit of their
         rows (per-Gaussian tensors: "Gaussians")."""
-        return dict(self.model.named_parameters()), dict.fromkeys(PER_GAUSSIAN, "Gaussians")
+        units = dict.fromkeys(PER_GAUSSIAN, "Gaussians")
+        units.update({f"nodes.{n}": "nodes" for n in NodeMotion.PER_NODE})
+        return dict(self.model.named_parameters()), units
 
     def static_check_due(self, densified: bool) -> bool:
         """Whether the static set is re-checked after this iteration: from `static.start` on,
@@ -379,6 +470,8 @@ class Phase1Trainer:
         after each one (hook, 3000 iterations: every 37) cost more than it found (0.92x)."""
         s = self.config.static
         if not s.enabled or self.iteration < s.start or not self.deform_active():
+            return False
+        if self.model.nodes is not None:  # the nodes' cost does not depend on N
             return False
         d = self.densifier.config
         last_densification = densified and self.iteration + d.interval >= d.stop

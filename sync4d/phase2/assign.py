@@ -21,6 +21,7 @@ import torch
 
 from sync4d.data.scene import Frame, Scene
 from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.nodes import NodeMotion, blend_weights, knn
 from sync4d.settings import choice, ranged
 
 __all__ = [
@@ -32,6 +33,7 @@ __all__ = [
     "assign_from_masks",
     "cluster_trajectories",
     "displacement_curves",
+    "node_votes",
     "count_votes",
     "labels_from_votes",
 ]
@@ -301,3 +303,23 @@ def assign_objects(
         return assign_from_masks(_positions_fn(model), scene.train, scene.labels, config)
     times = np.linspace(0.0, 1.0, config.trajectory_samples)
     return cluster_trajectories(displacement_curves(model, times), extent, config)
+
+
+@torch.no_grad()
+def node_votes(nodes: NodeMotion, means: torch.Tensor, labels: np.ndarray, num_objects: int
+               ) -> np.ndarray:  # fmt: skip
+    """The object of each control node [M] (int): the label its Gaussians (canonical `means`
+    [N, 3], object `labels` [N]) vote for, each vote weighted by the Gaussian's blend weight
+    on the node; a node no Gaussian blends takes its nearest Gaussian's label."""
+    w = blend_weights(means, nodes.positions.detach(), nodes.log_radii.detach(), nodes.index)
+    k = nodes.index.shape[1]
+    votes = torch.zeros(nodes.count * num_objects, dtype=torch.float64)
+    lab = torch.as_tensor(labels, dtype=torch.long).repeat_interleave(k)
+    votes.index_add_(0, nodes.index.reshape(-1) * num_objects + lab, w.reshape(-1).double())
+    votes = votes.reshape(nodes.count, num_objects)
+    out = votes.argmax(1)
+    empty = votes.sum(1) <= 0
+    if bool(empty.any()):
+        near = knn(nodes.positions.detach()[empty], means, 1)[:, 0]
+        out[empty] = torch.as_tensor(labels, dtype=torch.long)[near]
+    return out.numpy()

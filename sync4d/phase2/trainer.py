@@ -58,7 +58,13 @@ from sync4d.data.scene import Frame, Scene
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import FinishedSchedule, Phase1Config, Phase1Trainer
-from sync4d.phase2.assign import AssignConfig, Assignment, assign_objects, displacement_curves
+from sync4d.phase2.assign import (
+    AssignConfig,
+    Assignment,
+    assign_objects,
+    displacement_curves,
+    node_votes,
+)
 from sync4d.phase2.diagnostics import diagnostics, motion_export
 from sync4d.phase2.motion import (
     MotionConfig,
@@ -249,6 +255,8 @@ class Phase2Trainer(Phase1Trainer):
         self.refine_visits = 0
         self.refine_visits_skipped = 0
         self.loop_skipped = 0
+        #: Objects whose M_phi start was fitted on node trajectories (node models only).
+        self.node_fitted_objects = 0
         self._set_labels(self.assignment.labels)
         self.static = self._static_objects()
         if mc.refine_steps < 0:
@@ -291,10 +299,29 @@ class Phase2Trainer(Phase1Trainer):
     def fit_motion(self, positions: list[np.ndarray] | None = None) -> None:
         """Set M_phi to the closed-form fit of every object's canonical Gaussians onto their
         D_theta positions at each stored frame (MotionConfig.init = "fit"; `positions`: those
-        positions [T][N, 3] when the caller has them); held objects keep their transform."""
+        positions [T][N, 3] when the caller has them); held objects keep their transform.
+        On a node model (`sync4d.phase1.nodes`) an object with at least 3 nodes (by their
+        Gaussians' votes, `node_votes`) is fitted on its nodes' trajectories instead:
+        hundreds of rows, not tens of thousands."""
+        labels = self.labels.numpy()
+        nodes = self.model.nodes
+        if nodes is not None:  # objects with >= 3 nodes: fitted on their node trajectories
+            node_labels = node_votes(nodes, self.model.means.detach(), labels,
+                                     self.assignment.num_objects)  # fmt: skip
+            counts = np.bincount(node_labels, minlength=self.assignment.num_objects)
+            on_nodes = counts >= 3
+            node_x0 = nodes.positions.detach().double().numpy()
+            node_pos = [node_x0 + nodes.motion(self.model.deform, float(t))[1].double().numpy()
+                        for t in self.times]  # fmt: skip
+            self.motion.fit_to(node_x0, node_pos, np.where(on_nodes[node_labels], node_labels,
+                                                           -1))  # fmt: skip
+            self.node_fitted_objects = int(on_nodes.sum())
+            if on_nodes.all():
+                return
+            labels = np.where(on_nodes[labels], -1, labels)
         x0 = self.model.means.double().numpy()
         pos = self._frame_positions() if positions is None else positions
-        self.motion.fit_to(x0, pos, self.labels.numpy())
+        self.motion.fit_to(x0, pos, labels)
 
     def _frame_positions(self) -> list[np.ndarray]:
         """D_theta's positions [N, 3] (float64) at every stored frame time."""

@@ -1,0 +1,163 @@
+"""``sync4d bench step RUN``: where a Phase 1 training step's time goes, per motion model, at
+the run's own Gaussian count.
+
+Each variant (``NAME:KEY=VALUE,...`` overrides of the run's recorded config, e.g.
+``nodes:phase1.motion=nodes``) gets a copy of the run's latest checkpoint (a variant asking
+for nodes on a per-Gaussian run samples them first, `Phase1Trainer.start_nodes`) and a Phase 1
+trainer at the finished schedule (full SH degree, D_theta on) with densification off, so every
+variant steps the same Gaussians. Rounds interleave the variants (a change of machine load
+hits them alike). Per round and variant it times `steps` whole training steps, then the same
+number of the motion alone (D_theta and, for nodes, the blend: forward and backward of the
+deformed means, rotations and scales at a training frame's time) and of the rasterizer alone
+(SH colours, projection, compositing; forward and backward). The shares are each part's
+median over the step's median. Prints a table and writes a JSON with the date, machine and
+threads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from sync4d.report import align_table
+
+__all__ = ["bench_step", "main"]
+
+
+def _median_ms(xs: list[float]) -> float:
+    return 1000.0 * statistics.median(xs)
+
+
+def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds: int,
+               threads: int | None, data: str | None = None) -> dict[str, Any]:  # fmt: skip
+    """Step, motion and rasterizer times (ms) of each variant on `run_dir`'s Gaussians."""
+    import torch
+
+    from sync4d.config import apply_overrides
+    from sync4d.phase1.densify import DensifyConfig
+    from sync4d.phase1.gaussians import DeformableGaussians
+    from sync4d.phase1.trainer import FinishedSchedule, Phase1Trainer
+    from sync4d.pipeline.record import read_record, recorded_config
+    from sync4d.runs import RunError, load_run
+
+    if threads:
+        torch.set_num_threads(threads)
+    run = load_run(run_dir)
+    cfg = recorded_config(read_record(run.path), run.path)
+    scene = run.scene(data)
+    if scene is None:
+        raise RunError(f"{run_dir}: its dataset is gone; pass --data DATA")
+    never = DensifyConfig(start=2**62, stop=2**62, opacity_reset_interval=2**62)
+    tensors, meta = run.model.state()
+    trainers: dict[str, Phase1Trainer] = {}
+    for name, overrides in variants.items():
+        vcfg = apply_overrides(cfg, overrides).phase1
+        model = DeformableGaussians.from_state(tensors, meta)
+        if vcfg.motion == "gaussians" and model.nodes is not None:
+            raise RunError(f"variant {name}: {run_dir} moves its Gaussians by nodes; a "
+                           "per-Gaussian variant needs a per-Gaussian run")  # fmt: skip
+        trainer = Phase1Trainer(model, scene, vcfg, total_iterations=vcfg.iterations,
+                                threads=threads, densify=never,
+                                schedule=FinishedSchedule())  # fmt: skip
+        if vcfg.motion == "nodes" and model.nodes is None:
+            trainer.start_nodes()
+        trainer.step()  # warm-up: caches the first image, allocates
+        trainers[name] = trainer
+    frames = scene.train
+    timings: dict[str, dict[str, list[float]]] = {
+        n: {"step": [], "motion": [], "raster": []} for n in variants
+    }
+    for r in range(rounds):
+        for name, trainer in trainers.items():
+            model = trainer.model
+            for _ in range(steps):
+                t0 = time.perf_counter()
+                trainer.step()
+                timings[name]["step"].append(time.perf_counter() - t0)
+            for k in range(steps):
+                frame = frames[(r * steps + k) % len(frames)]
+                t0 = time.perf_counter()
+                out = model.at_time(frame.time)
+                sum(o.sum() for o in out).backward()
+                timings[name]["motion"].append(time.perf_counter() - t0)
+                model.zero_grad(set_to_none=True)
+            for k in range(steps):
+                frame = frames[(r * steps + k) % len(frames)]
+                with torch.no_grad():
+                    deformed = [o.detach().requires_grad_() for o in model.at_time(frame.time)]
+                t0 = time.perf_counter()
+                img = model.render(frame.camera, frame.time, background=trainer.background,
+                                   deformed=tuple(deformed), threads=threads).features  # fmt: skip
+                img.sum().backward()
+                timings[name]["raster"].append(time.perf_counter() - t0)
+                model.zero_grad(set_to_none=True)
+        print(f"bench step: round {r + 1}/{rounds} done", file=sys.stderr)
+    rows = []
+    base = None
+    for name, trainer in trainers.items():
+        t = timings[name]
+        step, motion, rast = (_median_ms(t[k]) for k in ("step", "motion", "raster"))
+        base = base or step
+        nodes = trainer.model.nodes
+        rows.append({
+            "variant": name, "overrides": variants[name],
+            "motion_model": trainer.model.motion,
+            "gaussians": trainer.model.num_gaussians,
+            "nodes": nodes.count if nodes is not None else None,
+            "step_ms": step, "motion_ms": motion, "raster_ms": rast,
+            "motion_share": motion / step, "raster_share": rast / step,
+            "speedup": base / step, "raw_s": t,
+        })  # fmt: skip
+    return {
+        "date": _dt.date.today().isoformat(),
+        "command": "sync4d " + " ".join(sys.argv[1:]),
+        "machine": {"platform": platform.platform(), "processor": platform.processor(),
+                    "cpus": os.cpu_count()},  # fmt: skip
+        "threads": threads, "run": str(run_dir), "steps": steps, "rounds": rounds,
+        "rows": rows,
+    }  # fmt: skip
+
+
+def main(args: argparse.Namespace) -> int:
+    from sync4d.bench.fit import parse_variant
+    from sync4d.config import ConfigError
+    from sync4d.runs import RunError
+
+    try:
+        texts = args.variant or ["gaussians", "nodes:phase1.motion=nodes"]
+        pairs = [parse_variant(v) for v in texts]
+    except ConfigError as e:
+        print(f"bench step: {e}", file=sys.stderr)
+        return 2
+    variants = dict(pairs)
+    if len(variants) != len(pairs):
+        print("bench step: two --variant share a name", file=sys.stderr)
+        return 2
+    try:
+        result = bench_step(Path(args.run), variants, args.steps, args.rounds, args.threads,
+                            args.data)  # fmt: skip
+    except (RunError, ConfigError, FileNotFoundError) as e:
+        print(f"bench step: {e}", file=sys.stderr)
+        return 2
+    table = [["variant", "motion", "gaussians", "nodes", "step ms", "motion ms", "share",
+              "raster ms", "share", "speed-up"]]  # fmt: skip
+    for r in result["rows"]:
+        table.append([r["variant"], r["motion_model"], f"{r['gaussians']:,}",
+                      "-" if r["nodes"] is None else str(r["nodes"]), f"{r['step_ms']:.1f}",
+                      f"{r['motion_ms']:.1f}", f"{100 * r['motion_share']:.0f} %",
+                      f"{r['raster_ms']:.1f}", f"{100 * r['raster_share']:.0f} %",
+                      f"{r['speedup']:.2f}x"])  # fmt: skip
+    print(align_table(table))
+    out = Path(args.out)
+    out.write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+    print(f"bench step: wrote {out}", file=sys.stderr)
+    return 0
+
