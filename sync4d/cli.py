@@ -321,7 +321,7 @@ def _bench_step_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", metavar="RUN", help="run folder (its Gaussians are stepped)")
     p.add_argument("--variant", action="append", default=None, metavar="NAME[:KEY=VALUE,...]",
                    help="a motion variant: overrides of the run's config (repeatable; default: "
-                   "gaussians and nodes:phase1.motion=nodes)")  # fmt: skip
+                   "gaussians:phase1.motion=gaussians and nodes:phase1.motion=nodes)")  # fmt: skip
     p.add_argument("--steps", type=positive_int, default=10, metavar="N",
                    help="steps timed per round and variant (default 10)")
     p.add_argument("--rounds", type=positive_int, default=3, metavar="R",

@@ -62,6 +62,8 @@ __all__ = [
     "blend_weights",
     "densify_nodes",
     "farthest_point_sample",
+    "gather_blend",
+    "gather_rows",
     "knn",
     "node_transforms",
 ]
@@ -166,8 +168,61 @@ def blend_weights(x0: Tensor, positions: Tensor, log_radii: Tensor, index: Tenso
     """Blend weights [N, K] of Gaussians at `x0` [N, 3] on their nodes `index` [N, K]:
     softmax of -|x0 - p_j|^2 / (2 r_j^2), r_j = exp(log_radii_j); each row sums to 1."""
     d2 = ((x0.unsqueeze(1) - positions[index]) ** 2).sum(-1)
-    r2 = torch.exp(2.0 * log_radii).clamp_min(1e-20)[index]
-    return torch.softmax(-d2 / (2.0 * r2), dim=-1)
+    inv_r2 = torch.exp(-2.0 * log_radii).clamp_max(1e20)[index]
+    return torch.softmax(-0.5 * d2 * inv_r2, dim=-1)
+
+
+class _GatherRows(torch.autograd.Function):
+    """`table[index]` ([M, C] by [N, K] -> [N, K, C]) whose backward adds the rows' gradients
+    with one `index_add_` (autograd's own goes through a sorting `index_put_`)."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, index: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(index)
+        ctx.rows = table.shape[0]
+        return table[index]
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        (index,) = ctx.saved_tensors
+        out = grad.new_zeros(ctx.rows, grad.shape[-1])
+        out.index_add_(0, index.reshape(-1), grad.reshape(-1, grad.shape[-1]))
+        return out, None
+
+
+def gather_rows(table: Tensor, index: Tensor) -> Tensor:
+    """Rows of `table` [M, C] at `index` [N, K]: [N, K, C] (gradients summed back per row)."""
+    return _GatherRows.apply(table, index)
+
+
+class _GatherBlend(torch.autograd.Function):
+    """sum_k weights[:, k] table[index[:, k]] ([M, C], [N, K], [N, K] -> [N, C]), one
+    neighbour slot at a time, so no [N, K, C] tensor is made forward or backward."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, index: Tensor, weights: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(table, index, weights)
+        out = weights[:, :1] * table[index[:, 0]]
+        for k in range(1, index.shape[1]):
+            out.addcmul_(weights[:, k : k + 1], table[index[:, k]])
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, Tensor]:  # type: ignore[override]
+        table, index, weights = ctx.saved_tensors
+        g_table = torch.zeros_like(table)
+        g_w = torch.empty_like(weights)
+        for k in range(index.shape[1]):
+            rows = index[:, k]
+            g_w[:, k] = (grad * table[rows]).sum(-1)
+            g_table.index_add_(0, rows, grad * weights[:, k : k + 1])
+        return g_table, None, g_w
+
+
+def gather_blend(table: Tensor, index: Tensor, weights: Tensor) -> Tensor:
+    """The weighted sum over each row's nodes: sum_k weights[i, k] table[index[i, k]],
+    [M, C] x [N, K] x [N, K] -> [N, C], with gradients for `table` and `weights`."""
+    return _GatherBlend.apply(table, index, weights)
 
 
 def _normalize(q: Tensor) -> Tensor:
@@ -180,37 +235,47 @@ def _conj(q: Tensor) -> Tensor:
 
 def blend(
     x0: Tensor, q0: Tensor, log_s0: Tensor, positions: Tensor,
-    motion: tuple[Tensor, Tensor, Tensor], index: Tensor, weights: Tensor, kind: str = "linear",
+    motion: tuple[Tensor, Tensor, Tensor], index: Tensor, weights: Tensor | None = None,
+    kind: str = "linear", log_radii: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
     """Gaussians (canonical means `x0` [N, 3], unit quaternions `q0` [N, 4], log-scales
     `log_s0` [N, 3]) moved by blending their nodes' motions (`node_transforms`' (q, dx, dl)
-    of nodes at `positions` [M, 3]) with `weights` [N, K] over `index` [N, K]: deformed means
-    [N, 3], unit quaternions [N, 4], scales [N, 3]. `kind`: "linear" or "dual_quaternion"
-    (module docstring). Each node's values are gathered once as one table row."""
+    of nodes at `positions` [M, 3]) over `index` [N, K] with `weights` [N, K], or, when
+    `weights` is None, with `blend_weights` of the nodes' `log_radii` [M] computed from the
+    same gathered rows: deformed means [N, 3], unit quaternions [N, 4], scales [N, 3].
+    `kind`: "linear" or "dual_quaternion" (module docstring). Every node value a Gaussian
+    needs is gathered once, as one table row."""
+    if kind not in BLENDS:
+        raise ValueError(f"blend: expected one of {', '.join(BLENDS)}, got {kind!r}")
     q, dx, dl = motion
     m = positions.shape[0]
     rot = quat_to_matrix(q)  # [M, 3, 3]
     trans = positions + dx - (rot @ positions.unsqueeze(-1)).squeeze(-1)  # x -> R x + T
-    w = weights.unsqueeze(-1)
     if kind == "linear":
-        table = torch.cat([rot.reshape(m, 9), trans, q, dl], dim=-1)  # [M, 19]
-        b = (w * table[index]).sum(1)
-        a = b[:, :9].reshape(-1, 3, 3)
-        x = (a @ x0.unsqueeze(-1)).squeeze(-1) + b[:, 9:12]
-        qt = _normalize(quat_multiply(b[:, 12:16], q0))
-        return x, qt, torch.exp(log_s0 + b[:, 16:19])
-    if kind == "dual_quaternion":
+        cols = [rot.reshape(m, 9), trans, q, dl]  # 19 columns
+    else:
         zero = torch.zeros_like(trans[:, :1])
         dual = 0.5 * quat_multiply(torch.cat([zero, trans], dim=-1), q)
-        table = torch.cat([q, dual, dl], dim=-1)  # [M, 11]
-        b = (w * table[index]).sum(1)
-        norm = b[:, :4].norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        real, dual_b = b[:, :4] / norm, b[:, 4:8] / norm
-        moved = (quat_to_matrix(real) @ x0.unsqueeze(-1)).squeeze(-1)
-        x = moved + 2.0 * quat_multiply(dual_b, _conj(real))[:, 1:]
-        qt = _normalize(quat_multiply(real, q0))
-        return x, qt, torch.exp(log_s0 + b[:, 8:11])
-    raise ValueError(f"blend: expected one of {', '.join(BLENDS)}, got {kind!r}")
+        cols = [q, dual, dl]  # 11 columns
+    if weights is None:
+        if log_radii is None:
+            raise ValueError("blend: give the weights or the nodes' log_radii")
+        inv_r2 = torch.exp(-2.0 * log_radii).clamp_max(1e20).unsqueeze(-1)
+        g = gather_rows(torch.cat([positions, inv_r2], dim=-1), index)  # [N, K, 4]
+        d2 = ((x0.unsqueeze(1) - g[..., :3]) ** 2).sum(-1)
+        weights = torch.softmax(-0.5 * d2 * g[..., 3], dim=-1)
+    b = gather_blend(torch.cat(cols, dim=-1), index, weights)  # [N, C]
+    if kind == "linear":
+        a = b[:, :9].reshape(-1, 3, 3)
+        x = (a * x0.unsqueeze(1)).sum(-1) + b[:, 9:12]
+        qt = _normalize(quat_multiply(b[:, 12:16], q0))
+        return x, qt, torch.exp(log_s0 + b[:, 16:19])
+    norm = b[:, :4].norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    real, dual_b = b[:, :4] / norm, b[:, 4:8] / norm
+    moved = (quat_to_matrix(real) * x0.unsqueeze(1)).sum(-1)
+    x = moved + 2.0 * quat_multiply(dual_b, _conj(real))[:, 1:]
+    qt = _normalize(quat_multiply(real, q0))
+    return x, qt, torch.exp(log_s0 + b[:, 8:11])
 
 
 def arap_loss(positions: Tensor, edges: Tensor, motion_a: tuple[Tensor, Tensor, Tensor],
@@ -304,8 +369,8 @@ class NodeMotion(nn.Module):
         if self.index.shape[0] != x0.shape[0]:
             self.refresh(x0)
         motion = self.last_motion = self.motion(mlp, t)
-        w = blend_weights(x0, self.positions, self.log_radii, self.index)
-        return blend(x0, q0, log_s0, self.positions, motion, self.index, w, self.config.blend)
+        return blend(x0, q0, log_s0, self.positions, motion, self.index, None,
+                     self.config.blend, self.log_radii)  # fmt: skip
 
     def state(self) -> dict[str, Tensor]:
         """The node tensors of a checkpoint (module docstring)."""

@@ -47,15 +47,25 @@ def _case(n: int = 7, m: int = 5, k: int = 3, seed: int = 0, angle: float = 0.6)
     return [t.requires_grad_() for t in (x0, q0, ls0, pos, lr, q, dx, dl)], index
 
 
+@pytest.mark.parametrize("fused", [False, True])
 @pytest.mark.parametrize("kind", BLENDS)
-def test_blend_gradients_match_finite_differences(kind: str) -> None:
+def test_blend_gradients_match_finite_differences(kind: str, fused: bool) -> None:
+    """Both blends, with the weights given or computed from the same gathered node rows
+    (the training path), against finite differences in float64; the two paths agree."""
     (x0, q0, ls0, pos, lr, q, dx, dl), index = _case()
 
     def f(x0, q0, ls0, pos, lr, q, dx, dl):
+        if fused:
+            return blend(x0, q0, ls0, pos, (q, dx, dl), index, None, kind, lr)
         w = blend_weights(x0, pos, lr, index)
         return blend(x0, q0, ls0, pos, (q, dx, dl), index, w, kind)
 
-    assert torch.autograd.gradcheck(f, (x0, q0, ls0, pos, lr, q, dx, dl), atol=1e-6)
+    args = (x0, q0, ls0, pos, lr, q, dx, dl)
+    assert torch.autograd.gradcheck(f, args, atol=1e-6)
+    w = blend_weights(x0, pos, lr, index)
+    for a, b in zip(blend(x0, q0, ls0, pos, (q, dx, dl), index, None, kind, lr),
+                    blend(x0, q0, ls0, pos, (q, dx, dl), index, w, kind), strict=True):  # fmt: skip
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
 
 
 def test_arap_gradient_matches_finite_differences() -> None:
