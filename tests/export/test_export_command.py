@@ -18,14 +18,22 @@ SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=3000", "--s
             "--set", "phase2.motion_start=2"]  # fmt: skip
 
 
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+@pytest.fixture(scope="module", params=["gaussians", "nodes"])
+def runs(tmp_path_factory: pytest.TempPathFactory, request) -> dict[str, Path]:
+    """Runs of both motion models: D_theta per Gaussian, and control nodes (which take over
+    after the first iteration at this budget)."""
     tmp = tmp_path_factory.mktemp("export_cli")
     syn.write_synthetic_scene(tmp / "data", small_synthetic())
-    assert main(["fit", str(tmp / "data"), "--out", str(tmp / "run"), *SETTINGS,
+    settings = [*SETTINGS, "--set", f"phase1.motion={request.param}", "--set",
+                "phase1.nodes.count=64"]  # fmt: skip
+    assert main(["fit", str(tmp / "data"), "--out", str(tmp / "run"), *settings,
                  "--phases", "1,2,3"]) == 0  # fmt: skip
-    assert main(["fit", str(tmp / "data"), "--out", str(tmp / "p1"), *SETTINGS,
+    assert main(["fit", str(tmp / "data"), "--out", str(tmp / "p1"), *settings,
                  "--phases", "1"]) == 0  # fmt: skip
+    if request.param == "nodes":
+        from sync4d.runs import load_run
+
+        assert load_run(tmp / "run").model.motion == "nodes"
     return {"run": tmp / "run", "p1": tmp / "p1", "tmp": tmp}
 
 

@@ -13,6 +13,7 @@ from support.scenes import small_synthetic
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.phase1.gaussians import DeformableGaussians, rgb_to_sh_dc
+from sync4d.phase1.nodes import NodeConfig
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.motion import MotionConfig
 from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
@@ -78,12 +79,15 @@ def oracle_points(
 def oracle_phase2_run(
     tmp: Path, model_cls: type[OracleGaussians] = OracleGaussians,
     scene_config: syn.SyntheticConfig = PHASE3_SCENE, save: bool = False,
+    motion: str = "gaussians",
 ):  # fmt: skip
     """An oracle Phase 2 run of the embedded scene (`scene_config`) written under `tmp` (no
     checkpoint): Gaussians on the objects and the plate (`oracle_points`) moved by
     `model_cls`, M_phi fitted to them. Returns (run, scene root). `save`: also write its
     checkpoint (with the cameras and the dataset), so `load_run` reads the folder (where the
-    model's motion is plain D_theta's: none) and a field built on `run` records it."""
+    model's motion is plain D_theta's: none) and a field built on `run` records it. `motion`
+    "nodes": the saved model moves by control nodes (64, sampled on the oracle Gaussians;
+    their D_theta, too, moves nothing), so what reads the folder reads a node run."""
     root = syn.write_synthetic_scene(tmp / "scene", scene_config)
     scene = load_scene(root)
     points, labels = oracle_points(per_object=400, fill=0.95, ground=1500, ground_z=0.0)
@@ -95,6 +99,8 @@ def oracle_phase2_run(
                        Phase2Config(motion=MotionConfig(init="fit")), 100, threads=1)  # fmt: skip
     run_dir = tmp / "run"
     run_dir.mkdir()
+    if save and motion == "nodes":
+        model.use_nodes(NodeConfig(count=64), torch.Generator().manual_seed(0))
     if save:  # a run folder as `fit` leaves it (the model reads back as plain D_theta)
         with torch.no_grad():  # the objects' own colours, for what shows the splats
             for label, rgb in OBJECT_COLOURS.items():
@@ -110,17 +116,19 @@ def oracle_phase2_run(
     return run, root
 
 
-def oracle_run_folder(tmp: Path, queries: tuple[str, ...] = ()) -> Path:
+def oracle_run_folder(tmp: Path, queries: tuple[str, ...] = (), motion: str = "gaussians"
+                      ) -> Path:  # fmt: skip
     """The oracle Phase 2 run saved as a run folder (`oracle_phase2_run(save=True)`) with its
     language field built by the colour encoder (`support.encoders.ColourEncoder`), and the
     texts of `queries` already in the field's text cache, so the run's own query code answers
-    them without loading an encoder (the colour encoder is no registered kind)."""
+    them without loading an encoder (the colour encoder is no registered kind). `motion`:
+    as in `oracle_phase2_run`."""
     from support.encoders import ColourEncoder
     from sync4d.phase3.build import build_field
     from sync4d.phase3.config import Phase3Config
     from sync4d.phase3.query import TextCache, answer
 
-    run, _ = oracle_phase2_run(tmp, save=True)
+    run, _ = oracle_phase2_run(tmp, save=True, motion=motion)
     enc = ColourEncoder()
     field = build_field(run, Phase3Config(), enc, threads=1)
     field.save(run.path)

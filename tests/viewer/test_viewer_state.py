@@ -21,9 +21,12 @@ from sync4d.viewer.state import HIGHLIGHT, ViewerState
 QUERY = "the red ball rising"
 
 
-@pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    return oracle_run_folder(tmp_path_factory.mktemp("viewer"), (QUERY,))
+@pytest.fixture(scope="module", params=["gaussians", "nodes"])
+def run_dir(tmp_path_factory, request):
+    """The oracle run, saved with either motion model (D_theta per Gaussian, or nodes)."""
+    path = oracle_run_folder(tmp_path_factory.mktemp("viewer"), (QUERY,), motion=request.param)
+    assert load_run(path).model.motion == request.param
+    return path
 
 
 def test_splats_per_object_match_the_model(run_dir):
