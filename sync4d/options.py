@@ -212,8 +212,9 @@ def add_bench_raster_options(p: argparse.ArgumentParser) -> None:
 
 def add_bench_fit_options(p: argparse.ArgumentParser) -> None:
     """The options of `bench fit`."""
-    p.add_argument("data", nargs="?", default=None, metavar="DATA",
-                      help="dataset folder (default: the embedded synthetic scene)")
+    p.add_argument("data", nargs="*", default=[], metavar="DATA",
+                      help="dataset folders, each trained with every budget and variant in "
+                      "one invocation (default: the embedded synthetic scene)")
     add_training_options(p, "hyperparameters of every budget (default as for 'fit')")
     p.add_argument("--iters", nargs="+", type=positive_int, metavar="N", default=None,
                       help="iteration budgets (default: 1/8, 1/4, 1/2 and all of the config's)")
@@ -229,7 +230,8 @@ def add_bench_fit_options(p: argparse.ArgumentParser) -> None:
                       "variant F times the iterations (schedules scaled alike): equal-time "
                       "comparisons")  # fmt: skip
     p.add_argument("--out", metavar="FILE.json", default=None,
-                      help="results JSON (default bench-fit-NAME.json; the plot goes beside it)")
+                      help="results JSON (default bench-fit-NAME.json, bench-fit-scenes.json "
+                      "for several; the plots go beside it)")
     p.add_argument("--keep-runs", metavar="DIR", default=None,
                       help="keep each budget's run folder under DIR")
     p.add_argument("--runs", nargs="+", metavar="RUN", default=None,

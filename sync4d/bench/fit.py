@@ -355,7 +355,10 @@ def _ssim_note(rows: list[dict[str, Any]]) -> str:
 
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
-    """The results as an aligned table."""
+    """The results as an aligned table (a scene column when there are several, each scene's
+    rows together, fastest first)."""
+    scenes = list(dict.fromkeys(r.get("scene", "") for r in rows))
+    order = sorted(rows, key=lambda r: (scenes.index(r.get("scene", "")), r["train_seconds"]))
     body = [
         [
             str(r["iterations"]), f"{r['width']}x{r['height']}", f"{r['max_gaussians']:,}",
@@ -364,18 +367,24 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
             "*" if r["pareto"] else "",
             _worst_text(r["worst_view"]),
         ]
-        for r in sorted(rows, key=lambda r: r["train_seconds"])
+        for r in order
     ]  # fmt: skip
     header = ["iters", "res", "cap", "train s", "PSNR", "SSIM", "LPIPS", "#G", "front", "worst"]
+    left = [1]
     if any("variant" in r for r in rows):
-        order = sorted(rows, key=lambda r: r["train_seconds"])
         header.insert(0, "variant")
         for line, r in zip(body, order, strict=True):
             line.insert(0, r.get("variant", ""))
             sk = r.get("skipped") or {}
             line.append(f"{sk['share']:.0%}" if sk.get("share") is not None else "-")
         header.append("D_theta skipped")
-    return align_table(header, body, left=(1,)) + _ssim_note(rows)
+        left = [0, 2]
+    if len(scenes) > 1:
+        header.insert(0, "scene")
+        for line, r in zip(body, order, strict=True):
+            line.insert(0, r["scene"])
+        left = [0] + [i + 1 for i in left]
+    return align_table(header, body, left=tuple(left)) + _ssim_note(rows)
 
 
 def format_run_rows(rows: list[dict[str, Any]]) -> str:
@@ -403,8 +412,8 @@ def _tabulate_runs(args: argparse.Namespace) -> int:
 
     keys = ("iters", "scales", "caps", "keep_runs", "set", "config")
     given = [f"--{k.replace('_', '-')}" for k in keys if getattr(args, k, None)]
-    if args.data is not None or given:
-        what = ", ".join(([args.data] if args.data else []) + given)
+    if args.data or given:
+        what = ", ".join(list(args.data) + given)
         msg = (f"bench fit: --runs tabulates finished runs and trains nothing; {what} would not "
                "be used: drop it, or train with `bench fit DATA` instead")  # fmt: skip
         print(msg, file=sys.stderr)
@@ -430,50 +439,78 @@ def _tabulate_runs(args: argparse.Namespace) -> int:
     return 0
 
 
+def _variant_configs(args: argparse.Namespace, default_cfg: str | None
+                     ) -> tuple[RunConfig, RunConfig | dict[str, RunConfig], dict[str, float]]:
+    """The base config of a dataset (its default config unless --config), the configs of the
+    variants (or the base alone) and their budget factors."""
+    base = load_config(args.config or default_cfg, list(args.set or []))
+    if not args.variant:
+        return base, base, {}
+    configs: dict[str, RunConfig] = {}
+    factors: dict[str, float] = {}
+    for text in args.variant:
+        name, extra = parse_variant(text)
+        if name in configs:
+            raise ConfigError(f"--variant {name} is given twice")
+        factors[name], extra = split_budget(name, extra)
+        configs[name] = load_config(args.config or default_cfg,
+                                    list(args.set or []) + extra)  # fmt: skip
+    return base, configs, factors
+
+
 def main(args: argparse.Namespace) -> int:
     from sync4d.files import WriteFailed, check_writable, write_text_atomic
     from sync4d.pipeline import FitInterrupted, resolve_data
 
     if args.runs:
         return _tabulate_runs(args)
+    datas = list(args.data) or [None]
     try:
         # the pipeline's notes and progress bars; its tables are bench fit's rows instead
         with TerminalRenderer(details=False).installed():
-            data, default_cfg = resolve_data(args.data)
-            base = load_config(args.config or default_cfg, list(args.set or []))
-            configs: RunConfig | dict[str, RunConfig] = base
-            factors: dict[str, float] = {}
-            if args.variant:
-                configs = {}
-                for text in args.variant:
-                    name, extra = parse_variant(text)
-                    if name in configs:
-                        raise ConfigError(f"--variant {name} is given twice")
-                    factors[name], extra = split_budget(name, extra)
-                    configs[name] = load_config(args.config or default_cfg,
-                                                list(args.set or []) + extra)  # fmt: skip
-            scales = args.scales or [base.resolution_scale]
-            caps = args.caps or [base.phase1.densify.max_gaussians]
-            n = base.phase1.iterations
-            iterations = args.iters or [max(100, n // 8), n // 4, n // 2, n]
-            out = Path(args.out or f"bench-fit-{data.name}.json")
+            resolved = [resolve_data(d) for d in datas]  # every dataset found before training
+            base = None
+            names = [d.name for d, _ in resolved]
+            if len(set(names)) != len(names):
+                raise ConfigError(f"two datasets share a name ({', '.join(names)}): give each "
+                                  "scene once")  # fmt: skip
+            several = len(resolved) > 1
+            out = Path(args.out or ("bench-fit-scenes.json" if several
+                                    else f"bench-fit-{names[0]}.json"))  # fmt: skip
             check_writable(out.parent)  # before any budget trains, not after all of them
             if args.keep_runs:
                 check_writable(args.keep_runs)
-            with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
-                work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
-                rows = run_grid(data, configs, iterations, scales, caps, args.threads, work,
-                                factors)  # fmt: skip
-                worst_png = copy_worst_view(rows, out.with_name(out.stem + "-worst.png"))
+            rows: list[dict[str, Any]] = []
+            worst: dict[str, Path | None] = {}
+            for data, default_cfg in resolved:
+                cfg, configs, factors = _variant_configs(args, default_cfg)
+                base = base or cfg
+                scales = args.scales or [cfg.resolution_scale]
+                caps = args.caps or [cfg.phase1.densify.max_gaussians]
+                n = cfg.phase1.iterations
+                iterations = args.iters or [max(100, n // 8), n // 4, n // 2, n]
+                with tempfile.TemporaryDirectory(prefix="sync4d-bench-fit-") as tmp:
+                    work = Path(args.keep_runs) if args.keep_runs else Path(tmp)
+                    if several:
+                        work = work / data.name
+                    scene_rows = run_grid(data, configs, iterations, scales, caps, args.threads,
+                                          work, factors)  # fmt: skip
+                    for r in scene_rows:
+                        r["scene"] = data.name
+                    tag = f"-{data.name}" if several else ""
+                    worst[data.name] = copy_worst_view(
+                        scene_rows, out.with_name(f"{out.stem}{tag}-worst.png"))
+                rows += scene_rows
     except (ConfigError, DatasetError, WriteFailed) as e:
         print(f"bench fit: {e}", file=sys.stderr)
         return 2
     except FitInterrupted:
         print("bench fit: interrupted; no results written", file=sys.stderr)
         return 130
+    assert base is not None
     record = {
         "benchmark": "fit",
-        "data": str(data),
+        "data": str(resolved[0][0]) if not several else [str(d) for d, _ in resolved],
         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
         "threads": args.threads,
@@ -481,13 +518,21 @@ def main(args: argparse.Namespace) -> int:
         "variants": dict(parse_variant(v) for v in args.variant or []),
         "results": rows,
     }
-    written = [out, plot_pareto(rows, out.with_suffix(".png"), f"sync4d fit: {data.name}")]
-    if worst_png is not None:
-        record["worst_view_png"] = str(worst_png)
-        written.append(worst_png)
+    written: list[Path] = []
+    for name in names:
+        scene_rows = [r for r in rows if r["scene"] == name]
+        tag = f"-{name}" if several else ""
+        written.append(plot_pareto(scene_rows, out.with_name(f"{out.stem}{tag}.png"),
+                                   f"sync4d fit: {name}"))  # fmt: skip
+        if worst[name] is not None:
+            record.setdefault("worst_view_pngs", {})[name] = str(worst[name])
+            written.append(worst[name])
+    if not several and worst[names[0]] is not None:
+        record["worst_view_png"] = str(worst[names[0]])
     for r in rows:  # the runs' folders are gone unless --keep-runs
         if not args.keep_runs and r["worst_view"]:
             r["worst_view"]["render"] = None
+    written.insert(0, out)
     write_text_atomic(out, json.dumps(record, indent=2) + "\n")
     print(format_rows(rows))
     print(f"bench fit: wrote {', '.join(str(w) for w in written)}")

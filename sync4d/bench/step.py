@@ -6,13 +6,13 @@ Each variant (``NAME:KEY=VALUE,...`` overrides of the run's recorded config, e.g
 for nodes on a per-Gaussian run samples them first, `Phase1Trainer.start_nodes`) and a Phase 1
 trainer at the finished schedule (full SH degree, D_theta on) with densification off, so every
 variant steps the same Gaussians (a per-Gaussian variant of a node run drops its nodes: the
-motion is then not the run's, the cost of a step is D_theta's on every row). Rounds interleave the variants (a change of machine load
-hits them alike). Per round and variant it times `steps` whole training steps, then the same
-number of the motion alone (D_theta and, for nodes, the blend: forward and backward of the
-deformed means, rotations and scales at a training frame's time) and of the rasterizer alone
-(SH colours, projection, compositing; forward and backward). The shares are each part's
-median over the step's median. Prints a table and writes a JSON with the date, machine and
-threads.
+motion is then not the run's, the cost of a step is D_theta's on every row). Rounds
+interleave the variants (a change of machine load hits them alike). Per round and variant
+it times `steps` whole training steps, then the same number of the motion alone (D_theta
+and, for nodes, the blend: forward and backward of the deformed means, rotations and scales
+at a training frame's time) and of the rasterizer alone (SH colours, projection,
+compositing; forward and backward). The shares are each part's median over the step's
+median. Prints a table and writes a JSON with the date, machine and threads.
 """
 
 from __future__ import annotations

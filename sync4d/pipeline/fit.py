@@ -512,12 +512,19 @@ def phase2_skip_report(trainer: Phase2Trainer) -> str:
 
 
 def phase1_skip_lines(trainer: Phase1Trainer) -> list[str]:
-    """What Phase 1 skipped in this process, one line per switch that is on: D_theta on static
-    Gaussians (`skip_report`), pixels of the coarse iterations, transparent Gaussians pruned
-    after densification."""
+    """What Phase 1 skipped in this process, one line per switch that is on: D_theta on the
+    Gaussians (control nodes carry the motion) or on static Gaussians (`skip_report`), pixels
+    of the coarse iterations, transparent Gaussians pruned after densification."""
     c = trainer.config
     lines = []
-    if c.static.enabled:
+    nodes = trainer.model.nodes
+    if nodes is not None:
+        lines.append(
+            f"fit: Phase 1 moved {trainer.model.num_gaussians} Gaussians by {nodes.count} "
+            f"control nodes from iteration {c.nodes.init_after + 1} (D_theta on the nodes, "
+            f"not the Gaussians; nodes added {nodes.added}, removed {nodes.removed})"
+        )
+    elif c.static.enabled:
         lines.append(skip_report(trainer.model, "Phase 1"))
     if c.coarse_iterations > 0 and c.coarse_scale < 1.0 and trainer.pixels:
         saved = (trainer.coarse_full_pixels - trainer.coarse_pixels) / trainer.pixels

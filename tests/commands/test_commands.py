@@ -257,6 +257,55 @@ def test_bench_fit_budget_factor_trains_a_variant_longer(data: Path, tmp_path: P
     assert by["more"]["iterations"] == 15 and by["more"]["budget"] == 10
 
 
+def test_bench_fit_trains_several_scenes_in_one_invocation(data: Path, tmp_path: Path,
+                                                           capsys) -> None:  # fmt: skip
+    """Two datasets x two motion variants (per-Gaussian D_theta and nodes at 1.5x the
+    iterations): one JSON with a row per scene and variant, a plot and a worst view per scene,
+    and a table with a scene column."""
+    other = tmp_path / "other"
+    write_blender(other, n=4, size=24)
+    out = tmp_path / "scenes.json"
+    args = ["bench", "fit", str(data), str(other), "--iters", "8", "--out", str(out), *TINY,
+            "--variant", "gaussians", "--variant",
+            "nodes:phase1.motion=nodes,phase1.nodes.count=16,budget=1.5"]  # fmt: skip
+    assert main(args) == 0
+    rec = json.loads(out.read_text())
+    got = {(r["scene"], r["variant"]): r["iterations"] for r in rec["results"]}
+    assert got == {("tiny", "gaussians"): 8, ("tiny", "nodes"): 12, ("other", "gaussians"): 8,
+                   ("other", "nodes"): 12}  # fmt: skip
+    assert rec["data"] == [str(data), str(other)]
+    for scene in ("tiny", "other"):
+        assert (tmp_path / f"scenes-{scene}.png").stat().st_size > 1000
+        assert Path(rec["worst_view_pngs"][scene]).is_file()
+    table = capsys.readouterr().out
+    assert table.splitlines()[0].split()[:2] == ["scene", "variant"]
+    assert main(["bench", "fit", str(data), str(data), "--iters", "5", "--out", str(out),
+                 *TINY]) == 2  # fmt: skip
+    assert "share a name" in capsys.readouterr().err
+
+
+def test_bench_step_times_both_motion_models(data: Path, tmp_path: Path, capsys) -> None:
+    """`bench step` on a per-Gaussian run: both variants step the same Gaussians; the node
+    variant evaluates D_theta on its nodes only."""
+    run = tmp_path / "run"
+    assert main(["fit", str(data), "--out", str(run), "--iters", "6", *TINY]) == 0
+    out = tmp_path / "step.json"
+    args = ["bench", "step", str(run), "--steps", "2", "--rounds", "1", "--threads", "1",
+            "--variant", "gaussians:phase1.motion=gaussians", "--variant",
+            "nodes:phase1.motion=nodes,phase1.nodes.count=8", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    rows = {r["variant"]: r for r in json.loads(out.read_text())["rows"]}
+    assert rows["gaussians"]["motion_model"] == "gaussians"
+    assert rows["gaussians"]["nodes"] is None
+    assert rows["nodes"]["motion_model"] == "nodes" and rows["nodes"]["nodes"] == 8
+    assert rows["nodes"]["gaussians"] == rows["gaussians"]["gaussians"]
+    for r in rows.values():
+        assert len(r["raw_s"]["step"]) == 2 and 0 < r["motion_share"] < 1
+    assert "speed-up" in capsys.readouterr().out
+    assert main(["bench", "step", str(run), "--variant", "x:phase1.motion", "--out",
+                 str(out)]) == 2  # fmt: skip
+
+
 def test_bench_fit_tabulates_finished_runs(data: Path, tmp_path: Path, capsys) -> None:
     run = tmp_path / "run"
     assert main(["fit", str(data), "--out", str(run), "--iters", "6", *TINY]) == 0
