@@ -34,18 +34,23 @@ def _binary() -> Path:
     return path
 
 
-@pytest.fixture(scope="module", params=[(0, False), (4, False), (0, True)],
-                ids=["raw-position", "position-bands-4", "half-static"])  # fmt: skip
+@pytest.fixture(
+    scope="module",
+    params=[(0, False, 1.0), (4, False, 1.0), (0, True, 1.0), (2, False, 0.5)],
+    ids=["raw-position", "position-bands-4", "half-static", "position-unit"],
+)
 def run(tmp_path_factory, request) -> tuple[Path, DeformableGaussians, object]:
     """A checkpoint of a small model whose D_theta is far from the identity, with SH degree 1;
-    D_theta reads the raw position (the paper) or its 4-band encoding; in the last variant
-    every other Gaussian is static (its canonical state at every time)."""
-    bands, half_static = request.param
+    D_theta reads the raw position (the paper) or its 4-band encoding; in the third variant
+    every other Gaussian is static (its canonical state at every time); in the last D_theta
+    reads the position in half units (`position_unit`), 2-band encoded."""
+    bands, half_static, unit = request.param
     tmp = tmp_path_factory.mktemp("render")
     scene, _ = orbit_scene(tmp)
     g = torch.Generator().manual_seed(5)
+    config = DeformConfig(position_bands=bands, position_unit=unit)
     model = random_gaussians(60, g, spread=0.4, scale=0.08, opacity_logit=1.0, sh_degree=1,
-                             config=DeformConfig(position_bands=bands))  # fmt: skip
+                             config=config)  # fmt: skip
     if half_static:
         model.static[::2] = True
     with torch.no_grad():

@@ -1,8 +1,11 @@
-//! Reading the checkpoints Python writes (`sync4d/checkpoint.py`): one safetensors file whose
-//! header metadata `"sync4d"` holds JSON (SH degree, near plane, background, D_theta's
-//! hyperparameters, the cameras of the run) and whose tensors hold the canonical Gaussians
-//! (`gaussians.*`) and D_theta's weights (`deform.*`). Every problem is an error naming the file
-//! and what is wrong; nothing here panics on bad bytes.
+//! Reading the checkpoints Python writes (`sync4d/runs/checkpoint.py`): one safetensors file
+//! whose header metadata `"sync4d"` holds JSON (SH degree, near plane, background, D_theta's
+//! hyperparameters, the motion model, the cameras of the run) and whose tensors hold the
+//! canonical Gaussians (`gaussians.*`) and D_theta's weights (`deform.*`). A node checkpoint
+//! (`"motion": "nodes"`, `sync4d/phase1/nodes.py`) also holds the control nodes (`nodes.*`) and
+//! each Gaussian's nodes (`gaussians.node_index`); D_theta then moves the nodes and the
+//! Gaussians follow them. Every problem is an error naming the file and what is wrong; nothing
+//! here panics on bad bytes.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -71,6 +74,40 @@ pub struct DeformMlp {
     pub position_bands: usize,
     /// Output scales of dx, dw and dl.
     pub scales: [f32; 3],
+    /// World units per unit of the position input: D_theta reads x0 / position_unit (1 in
+    /// checkpoints written before the setting existed).
+    pub position_unit: f32,
+}
+
+/// How a Gaussian blends the rigid motions of its nodes (`node_config.blend`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Blend {
+    /// Linear blend skinning: the weighted mean of the nodes' transformed positions and of
+    /// their quaternions.
+    Linear,
+    /// Dual-quaternion skinning: the weighted, normalised sum of the nodes' dual quaternions.
+    DualQuaternion,
+}
+
+/// The control nodes of a node checkpoint (`"motion": "nodes"`): D_theta is evaluated on them,
+/// and each Gaussian blends the rigid motions of its K nodes.
+#[derive(Debug, Clone)]
+pub struct Nodes {
+    /// Number of nodes M.
+    pub m: usize,
+    /// Nodes per Gaussian K.
+    pub k: usize,
+    /// Canonical node positions p_j, M*3.
+    pub positions: Vec<f32>,
+    /// Inverse squared node radii 1 / r_j^2 = exp(-2 log_radii_j), at most 1e20 (as
+    /// `sync4d.phase1.nodes` clamps them), M.
+    pub inv_sq_radii: Vec<f32>,
+    /// Node embeddings z_j (D_theta's latent input), M*E.
+    pub embeddings: Vec<f32>,
+    /// Each Gaussian's K nodes, N*K, each in 0..M.
+    pub index: Vec<u32>,
+    /// How a Gaussian blends its nodes' motions.
+    pub blend: Blend,
 }
 
 /// Everything the renderer needs from a checkpoint.
@@ -94,9 +131,12 @@ pub struct Checkpoint {
     pub embeddings: Vec<f32>,
     /// Embedding width E.
     pub embed_dim: usize,
-    /// Static Gaussians, N (empty when the checkpoint marks none): their canonical state is
-    /// their state at every time; D_theta is not evaluated for them.
+    /// Static Gaussians, N (empty when the checkpoint marks none, and for node checkpoints):
+    /// their canonical state is their state at every time; D_theta is not evaluated for them.
     pub is_static: Vec<bool>,
+    /// The control nodes when the checkpoint's motion model is `"nodes"`; None: D_theta moves
+    /// each Gaussian itself (`"gaussians"`, and checkpoints written before the setting).
+    pub nodes: Option<Nodes>,
     /// The deformation MLP.
     pub mlp: DeformMlp,
     /// Near clipping plane of the run's renders, world units.
@@ -131,7 +171,10 @@ impl Tensors<'_> {
         let t = self.st.tensor(name).map_err(|_| {
             err(
                 self.path,
-                format!("tensor '{name}' is missing (not a sync4d checkpoint?)"),
+                format!(
+                    "tensor '{name}' is missing (expected F32 of shape {shape:?}; not a sync4d \
+                     checkpoint?)"
+                ),
             )
         })?;
         if t.dtype() != Dtype::F32 {
@@ -164,6 +207,56 @@ impl Tensors<'_> {
             ));
         }
         Ok(v)
+    }
+
+    /// The I32 tensor `name`, which must have `shape`, as indices each below `bound`.
+    fn indices(
+        &self,
+        name: &str,
+        shape: &[usize],
+        bound: usize,
+    ) -> Result<Vec<u32>, CheckpointError> {
+        let t = self.st.tensor(name).map_err(|_| {
+            err(
+                self.path,
+                format!("tensor '{name}' is missing (expected I32 of shape {shape:?})"),
+            )
+        })?;
+        if t.dtype() != Dtype::I32 {
+            return Err(err(
+                self.path,
+                format!("tensor '{name}' is {:?}, expected I32", t.dtype()),
+            ));
+        }
+        if t.shape() != shape {
+            return Err(err(
+                self.path,
+                format!(
+                    "tensor '{name}' has shape {:?}, expected {shape:?}",
+                    t.shape()
+                ),
+            ));
+        }
+        let data = t.data();
+        if data.len() != 4 * shape.iter().product::<usize>() {
+            return Err(err(self.path, format!("tensor '{name}' is truncated")));
+        }
+        data.chunks_exact(4)
+            .enumerate()
+            .map(|(i, b)| {
+                let v = i32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+                match usize::try_from(v) {
+                    Ok(u) if u < bound => Ok(u as u32),
+                    _ => Err(err(
+                        self.path,
+                        format!(
+                            "tensor '{name}' holds node index {v} (at flat index {i}), outside \
+                             [0, {bound})"
+                        ),
+                    )),
+                }
+            })
+            .collect()
     }
 
     /// The shape of tensor `name`.
@@ -224,6 +317,69 @@ fn camera_record(v: &Value, path: &Path) -> Result<CameraRecord, CheckpointError
         cy: f("cy")?,
         width: size("width")?,
         height: size("height")?,
+    })
+}
+
+/// The error for a tensor a node checkpoint lacks: `expected` names its dtype and shape.
+fn node_tensor_missing(t: &Tensors, name: &str, expected: &str) -> CheckpointError {
+    err(
+        t.path,
+        format!("tensor '{name}' is missing (expected {expected}; \"motion\": \"nodes\" needs it)"),
+    )
+}
+
+/// The shape of tensor `name` of a node checkpoint (`expected` for the error when missing).
+fn node_shape(t: &Tensors, name: &str, expected: &str) -> Result<Vec<usize>, CheckpointError> {
+    t.st.tensor(name)
+        .map(|v| v.shape().to_vec())
+        .map_err(|_| node_tensor_missing(t, name, expected))
+}
+
+/// The F32 tensor `name` of a node checkpoint, which must have `shape`.
+fn node_f32(t: &Tensors, name: &str, shape: &[usize]) -> Result<Vec<f32>, CheckpointError> {
+    node_shape(t, name, &format!("F32 of shape {shape:?}"))?;
+    t.get(name, shape)
+}
+
+/// The `nodes.*` tensors and `gaussians.node_index` of a node checkpoint with `n` Gaussians.
+fn read_nodes(
+    t: &Tensors,
+    n: usize,
+    embed_dim: usize,
+    blend: Blend,
+) -> Result<Nodes, CheckpointError> {
+    let pshape = node_shape(t, "nodes.positions", "F32 of shape [M, 3]")?;
+    let m = pshape.first().copied().unwrap_or(0);
+    if m == 0 && n > 0 {
+        return Err(err(
+            t.path,
+            format!("tensor 'nodes.positions' has shape {pshape:?}, expected [M, 3] with M >= 1"),
+        ));
+    }
+    let positions = node_f32(t, "nodes.positions", &[m, 3])?;
+    let inv_sq_radii = node_f32(t, "nodes.log_radii", &[m])?
+        .iter()
+        .map(|v| (-2.0 * v).exp().min(1e20))
+        .collect();
+    let embeddings = node_f32(t, "nodes.embeddings", &[m, embed_dim])?;
+    let name = "gaussians.node_index";
+    let ishape = node_shape(t, name, &format!("I32 of shape [{n}, K]"))?;
+    let k = if ishape.len() == 2 { ishape[1] } else { 0 };
+    if ishape.len() != 2 || ishape[0] != n || k == 0 {
+        return Err(err(
+            t.path,
+            format!("tensor '{name}' has shape {ishape:?}, expected [{n}, K] with K >= 1"),
+        ));
+    }
+    let index = t.indices(name, &[n, k], m)?;
+    Ok(Nodes {
+        m,
+        k,
+        positions,
+        inv_sq_radii,
+        embeddings,
+        index,
+        blend,
     })
 }
 
@@ -303,6 +459,65 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         }
     };
 
+    // Absent in checkpoints written before the setting existed: the raw position.
+    let position_unit = match dc.get("position_unit") {
+        None => 1.0,
+        Some(_) => {
+            let v = num(dc, "position_unit", path)?;
+            if !(v.is_finite() && v > 0.0) {
+                return Err(err(
+                    path,
+                    format!("deform_config.position_unit must be finite and > 0, got {v}"),
+                ));
+            }
+            v as f32
+        }
+    };
+    // Absent in checkpoints written before node motion existed: D_theta moves each Gaussian.
+    let motion = match meta.get("motion") {
+        None | Some(Value::Null) => "gaussians",
+        Some(Value::String(s)) => s.as_str(),
+        Some(other) => {
+            return Err(err(
+                path,
+                format!("motion must be \"gaussians\" or \"nodes\", got {other}"),
+            ))
+        }
+    };
+    let node_blend = match motion {
+        "gaussians" => None,
+        "nodes" => {
+            let nc = meta.get("node_config").ok_or_else(|| {
+                err(
+                    path,
+                    "metadata lacks 'node_config' (\"motion\": \"nodes\" needs it)",
+                )
+            })?;
+            Some(match nc.get("blend").and_then(Value::as_str) {
+                Some("linear") => Blend::Linear,
+                Some("dual_quaternion") => Blend::DualQuaternion,
+                _ => {
+                    let got = nc
+                        .get("blend")
+                        .map_or("nothing".to_string(), Value::to_string);
+                    return Err(err(
+                        path,
+                        format!(
+                            "node_config.blend must be \"linear\" or \"dual_quaternion\", got \
+                             {got}"
+                        ),
+                    ));
+                }
+            })
+        }
+        other => {
+            return Err(err(
+                path,
+                format!("motion must be \"gaussians\" or \"nodes\", got \"{other}\""),
+            ))
+        }
+    };
+
     let n = *t.shape("gaussians.means")?.first().unwrap_or(&0);
     let k = ((sh_degree + 1) * (sh_degree + 1)) as usize;
     let means = t.get("gaussians.means", &[n, 3])?;
@@ -316,8 +531,13 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
     let sh_dc = t.get("gaussians.sh_dc", &[n, 1, 3])?;
     let sh_rest = t.get("gaussians.sh_rest", &[n, k - 1, 3])?;
     let embeddings = t.get("gaussians.embeddings", &[n, embed_dim])?;
-    // Optional: written only when some Gaussian is static (sync4d.phase1.static).
-    let is_static: Vec<bool> = if t.st.tensor("gaussians.static").is_ok() {
+    let nodes = match node_blend {
+        None => None,
+        Some(blend) => Some(read_nodes(&t, n, embed_dim, blend)?),
+    };
+    // Optional: written only when some Gaussian is static (sync4d.phase1.static); node
+    // checkpoints have no static set (and one there is ignored).
+    let is_static: Vec<bool> = if nodes.is_none() && t.st.tensor("gaussians.static").is_ok() {
         t.get("gaussians.static", &[n])?
             .iter()
             .map(|&v| v > 0.5)
@@ -383,12 +603,14 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         embeddings,
         embed_dim,
         is_static,
+        nodes,
         mlp: DeformMlp {
             trunk,
             head,
             bands,
             position_bands,
             scales,
+            position_unit,
         },
         near,
         background: [bg[0] as f32, bg[1] as f32, bg[2] as f32],

@@ -2,11 +2,20 @@
 //! [x0 or its encoding; z; gamma(t)] with gamma(t) = [t, sin(2^0 pi t), cos(2^0 pi t), ...]
 //! (the position encoding: x0, then per band sin and cos of the 3 coordinates), ReLU trunk, linear
 //! head scaled to (dx, dw, dl), then Eqs. 2-4: x = x0 + dx, q = normalize(aa2q(dw) (x) q0),
-//! s = exp(log s0 + dl).
+//! s = exp(log s0 + dl). D_theta reads the position in `position_unit`s (x0 / position_unit).
+//!
+//! Node checkpoints (`"motion": "nodes"`, SC-GS style control nodes, `sync4d/phase1/nodes.py`):
+//! D_theta is evaluated once per node j and time on [p_j or its encoding; z_j; gamma(t)], giving
+//! the node's rigid motion (q_j = aa2q(dw_j) on the w >= 0 hemisphere, p_j -> p_j + dx_j) and
+//! its dl_j. Gaussian i blends its K nodes with w_ij = softmax_j(-|x0_i - p_j|^2 / (2 r_j^2)):
+//! linearly (x = sum_j w_ij (R_j (x0 - p_j) + p_j + dx_j), computed as Python does as
+//! (sum_j w_ij R_j) x0 + sum_j w_ij T_j; q = normalize((sum_j w_ij q_j) (x) q0)) or as dual
+//! quaternions (the normalised sum of the nodes' (q_j, 0.5 (0, T_j) (x) q_j),
+//! T_j = p_j + dx_j - R_j p_j); s = exp(log s0 + sum_j w_ij dl_j) for both.
 
 use rayon::prelude::*;
 
-use crate::checkpoint::{Checkpoint, DeformMlp, Linear};
+use crate::checkpoint::{Blend, Checkpoint, DeformMlp, Linear, Nodes};
 
 /// Gaussians deformed to one time: means N*3, unit quaternions N*4, scales N*3.
 #[derive(Debug, Clone)]
@@ -95,16 +104,85 @@ fn normalize(q: [f32; 4]) -> [f32; 4] {
     [q[0] / n, q[1] / n, q[2] / n, q[3] / n]
 }
 
+/// aa2q as `sync4d.geometry.axis_angle_to_quat`: (cos(theta / 2), w sin(theta / 2) / theta),
+/// with its Taylor series below 1e-4 rad, normalised.
 fn axis_angle_to_quat(w: [f32; 3]) -> [f32; 4] {
-    let theta = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
-    let s = (0.5 * theta).sin() / (theta + 1e-8);
-    let q = [(0.5 * theta).cos(), w[0] * s, w[1] * s, w[2] * s];
+    let theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+    let (half_sinc, cos_half) = if theta2 < 1e-8 {
+        (0.5 - theta2 / 48.0, 1.0 - theta2 / 8.0)
+    } else {
+        let theta = theta2.max(1e-24).sqrt();
+        ((0.5 * theta).sin() / theta, (0.5 * theta).cos())
+    };
+    let q = [
+        cos_half,
+        w[0] * half_sinc,
+        w[1] * half_sinc,
+        w[2] * half_sinc,
+    ];
     let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
     [q[0] / n, q[1] / n, q[2] / n, q[3] / n]
 }
 
-/// The checkpoint's Gaussians deformed to time `t` (parallel over Gaussians).
+/// The rotation matrix (row-major) of quaternion `q` (normalised first), as
+/// `sync4d.geometry.quat_to_matrix`.
+fn quat_to_matrix(q: [f32; 4]) -> [[f32; 3]; 3] {
+    let [w, x, y, z] = normalize(q);
+    [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ]
+}
+
+fn mat_vec(r: &[[f32; 3]; 3], v: [f32; 3]) -> [f32; 3] {
+    [
+        r[0][0] * v[0] + r[0][1] * v[1] + r[0][2] * v[2],
+        r[1][0] * v[0] + r[1][1] * v[1] + r[1][2] * v[2],
+        r[2][0] * v[0] + r[2][1] * v[1] + r[2][2] * v[2],
+    ]
+}
+
+/// D_theta's input for canonical position `x` and embedding `z` at the time encoding `gamma`
+/// (the position read in `position_unit`s, as Python does).
+fn mlp_input(
+    mlp: &DeformMlp,
+    x: &[f32],
+    z: &[f32],
+    gamma: &[f32],
+    freqs: &[f32],
+    out: &mut Vec<f32>,
+) {
+    out.clear();
+    if mlp.position_unit == 1.0 {
+        push_position_encoding(x, freqs, out);
+    } else {
+        let u = mlp.position_unit;
+        push_position_encoding(&[x[0] / u, x[1] / u, x[2] / u], freqs, out);
+    }
+    out.extend_from_slice(z);
+    out.extend_from_slice(gamma);
+}
+
+/// The checkpoint's Gaussians deformed to time `t` (parallel over Gaussians; a node
+/// checkpoint evaluates D_theta once per node, then blends per Gaussian).
 pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
+    if let Some(nodes) = &ck.nodes {
+        let offsets = node_offsets(ck, nodes, t);
+        return blend_nodes(ck, nodes, &offsets);
+    }
     let n = ck.n;
     let gamma = time_encoding(t, ck.mlp.bands);
     let freqs = position_frequencies(ck.mlp.position_bands);
@@ -129,10 +207,11 @@ pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
                 let o = if ck.is_static.get(i).copied().unwrap_or(false) {
                     [0.0; 9] // static: the canonical state at every time
                 } else {
-                    input.clear();
-                    push_position_encoding(&ck.means[3 * i..3 * i + 3], &freqs, &mut input);
-                    input.extend_from_slice(&ck.embeddings[e * i..e * (i + 1)]);
-                    input.extend_from_slice(&gamma);
+                    let (x0, z) = (
+                        &ck.means[3 * i..3 * i + 3],
+                        &ck.embeddings[e * i..e * (i + 1)],
+                    );
+                    mlp_input(&ck.mlp, x0, z, &gamma, &freqs, &mut input);
                     mlp_eval(&ck.mlp, &input, &mut a, &mut b)
                 };
                 for k in 0..3 {
@@ -150,4 +229,507 @@ pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
             }
         });
     d
+}
+
+/// D_theta's (dx, dw, dl) of every node at time `t`: M rows of 9 (parallel over nodes).
+pub fn node_offsets(ck: &Checkpoint, nodes: &Nodes, t: f32) -> Vec<[f32; 9]> {
+    let gamma = time_encoding(t, ck.mlp.bands);
+    let freqs = position_frequencies(ck.mlp.position_bands);
+    let e = ck.embed_dim;
+    (0..nodes.m)
+        .into_par_iter()
+        .with_min_len(32)
+        .map_init(
+            || (Vec::new(), Vec::new(), Vec::new()),
+            |(input, a, b), j| {
+                let p = &nodes.positions[3 * j..3 * j + 3];
+                let z = &nodes.embeddings[e * j..e * (j + 1)];
+                mlp_input(&ck.mlp, p, z, &gamma, &freqs, input);
+                mlp_eval(&ck.mlp, input, a, b)
+            },
+        )
+        .collect()
+}
+
+/// One node's rigid motion at a time, x -> R x + T: its unit quaternion on the w >= 0
+/// hemisphere, that rotation as a matrix (row-major, 9 values), T = p + dx - R p, the dual part
+/// 0.5 (0, T) (x) q, and the log-scale offset D_theta gave it.
+struct NodeMotion {
+    q: [f32; 4],
+    r: [f32; 9],
+    t: [f32; 3],
+    dual: [f32; 4],
+    dl: [f32; 3],
+}
+
+fn node_motion(p: [f32; 3], o: &[f32; 9]) -> NodeMotion {
+    let mut q = axis_angle_to_quat([o[3], o[4], o[5]]);
+    if q[0] < 0.0 {
+        q = [-q[0], -q[1], -q[2], -q[3]];
+    }
+    let r = quat_to_matrix(q);
+    let rp = mat_vec(&r, p);
+    let t = [
+        p[0] + o[0] - rp[0],
+        p[1] + o[1] - rp[1],
+        p[2] + o[2] - rp[2],
+    ];
+    let d = quat_mul([0.0, t[0], t[1], t[2]], q);
+    NodeMotion {
+        q,
+        r: [
+            r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2],
+        ],
+        t,
+        dual: [0.5 * d[0], 0.5 * d[1], 0.5 * d[2], 0.5 * d[3]],
+        dl: [o[6], o[7], o[8]],
+    }
+}
+
+/// The blend weights of a Gaussian at `x0` over the nodes `index`, written to `w`: the
+/// softmax (its maximum subtracted first) of -0.5 |x0 - p_j|^2 / r_j^2, as
+/// `sync4d.phase1.nodes.blend_weights`; they sum to 1. Where no logit is finite (a Gaussian so
+/// far away that every squared distance overflows), the K nodes weigh equally instead of
+/// giving NaN.
+pub fn node_weights(nodes: &Nodes, x0: [f32; 3], index: &[u32], w: &mut [f32]) {
+    let mut max = f32::NEG_INFINITY;
+    for (wk, &j) in w.iter_mut().zip(index) {
+        let j = j as usize;
+        let p = &nodes.positions[3 * j..3 * j + 3];
+        let d = [x0[0] - p[0], x0[1] - p[1], x0[2] - p[2]];
+        let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        let a = -0.5 * d2 * nodes.inv_sq_radii[j];
+        // NaN only from an infinite distance times a zero 1 / r^2: no weight.
+        *wk = if a.is_nan() { f32::NEG_INFINITY } else { a };
+        max = max.max(*wk);
+    }
+    if !max.is_finite() {
+        w.fill(1.0 / w.len() as f32);
+        return;
+    }
+    let mut sum = 0.0;
+    for wk in w.iter_mut() {
+        *wk = (*wk - max).exp();
+        sum += *wk;
+    }
+    for wk in w.iter_mut() {
+        *wk /= sum;
+    }
+}
+
+/// acc += w v.
+fn add_scaled<const L: usize>(acc: &mut [f32; L], w: f32, v: &[f32; L]) {
+    for (a, b) in acc.iter_mut().zip(v) {
+        *a += w * b;
+    }
+}
+
+/// The checkpoint's Gaussians moved by the nodes, whose D_theta outputs are `offsets` (M rows
+/// of (dx, dw, dl), as [`node_offsets`] gives): parallel over Gaussians.
+pub fn blend_nodes(ck: &Checkpoint, nodes: &Nodes, offsets: &[[f32; 9]]) -> Deformed {
+    let n = ck.n;
+    let k = nodes.k;
+    let motions: Vec<NodeMotion> = offsets
+        .iter()
+        .enumerate()
+        .map(|(j, o)| {
+            let p = &nodes.positions[3 * j..3 * j + 3];
+            node_motion([p[0], p[1], p[2]], o)
+        })
+        .collect();
+    let mut d = Deformed {
+        means: vec![0.0; 3 * n],
+        quats: vec![0.0; 4 * n],
+        scales: vec![0.0; 3 * n],
+    };
+    const CHUNK: usize = 256;
+    d.means
+        .par_chunks_mut(3 * CHUNK)
+        .zip(d.quats.par_chunks_mut(4 * CHUNK))
+        .zip(d.scales.par_chunks_mut(3 * CHUNK))
+        .enumerate()
+        .for_each(|(c, ((m, q), s))| {
+            let mut w = vec![0.0f32; k];
+            for l in 0..m.len() / 3 {
+                let i = c * CHUNK + l;
+                let x0 = [ck.means[3 * i], ck.means[3 * i + 1], ck.means[3 * i + 2]];
+                let q0 = normalize([
+                    ck.quats[4 * i],
+                    ck.quats[4 * i + 1],
+                    ck.quats[4 * i + 2],
+                    ck.quats[4 * i + 3],
+                ]);
+                let index = &nodes.index[k * i..k * (i + 1)];
+                node_weights(nodes, x0, index, &mut w);
+                let mut dl = [0.0f32; 3];
+                let (x, qt) = match nodes.blend {
+                    Blend::Linear => {
+                        // x = (sum_j w_j R_j) x0 + sum_j w_j T_j, as Python blends it.
+                        let (mut a, mut b, mut qb) = ([0.0f32; 9], [0.0f32; 3], [0.0f32; 4]);
+                        for (&wj, &j) in w.iter().zip(index) {
+                            let nm = &motions[j as usize];
+                            add_scaled(&mut a, wj, &nm.r);
+                            add_scaled(&mut b, wj, &nm.t);
+                            add_scaled(&mut qb, wj, &nm.q);
+                            add_scaled(&mut dl, wj, &nm.dl);
+                        }
+                        let a = [[a[0], a[1], a[2]], [a[3], a[4], a[5]], [a[6], a[7], a[8]]];
+                        let ax = mat_vec(&a, x0);
+                        (
+                            [ax[0] + b[0], ax[1] + b[1], ax[2] + b[2]],
+                            normalize(quat_mul(qb, q0)),
+                        )
+                    }
+                    Blend::DualQuaternion => {
+                        let (mut br, mut bd) = ([0.0f32; 4], [0.0f32; 4]);
+                        for (&wj, &j) in w.iter().zip(index) {
+                            let nm = &motions[j as usize];
+                            add_scaled(&mut br, wj, &nm.q);
+                            add_scaled(&mut bd, wj, &nm.dual);
+                            add_scaled(&mut dl, wj, &nm.dl);
+                        }
+                        let norm = (br[0] * br[0] + br[1] * br[1] + br[2] * br[2] + br[3] * br[3])
+                            .sqrt()
+                            .max(1e-12);
+                        let r = [br[0] / norm, br[1] / norm, br[2] / norm, br[3] / norm];
+                        let dd = [bd[0] / norm, bd[1] / norm, bd[2] / norm, bd[3] / norm];
+                        let rx = mat_vec(&quat_to_matrix(r), x0);
+                        let tr = quat_mul(dd, [r[0], -r[1], -r[2], -r[3]]);
+                        (
+                            [
+                                rx[0] + 2.0 * tr[1],
+                                rx[1] + 2.0 * tr[2],
+                                rx[2] + 2.0 * tr[3],
+                            ],
+                            normalize(quat_mul(r, q0)),
+                        )
+                    }
+                };
+                m[3 * l..3 * l + 3].copy_from_slice(&x);
+                q[4 * l..4 * l + 4].copy_from_slice(&qt);
+                for a in 0..3 {
+                    s[3 * l + a] = (ck.log_scales[3 * i + a] + dl[a]).exp();
+                }
+            }
+        });
+    d
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::checkpoint::{Blend, Checkpoint, DeformMlp, Linear, Nodes};
+
+    const E: usize = 2;
+    const HIDDEN: usize = 4;
+    const SCALES: [f32; 3] = [0.1, 0.1, 0.05];
+
+    /// A small deterministic pseudo-random stream in [-1, 1).
+    fn stream(seed: u64) -> impl FnMut() -> f32 {
+        let mut s = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        }
+    }
+
+    /// Gaussians at `means` moved by the nodes at `positions` (radii `radius`), each
+    /// reading the nodes `index` (K per Gaussian); D_theta has a random trunk and a head whose
+    /// weights are zero and whose bias is `head_bias` (so every node gets the same (dx, dw, dl)
+    /// at every time: the bias times the output scales).
+    fn model(
+        means: Vec<f32>,
+        positions: Vec<f32>,
+        radius: f32,
+        index: Vec<u32>,
+        blend: Blend,
+        head_bias: [f32; 9],
+    ) -> Checkpoint {
+        let n = means.len() / 3;
+        let m = positions.len() / 3;
+        let k = index.len() / n;
+        let mut r = stream(7);
+        let input = 3 + E + 3;
+        Checkpoint {
+            n,
+            means,
+            quats: (0..4 * n).map(|_| r()).collect(),
+            log_scales: (0..3 * n).map(|_| r() - 3.0).collect(),
+            opacities: vec![0.5; n],
+            sh: vec![0.0; 3 * n],
+            sh_degree: 0,
+            embeddings: (0..E * n).map(|_| r()).collect(),
+            embed_dim: E,
+            is_static: Vec::new(),
+            nodes: Some(Nodes {
+                m,
+                k,
+                positions,
+                inv_sq_radii: vec![1.0 / (radius * radius); m],
+                embeddings: (0..E * m).map(|_| r()).collect(),
+                index,
+                blend,
+            }),
+            mlp: DeformMlp {
+                trunk: vec![Linear {
+                    weight: (0..HIDDEN * input).map(|_| r()).collect(),
+                    bias: (0..HIDDEN).map(|_| r()).collect(),
+                    inputs: input,
+                    outputs: HIDDEN,
+                }],
+                head: Linear {
+                    weight: vec![0.0; 9 * HIDDEN],
+                    bias: head_bias.to_vec(),
+                    inputs: HIDDEN,
+                    outputs: 9,
+                },
+                bands: 1,
+                position_bands: 0,
+                scales: SCALES,
+                position_unit: 1.0,
+            },
+            near: 0.01,
+            background: [1.0; 3],
+            cameras: Vec::new(),
+        }
+    }
+
+    fn random_model(n: usize, m: usize, k: usize, blend: Blend, head_bias: [f32; 9]) -> Checkpoint {
+        let mut r = stream(3);
+        let means = (0..3 * n).map(|_| r()).collect();
+        let positions = (0..3 * m).map(|_| r()).collect();
+        let index = (0..n * k).map(|i| ((i * 7 + i / k) % m) as u32).collect();
+        model(means, positions, 0.4, index, blend, head_bias)
+    }
+
+    fn close(a: &[f32], b: &[f32], tol: f32) -> bool {
+        a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= tol)
+    }
+
+    /// The rotation of unit quaternion `q` applied to `v`.
+    fn rotate(q: [f32; 4], v: [f32; 3]) -> [f32; 3] {
+        mat_vec(&quat_to_matrix(q), v)
+    }
+
+    #[test]
+    fn identity_motion_gives_the_canonical_gaussians() {
+        for blend in [Blend::Linear, Blend::DualQuaternion] {
+            let ck = random_model(40, 6, 3, blend, [0.0; 9]);
+            for t in [0.0, 0.37, 1.0] {
+                let d = deform_at(&ck, t);
+                assert!(close(&d.means, &ck.means, 1e-6), "{blend:?}");
+                let q0: Vec<f32> = ck
+                    .quats
+                    .chunks(4)
+                    .flat_map(|q| normalize([q[0], q[1], q[2], q[3]]))
+                    .collect();
+                assert!(close(&d.quats, &q0, 1e-6), "{blend:?}");
+                let s0: Vec<f32> = ck.log_scales.iter().map(|v| v.exp()).collect();
+                assert!(close(&d.scales, &s0, 1e-7), "{blend:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_single_node_moves_a_point_by_its_rigid_motion() {
+        // A quarter turn about z, then dx: the point one unit along x from the node ends one
+        // unit along y from the moved node.
+        let (dx, dw, dl) = (
+            [0.5, -0.25, 1.0],
+            [0.0, 0.0, std::f32::consts::FRAC_PI_2],
+            [0.1, -0.2, 0.05],
+        );
+        let mut bias = [0.0; 9];
+        for a in 0..3 {
+            bias[a] = dx[a] / SCALES[0];
+            bias[3 + a] = dw[a] / SCALES[1];
+            bias[6 + a] = dl[a] / SCALES[2];
+        }
+        for blend in [Blend::Linear, Blend::DualQuaternion] {
+            let mut ck = model(
+                vec![2.0, 2.0, 3.0],
+                vec![1.0, 2.0, 3.0],
+                0.5,
+                vec![0],
+                blend,
+                bias,
+            );
+            ck.quats = vec![1.0, 0.0, 0.0, 0.0];
+            let d = deform_at(&ck, 0.6);
+            assert!(
+                close(&d.means, &[1.5, 2.75, 4.0], 2e-6),
+                "{blend:?} {:?}",
+                d.means
+            );
+            let h = std::f32::consts::FRAC_1_SQRT_2;
+            assert!(
+                close(&d.quats, &[h, 0.0, 0.0, h], 1e-6),
+                "{blend:?} {:?}",
+                d.quats
+            );
+            let s: Vec<f32> = (0..3).map(|a| (ck.log_scales[a] + dl[a]).exp()).collect();
+            assert!(close(&d.scales, &s, 1e-6), "{blend:?}");
+        }
+    }
+
+    #[test]
+    fn blends_agree_on_one_shared_rigid_motion() {
+        // Every node follows x -> R x + T: node j's offsets are dw = omega, dx = R p_j + T - p_j.
+        let omega = [0.4f32, -0.9, 0.7];
+        let tr = [0.3f32, -0.1, 0.25];
+        let rq = axis_angle_to_quat(omega);
+        let lin = random_model(60, 8, 4, Blend::Linear, [0.0; 9]);
+        let nodes = lin.nodes.as_ref().unwrap();
+        let offsets: Vec<[f32; 9]> = nodes
+            .positions
+            .chunks(3)
+            .map(|p| {
+                let rp = rotate(rq, [p[0], p[1], p[2]]);
+                let mut o = [0.0; 9];
+                for a in 0..3 {
+                    o[a] = rp[a] + tr[a] - p[a];
+                    o[3 + a] = omega[a];
+                    o[6 + a] = 0.1 * a as f32;
+                }
+                o
+            })
+            .collect();
+        let mut dq = lin.clone();
+        dq.nodes.as_mut().unwrap().blend = Blend::DualQuaternion;
+        let a = blend_nodes(&lin, nodes, &offsets);
+        let b = blend_nodes(&dq, dq.nodes.as_ref().unwrap(), &offsets);
+        assert!(close(&a.means, &b.means, 1e-5));
+        assert!(close(&a.quats, &b.quats, 1e-6));
+        assert!(close(&a.scales, &b.scales, 1e-6));
+        for i in 0..lin.n {
+            let x0 = [lin.means[3 * i], lin.means[3 * i + 1], lin.means[3 * i + 2]];
+            let rx = rotate(rq, x0);
+            let want = [rx[0] + tr[0], rx[1] + tr[1], rx[2] + tr[2]];
+            assert!(close(&a.means[3 * i..3 * i + 3], &want, 1e-5));
+            let q0 = &lin.quats[4 * i..4 * i + 4];
+            let qw = normalize(quat_mul(rq, normalize([q0[0], q0[1], q0[2], q0[3]])));
+            assert!(close(&a.quats[4 * i..4 * i + 4], &qw, 1e-6));
+            for c in 0..3 {
+                let s = (lin.log_scales[3 * i + c] + 0.1 * c as f32).exp();
+                assert!((a.scales[3 * i + c] - s).abs() <= 1e-6 * s.max(1.0));
+            }
+        }
+    }
+
+    #[test]
+    fn blends_differ_on_opposite_rotations_as_skinning_does() {
+        // Two nodes at the origin turn by +-theta about z; a point one unit out weighs them
+        // equally. Linear blending averages the two positions (the point moves in, to
+        // cos theta: the candy-wrapper collapse), dual quaternions average the rotations (the
+        // identity: the point stays, at its distance).
+        let theta = 1.2f32;
+        let offsets = [
+            [0.0, 0.0, 0.0, 0.0, 0.0, theta, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 0.0, 0.0, -theta, 0.0, 0.0, 0.0],
+        ];
+        let mut got = Vec::new();
+        for blend in [Blend::Linear, Blend::DualQuaternion] {
+            let ck = model(
+                vec![1.0, 0.0, 0.0],
+                vec![0.0; 6],
+                0.5,
+                vec![0, 1],
+                blend,
+                [0.0; 9],
+            );
+            let d = blend_nodes(&ck, ck.nodes.as_ref().unwrap(), &offsets);
+            got.push(d.means);
+        }
+        assert!(
+            close(&got[0], &[theta.cos(), 0.0, 0.0], 1e-6),
+            "{:?}",
+            got[0]
+        );
+        assert!(close(&got[1], &[1.0, 0.0, 0.0], 1e-6), "{:?}", got[1]);
+        // Translations alone blend the same way in both: x0 + sum_j w_j dx_j.
+        let offsets = [
+            [0.2, 0.0, -0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            [0.0, 0.6, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        ];
+        for blend in [Blend::Linear, Blend::DualQuaternion] {
+            let ck = model(
+                vec![1.0, 0.0, 0.0],
+                vec![0.0; 6],
+                0.5,
+                vec![0, 1],
+                blend,
+                [0.0; 9],
+            );
+            let d = blend_nodes(&ck, ck.nodes.as_ref().unwrap(), &offsets);
+            assert!(
+                close(&d.means, &[1.1, 0.3, -0.1], 1e-6),
+                "{blend:?} {:?}",
+                d.means
+            );
+        }
+    }
+
+    #[test]
+    fn weights_sum_to_one_and_survive_far_gaussians() {
+        let ck = random_model(10, 5, 5, Blend::Linear, [0.0; 9]);
+        let nodes = ck.nodes.as_ref().unwrap();
+        let index = [0, 1, 2, 3, 4];
+        let mut w = [0.0f32; 5];
+        for x0 in [
+            [0.1, -0.2, 0.3],
+            [30.0, 0.0, 0.0],
+            [1e6, -1e6, 1e6],
+            [1e20, 1e20, -1e20], // squared distances overflow to inf
+            nodes.positions[3..6].try_into().unwrap(),
+        ] {
+            node_weights(nodes, x0, &index, &mut w);
+            assert!(w.iter().all(|v| v.is_finite() && *v >= 0.0), "{x0:?} {w:?}");
+            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6, "{x0:?} {w:?}");
+        }
+        // The nearest node takes all the weight far away.
+        node_weights(nodes, [1e6, -1e6, 1e6], &index, &mut w);
+        assert!(w.iter().any(|v| *v > 0.999));
+        // Radii at Python's clamp (1 / r^2 = 1e20), with a Gaussian on a node and one off
+        // all of them; and radii so large that 1 / r^2 is 0, with the Gaussian infinitely far.
+        let mut tiny = ck.clone();
+        tiny.nodes.as_mut().unwrap().inv_sq_radii = vec![1e20; 5];
+        let nodes = tiny.nodes.as_ref().unwrap();
+        for x0 in [nodes.positions[6..9].try_into().unwrap(), [0.5, 0.5, 0.5]] {
+            node_weights(nodes, x0, &index, &mut w);
+            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6, "{x0:?} {w:?}");
+        }
+        let mut huge = ck.clone();
+        huge.nodes.as_mut().unwrap().inv_sq_radii = vec![0.0, 0.0, 1.0, 1.0, 1.0];
+        let nodes = huge.nodes.as_ref().unwrap();
+        for x0 in [[1e20, 1e20, -1e20], [0.5, 0.5, 0.5]] {
+            node_weights(nodes, x0, &index, &mut w);
+            assert!(w.iter().all(|v| v.is_finite()), "{x0:?} {w:?}");
+            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6, "{x0:?} {w:?}");
+        }
+        // And the whole deformation stays finite with far Gaussians in it, for both blends.
+        for blend in [Blend::Linear, Blend::DualQuaternion] {
+            let mut far = random_model(
+                12,
+                5,
+                3,
+                blend,
+                [1.0, -2.0, 0.5, 3.0, 1.0, -1.0, 0.2, 0.1, 0.3],
+            );
+            far.means[0..3].copy_from_slice(&[1e6, -1e6, 1e6]);
+            far.means[3..6].copy_from_slice(&[1e20, 1e20, -1e20]);
+            let d = deform_at(&far, 0.5);
+            assert!(
+                d.means
+                    .iter()
+                    .chain(&d.quats)
+                    .chain(&d.scales)
+                    .all(|v| v.is_finite()),
+                "{blend:?}"
+            );
+        }
+    }
 }

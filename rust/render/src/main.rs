@@ -9,17 +9,20 @@ use std::time::Instant;
 use clap::{Parser, ValueEnum};
 use sync4d_gpu::{AdapterChoice, GpuDevice, GpuRasterState, GpuRasterizer};
 use sync4d_raster::{Camera, RasterState};
-use sync4d_render::checkpoint::{read_checkpoint, CameraRecord, Checkpoint};
+use sync4d_render::checkpoint::{read_checkpoint, Blend, CameraRecord, Checkpoint};
 use sync4d_render::deform::deform_at;
 use sync4d_render::render::{render, Backend};
 
 /// Render a sync4d checkpoint (written by `python -m sync4d fit`) to PNG images: one view at one
 /// time, a time sweep, or an orbit around the scene. The deformation MLP is evaluated here, so
-/// any time in [0, 1] can be rendered; cameras come from the run stored in the checkpoint.
+/// any time in [0, 1] can be rendered: per Gaussian, or for node checkpoints (motion "nodes")
+/// per control node, each Gaussian blending its nodes' motions (linear or dual-quaternion, as
+/// the checkpoint says). Cameras come from the run stored in the checkpoint.
 #[derive(Parser, Debug)]
 #[command(name = "sync4d-render", version, about, long_about = None)]
 struct Args {
-    /// Checkpoint file (RUN/checkpoint.safetensors) or a run folder containing one.
+    /// Checkpoint file (RUN/checkpoint.safetensors) or a run folder containing one; per-Gaussian
+    /// and node (motion "nodes") checkpoints of Phase 1 or 2 alike.
     checkpoint: PathBuf,
     /// Camera of the run: test:K, train:K, or a frame's image name (default test:0, else train:0).
     #[arg(long, value_name = "SPEC")]
@@ -277,8 +280,20 @@ fn run(args: Args) -> Result<(), String> {
         Backend::Cpu(_) => "cpu".to_string(),
         Backend::Wgpu(g, _) => format!("wgpu on {}", g.device().adapter),
     };
+    let motion = match &ck.nodes {
+        None => String::new(),
+        Some(nodes) => format!(
+            " moved by {} nodes ({} each, {} blend)",
+            nodes.m,
+            nodes.k,
+            match nodes.blend {
+                Blend::Linear => "linear",
+                Blend::DualQuaternion => "dual-quaternion",
+            }
+        ),
+    };
     eprintln!(
-        "sync4d-render: {} Gaussians, camera {} ({}x{}), {} image(s), backend {which}",
+        "sync4d-render: {} Gaussians{motion}, camera {} ({}x{}), {} image(s), backend {which}",
         ck.n,
         rec.name,
         rec.width,
