@@ -12,6 +12,7 @@ __all__ = [
     "add_bench_raster_options",
     "add_threads",
     "add_training_options",
+    "background_colour",
     "positive_float",
     "positive_int",
     "renamed",
@@ -58,6 +59,25 @@ def positive_float(text: str) -> float:
     if not value > 0:
         raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
     return value
+
+
+#: Background colours `background_colour` knows by name.
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+def background_colour(text: str) -> tuple[float, float, float]:
+    """``white``, ``black`` or ``R,G,B`` with each channel in [0, 1] (argparse type)."""
+    if text.lower() in BACKGROUNDS:
+        return BACKGROUNDS[text.lower()]
+    try:
+        rgb = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        raise argparse.ArgumentTypeError(
+            f"expected white, black or R,G,B with channels in [0, 1], got {text!r}"
+        )
+    return rgb  # type: ignore[return-value]
 
 
 def resolution(text: str) -> tuple[int, int]:

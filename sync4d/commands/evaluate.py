@@ -1,7 +1,9 @@
 """``python -m sync4d eval RUN``: PSNR, SSIM and LPIPS-Alex of a run's checkpoint on the test
 split, per frame and mean, written to ``RUN/eval.json`` and printed as a table. Another split
 (``--split train``) or another dataset (``--data`` whose frames differ from the run's) writes
-``RUN/eval-<split>.json`` or ``RUN/eval-<dataset>-<split>.json`` instead."""
+``RUN/eval-<split>.json`` or ``RUN/eval-<dataset>-<split>.json`` instead; ``--background
+black`` (render and ground truth composited on another colour than the run trained on) adds
+the colour to the tag: ``RUN/eval-black.json``."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import torch
 
 from sync4d.data import DatasetError
 from sync4d.files import RunBusy, RunLock, WriteFailed
+from sync4d.options import BACKGROUNDS
 from sync4d.pipeline import evaluate_run
 from sync4d.pipeline.record import dataset_differences
 from sync4d.progress import TerminalRenderer
@@ -54,6 +57,15 @@ def _queries(args: argparse.Namespace) -> int:
     return 0
 
 
+def background_tag(rgb: tuple[float, ...] | list[float]) -> str:
+    """The file tag of an evaluation on background `rgb`: ``white``, ``black`` or
+    ``bg-R-G-B`` (``eval-black.json``, ``renders/black/``)."""
+    for name, value in BACKGROUNDS.items():
+        if tuple(rgb) == value:
+            return name
+    return "bg-" + "-".join(f"{v:g}" for v in rgb)
+
+
 def main(args: argparse.Namespace) -> int:
     """Run `eval` with parsed `args`; the exit status."""
     if getattr(args, "queries", None):
@@ -72,11 +84,16 @@ def main(args: argparse.Namespace) -> int:
             tag = f"{scene.name}-{args.split}" if other else None
             if tag is None and args.split != "test":
                 tag = args.split
+            background = run.background
+            chosen = getattr(args, "background", None)
+            if chosen is not None and list(chosen) != list(run.background):
+                background = list(chosen)
+                tag = "-".join(t for t in (tag, background_tag(chosen)) if t)
             threads = args.threads or None
             if threads:
                 torch.set_num_threads(threads)
             with TerminalRenderer().installed():
-                evaluate_run(run.path, run.model, scene, run.background, threads, args.split,
+                evaluate_run(run.path, run.model, scene, background, threads, args.split,
                              tag=tag)  # fmt: skip
     except (RunError, CheckpointError, DatasetError, RunBusy, WriteFailed) as e:
         print(f"eval: {e}", file=sys.stderr)
