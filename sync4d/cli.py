@@ -630,6 +630,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             return 2
         raise
+    _bound_torch_threads(args)
     if not hasattr(args, "backend"):  # e.g. query: no rendering, no torch import
         return int(module.main(args) or 0)
     from sync4d import raster
@@ -649,6 +650,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         raster.set_default_backend(previous)  # main() may be called again in-process
     return int(result or 0)
+
+
+def _bound_torch_threads(args: argparse.Namespace) -> None:
+    """`--threads T`: torch's intra-op threads before the command runs anything (the command
+    modules import torch but run no op on import; query, which does not import it, stays
+    light). Measured (issue 51): `eval RUN --threads 1` and `render RUN --threads 1` set them
+    after `load_run`, whose ops had started a second OpenMP thread already (0.4 s of the 3.8 s
+    of CPU time of an eval of the embedded scene)."""
+    threads = getattr(args, "threads", None)
+    if type(threads) is int and "torch" in sys.modules:  # not bench raster's list
+        import torch
+
+        torch.set_num_threads(threads)
 
 
 def _prog() -> str:

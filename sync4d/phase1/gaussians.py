@@ -230,7 +230,10 @@ class DeformableGaussians(nn.Module):
         viewmat = torch.as_tensor(camera.viewmat, dtype=torch.float32)
         coeffs = torch.cat([self.sh_dc if sh_dc is None else sh_dc, self.sh_rest], dim=1)
         degree = self.sh_degree if sh_degree is None else sh_degree
-        colors = raster.sh_features(means, coeffs, viewmat, degree)
+        # The colours on the rasterizer's threads too: without them SH ran on all cores
+        # (rayon's default pool) in a `fit --threads 1` (issue 51).
+        threads = raster_kw.get("threads")
+        colors = raster.sh_features(means, coeffs, viewmat, degree, threads=threads)
         K = torch.as_tensor(camera.K, dtype=torch.float32)
         raster_kw.setdefault("near", self.near)
         return raster.rasterize(

@@ -2,6 +2,15 @@
 //! released while Rust works, `RasterError`s mapped to `ValueError`s and panics to
 //! `RuntimeError`s instead of crossing into Python. Apart from the bindings, which only say what
 //! to run.
+//!
+//! `threads = 1` runs on the calling thread itself, `threads = T > 1` on a pool of T workers
+//! (the caller sleeps meanwhile), `threads = 0` on a pool of rayon's default size
+//! (`RAYON_NUM_THREADS`, else the cores the process may use). So a process that passes T to
+//! every call has T busy threads in all. Measured (issue 51): a `fit --threads 1` (200
+//! iterations of the embedded scene) through a one-worker pool kept that worker at 16 % of the
+//! process's CPU time (4.4 of 27.8 s) while the Python thread slept: serial, but two busy
+//! threads to `top -H` and a hand-off (two wake-ups) per call; inline, all its CPU time is
+//! the Python thread's and a small call takes 40 instead of 65 us.
 
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
@@ -10,18 +19,17 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, Mutex, OnceLock};
 use sync4d_raster::{self as core, RasterError};
 
-/// Rayon pools by thread count, built once and reused (0 = rayon's global pool).
-fn pool(threads: usize) -> PyResult<Option<Arc<rayon::ThreadPool>>> {
-    if threads == 0 {
-        return Ok(None);
-    }
+/// Rayon pools by thread count, built once and reused (0: rayon's default count). Not rayon's
+/// global pool for 0: a thread that ran a `threads = 1` call is the worker of its own one-thread
+/// pool (`SERIAL`), where a bare `par_iter` would stay on that thread.
+fn pool(threads: usize) -> PyResult<Arc<rayon::ThreadPool>> {
     static POOLS: OnceLock<Mutex<HashMap<usize, Arc<rayon::ThreadPool>>>> = OnceLock::new();
     let mut pools = POOLS
         .get_or_init(|| Mutex::new(HashMap::new()))
         .lock()
         .map_err(|_| PyRuntimeError::new_err("sync4d: thread-pool registry poisoned"))?;
     if let Some(p) = pools.get(&threads) {
-        return Ok(Some(p.clone()));
+        return Ok(p.clone());
     }
     let p = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
@@ -31,7 +39,25 @@ fn pool(threads: usize) -> PyResult<Option<Arc<rayon::ThreadPool>>> {
         })?;
     let p = Arc::new(p);
     pools.insert(threads, p.clone());
-    Ok(Some(p))
+    Ok(p)
+}
+
+thread_local! {
+    /// This thread's one-thread pool whose only worker is the thread itself
+    /// (`use_current_thread`): `install` runs inline and the parallel iterators in it run
+    /// serially here. Never dropped (a clone is forgotten; rayon leaks such a registry anyway),
+    /// so no rayon code runs in a thread-local destructor. None when the thread is a rayon
+    /// worker already.
+    static SERIAL: Option<Arc<rayon::ThreadPool>> = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .use_current_thread()
+        .build()
+        .ok()
+        .map(|p| {
+            let p = Arc::new(p);
+            std::mem::forget(p.clone());
+            p
+        });
 }
 
 /// Run `f` without the GIL on a pool of `threads` threads, mapping errors and panics.
@@ -40,13 +66,18 @@ pub(crate) fn run<T: Send>(
     threads: usize,
     f: impl FnOnce() -> core::Result<T> + Send,
 ) -> PyResult<T> {
-    let pool = pool(threads)?;
-    let out = py.allow_threads(move || {
-        catch_unwind(AssertUnwindSafe(move || match pool {
-            Some(p) => p.install(f),
-            None => f(),
-        }))
-    });
+    // allow_threads runs `f` on this same thread, so there the serial pool's worker is the
+    // caller and `install` runs `f` inline.
+    let serial = if threads == 1 {
+        SERIAL.with(Clone::clone)
+    } else {
+        None
+    };
+    let pool = match serial {
+        Some(p) => p,
+        None => pool(threads)?,
+    };
+    let out = py.allow_threads(move || catch_unwind(AssertUnwindSafe(move || pool.install(f))));
     match out {
         Ok(Ok(v)) => Ok(v),
         Ok(Err(e)) => Err(to_py(e)),
@@ -67,8 +98,8 @@ pub(crate) fn to_py(e: RasterError) -> PyErr {
     PyValueError::new_err(e.to_string())
 }
 
-/// Number of threads rayon's global pool uses.
+/// Number of threads a call with `threads = 0` uses (rayon's default count).
 #[pyfunction]
-pub(crate) fn default_threads() -> usize {
-    rayon::current_num_threads()
+pub(crate) fn default_threads() -> PyResult<usize> {
+    Ok(pool(0)?.current_num_threads())
 }
