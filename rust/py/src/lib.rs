@@ -5,11 +5,13 @@
 //!
 //! One file per concern: `arrays` (NumPy arrays and argument conversion), `runtime` (threads,
 //! GIL release, error and panic mapping), `project`, `raster` (CPU compositing), `gpu` (the wgpu
-//! backend), `sh` and `loss` (the bindings), and here the module's registration.
+//! backend), `sh` and `loss` (the bindings), `motion` (the node motion kernels of sync4d-motion),
+//! and here the module's registration.
 
 mod arrays;
 mod gpu;
 mod loss;
+mod motion;
 mod project;
 mod raster;
 mod runtime;
@@ -20,6 +22,7 @@ use sync4d_raster as core;
 
 use gpu::{wgpu_adapter, wgpu_adapters, WgpuContext};
 use loss::photometric_loss;
+use motion::{node_weighted_sum_backward, node_weighted_sum_forward};
 use project::{project_backward, project_forward};
 use raster::RasterContext;
 use runtime::default_threads;
@@ -37,6 +40,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(sh_forward, m)?)?;
     m.add_function(wrap_pyfunction!(sh_backward, m)?)?;
     m.add_function(wrap_pyfunction!(photometric_loss, m)?)?;
+    m.add_function(wrap_pyfunction!(node_weighted_sum_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(node_weighted_sum_backward, m)?)?;
     m.add_function(wrap_pyfunction!(default_threads, m)?)?;
     m.add("TILE_SIZE", core::TILE_SIZE)?;
     Ok(())
