@@ -10,7 +10,8 @@ motion is then not the run's, the cost of a step is D_theta's on every row). Rou
 interleave the variants (a change of machine load hits them alike). Per round and variant
 it times `steps` whole training steps, then the same number of the motion alone (D_theta
 and, for nodes, the blend: forward and backward of the deformed means, rotations and scales
-at a training frame's time) and of the rasterizer alone (SH colours, projection,
+at a training frame's time), of D_theta alone (on the nodes, or on every Gaussian) and of
+the rasterizer alone (SH colours, projection,
 compositing; forward and backward). The shares are each part's median over the step's
 median. Prints a table and writes a JSON with the date, machine and threads.
 """
@@ -75,7 +76,7 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
         trainers[name] = trainer
     frames = scene.train
     timings: dict[str, dict[str, list[float]]] = {
-        n: {"step": [], "motion": [], "raster": []} for n in variants
+        n: {"step": [], "motion": [], "d_theta": [], "raster": []} for n in variants
     }
     for r in range(rounds):
         for name, trainer in trainers.items():
@@ -90,6 +91,16 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
                 out = model.at_time(frame.time)
                 sum(o.sum() for o in out).backward()
                 timings[name]["motion"].append(time.perf_counter() - t0)
+                model.zero_grad(set_to_none=True)
+            for k in range(steps):  # D_theta alone: on the nodes, or on every Gaussian
+                frame = frames[(r * steps + k) % len(frames)]
+                t0 = time.perf_counter()
+                if model.nodes is not None:
+                    out = model.nodes.motion(model.deform, frame.time)
+                else:
+                    out = model.deform(model.means, model.embeddings, frame.time)
+                sum(o.sum() for o in out).backward()
+                timings[name]["d_theta"].append(time.perf_counter() - t0)
                 model.zero_grad(set_to_none=True)
             for k in range(steps):
                 frame = frames[(r * steps + k) % len(frames)]
@@ -106,7 +117,8 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
     base = None
     for name, trainer in trainers.items():
         t = timings[name]
-        step, motion, rast = (_median_ms(t[k]) for k in ("step", "motion", "raster"))
+        step, motion, dth, rast = (_median_ms(t[k]) for k in ("step", "motion", "d_theta",
+                                                                 "raster"))  # fmt: skip
         base = base or step
         nodes = trainer.model.nodes
         rows.append({
@@ -114,8 +126,9 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
             "motion_model": trainer.model.motion,
             "gaussians": trainer.model.num_gaussians,
             "nodes": nodes.count if nodes is not None else None,
-            "step_ms": step, "motion_ms": motion, "raster_ms": rast,
-            "motion_share": motion / step, "raster_share": rast / step,
+            "step_ms": step, "motion_ms": motion, "d_theta_ms": dth, "raster_ms": rast,
+            "motion_share": motion / step, "d_theta_share": dth / step,
+            "raster_share": rast / step,
             "speedup": base / step, "raw_s": t,
         })  # fmt: skip
     return {
@@ -150,11 +163,12 @@ def main(args: argparse.Namespace) -> int:
         print(f"bench step: {e}", file=sys.stderr)
         return 2
     table = [["variant", "motion", "gaussians", "nodes", "step ms", "motion ms", "share",
-              "raster ms", "share", "speed-up"]]  # fmt: skip
+              "D_theta ms", "share", "raster ms", "share", "speed-up"]]  # fmt: skip
     for r in result["rows"]:
         table.append([r["variant"], r["motion_model"], f"{r['gaussians']:,}",
                       "-" if r["nodes"] is None else str(r["nodes"]), f"{r['step_ms']:.1f}",
                       f"{r['motion_ms']:.1f}", f"{100 * r['motion_share']:.0f} %",
+                      f"{r['d_theta_ms']:.1f}", f"{100 * r['d_theta_share']:.1f} %",
                       f"{r['raster_ms']:.1f}", f"{100 * r['raster_share']:.0f} %",
                       f"{r['speedup']:.2f}x"])  # fmt: skip
     print(align_table(table[0], table[1:]))

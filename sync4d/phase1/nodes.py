@@ -51,6 +51,7 @@ import torch
 from torch import Tensor, nn
 
 from sync4d.geometry import axis_angle_to_quat, quat_multiply, quat_to_matrix
+from sync4d.phase1.node_op import node_weighted_sum
 from sync4d.settings import choice, ranged
 
 __all__ = [
@@ -236,13 +237,14 @@ def _conj(q: Tensor) -> Tensor:
 def blend(
     x0: Tensor, q0: Tensor, log_s0: Tensor, positions: Tensor,
     motion: tuple[Tensor, Tensor, Tensor], index: Tensor, weights: Tensor | None = None,
-    kind: str = "linear", log_radii: Tensor | None = None,
+    kind: str = "linear", log_radii: Tensor | None = None, threads: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
     """Gaussians (canonical means `x0` [N, 3], unit quaternions `q0` [N, 4], log-scales
     `log_s0` [N, 3]) moved by blending their nodes' motions (`node_transforms`' (q, dx, dl)
     of nodes at `positions` [M, 3]) over `index` [N, K] with `weights` [N, K], or, when
     `weights` is None, with `blend_weights` of the nodes' `log_radii` [M] computed from the
-    same gathered rows: deformed means [N, 3], unit quaternions [N, 4], scales [N, 3].
+    same rows by the fused kernel (`sync4d.phase1.node_op`, on `threads` threads; None:
+    torch's thread count): deformed means [N, 3], unit quaternions [N, 4], scales [N, 3].
     `kind`: "linear" or "dual_quaternion" (module docstring). Every node value a Gaussian
     needs is gathered once, as one table row."""
     if kind not in BLENDS:
@@ -260,11 +262,11 @@ def blend(
     if weights is None:
         if log_radii is None:
             raise ValueError("blend: give the weights or the nodes' log_radii")
-        inv_r2 = torch.exp(-2.0 * log_radii).clamp_max(1e20).unsqueeze(-1)
-        g = gather_rows(torch.cat([positions, inv_r2], dim=-1), index)  # [N, K, 4]
-        d2 = ((x0.unsqueeze(1) - g[..., :3]) ** 2).sum(-1)
-        weights = torch.softmax(-0.5 * d2 * g[..., 3], dim=-1)
-    b = gather_blend(torch.cat(cols, dim=-1), index, weights)  # [N, C]
+        inv_r2 = torch.exp(-2.0 * log_radii).clamp_max(1e20)
+        b = node_weighted_sum(x0, positions, inv_r2, torch.cat(cols, dim=-1), index,
+                              threads=threads or torch.get_num_threads())  # [N, C]
+    else:
+        b = gather_blend(torch.cat(cols, dim=-1), index, weights)  # [N, C]
     if kind == "linear":
         a = b[:, :9].reshape(-1, 3, 3)
         x = (a * x0.unsqueeze(1)).sum(-1) + b[:, 9:12]
