@@ -67,7 +67,7 @@ def fidelity(run_dir: Path, count: int, neighbours: int, times: int, steps: int,
             (loss / times).backward()
             opt.step()
             if step % 50 == 0:
-                print(f"{kind}: step {step} rms {math.sqrt(float(loss) / times):.5f}",
+                print(f"{kind}: step {step} rms {math.sqrt(float(loss.detach()) / times):.5f}",
                       file=sys.stderr)
         with torch.no_grad():
             err, rot = [], []
