@@ -15,6 +15,7 @@ from torch import Tensor
 
 from sync4d.geometry import quat_to_matrix
 from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
+from sync4d.phase1.rows import replace_param_rows
 from sync4d.settings import ranged
 
 __all__ = ["DensifyConfig", "Densifier", "PER_GAUSSIAN"]
@@ -62,20 +63,7 @@ class DensifyConfig:
 def _replace_rows(optimizer: torch.optim.Optimizer, model: DeformableGaussians, fn) -> None:
     """Replace every per-Gaussian parameter `p` by `fn(name, p, is_state)`, carrying the Adam
     moments through the same row operation."""
-    for name in PER_GAUSSIAN:
-        old = getattr(model, name)
-        new = torch.nn.Parameter(fn(name, old.data, False))
-        for group in optimizer.param_groups:
-            for i, p in enumerate(group["params"]):
-                if p is old:
-                    group["params"][i] = new
-                    state = optimizer.state.pop(old, None)
-                    if state:
-                        for k in ("exp_avg", "exp_avg_sq"):
-                            if k in state:
-                                state[k] = fn(name, state[k], True)
-                        optimizer.state[new] = state
-        setattr(model, name, new)
+    replace_param_rows(optimizer, model, PER_GAUSSIAN, fn)
     # Per-Gaussian flags follow the same rows (split and cloned children inherit them).
     model.static = fn("static", model.static, False)
     if model.nodes is not None:  # children blend their parent's nodes until the next refresh
@@ -128,12 +116,17 @@ class Densifier:
         what happened (cloned, split, pruned). Opacity resets are `reset_due`'s business."""
         c = self.config
         out = {"cloned": 0, "split": 0, "pruned": 0}
-        if c.start <= iteration < c.stop and iteration % c.interval == 0 and iteration > 0:
+        if self.densify_due(iteration):
             prune_big = iteration > c.opacity_reset_interval
             out = self.densify_and_prune(model, optimizer, scene_extent, prune_big)
         elif c.prune_after_stop and iteration >= c.stop and iteration % c.interval == 0:
             out["pruned"] = self.prune_transparent(model, optimizer)
         return out
+
+    def densify_due(self, iteration: int) -> bool:
+        """Whether `step` densifies after `iteration` (every `interval` in [start, stop))."""
+        c = self.config
+        return c.start <= iteration < c.stop and iteration % c.interval == 0 and iteration > 0
 
     @torch.no_grad()
     def prune_transparent(

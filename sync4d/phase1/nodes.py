@@ -52,6 +52,7 @@ from torch import Tensor, nn
 
 from sync4d.geometry import axis_angle_to_quat, quat_multiply, quat_to_matrix
 from sync4d.phase1.node_op import node_weighted_sum
+from sync4d.phase1.rows import replace_param_rows
 from sync4d.settings import choice, ranged
 
 __all__ = [
@@ -414,25 +415,6 @@ class NodeMotion(nn.Module):
         return dataclasses.asdict(self.config)
 
 
-def replace_node_rows(optimizer: torch.optim.Optimizer, nodes: NodeMotion, fn) -> None:
-    """Replace every per-node parameter `p` by `fn(name, p, is_state)`, carrying its Adam
-    moments through the same row operation (as the densifier does for Gaussians)."""
-    for name in NodeMotion.PER_NODE:
-        old = getattr(nodes, name)
-        new = nn.Parameter(fn(name, old.data, False))
-        for group in optimizer.param_groups:
-            for i, p in enumerate(group["params"]):
-                if p is old:
-                    group["params"][i] = new
-                    state = optimizer.state.pop(old, None)
-                    if state:
-                        for k in ("exp_avg", "exp_avg_sq"):
-                            if k in state:
-                                state[k] = fn(name, state[k], True)
-                        optimizer.state[new] = state
-        setattr(nodes, name, new)
-
-
 @torch.no_grad()
 def densify_nodes(nodes: NodeMotion, means: Tensor, grad: Tensor,
                   optimizer: torch.optim.Optimizer) -> tuple[int, int]:  # fmt: skip
@@ -476,7 +458,7 @@ def densify_nodes(nodes: NodeMotion, means: Tensor, grad: Tensor,
 
     added, removed = len(parents), int((~keep).sum())
     if added or removed:
-        replace_node_rows(optimizer, nodes, grow)
+        replace_param_rows(optimizer, nodes, NodeMotion.PER_NODE, grow)
         nodes.refresh(means)
         nodes.added += added
         nodes.removed += removed

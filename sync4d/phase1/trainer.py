@@ -256,6 +256,8 @@ class Phase1Trainer:
             self._add_node_groups()
         #: The last ARAP loss (None before nodes carry the motion).
         self.last_arap: float | None = None
+        #: The sorted distinct times of the training frames (the ARAP loss's second times).
+        self._times = sorted({float(f.time) for f in scene.train})
 
     def _add_node_groups(self) -> None:
         """The node parameters' Adam groups, after D_theta's (`node_positions`,
@@ -291,7 +293,7 @@ class Phase1Trainer:
         nodes, c = self.model.nodes, self.config.nodes
         if nodes is None or c.arap_weight <= 0 or nodes.last_motion is None:
             return None
-        times = self._train_times()
+        times = self._times
         t2 = times[random.Random(self.config.seed * 1_000_003 + self.iteration)
                    .randrange(len(times))]  # fmt: skip
         if len(times) > 1 and t2 == t:
@@ -301,12 +303,6 @@ class Phase1Trainer:
         self.last_arap = float(arap.detach())
         return c.arap_weight * arap
 
-    def _train_times(self) -> list[float]:
-        """The sorted distinct times of the training frames."""
-        if not hasattr(self, "_times_cache"):
-            self._times_cache = sorted({float(f.time) for f in self.scene.train})
-        return self._times_cache
-
     def nodes_step(self) -> None:
         """After the optimizer step: adaptive nodes on Gaussian densification steps (before
         the densifier resets its statistics) until `nodes.densify_until`, and the
@@ -314,11 +310,9 @@ class Phase1Trainer:
         nodes, c = self.model.nodes, self.config.nodes
         if nodes is None:
             return
-        d = self.densifier.config
         it = self.iteration
-        densify = d.start <= it < d.stop and it % d.interval == 0 and it > 0
-        if densify and it <= c.densify_until and self.densifier.count.shape[0] == \
-                self.model.num_gaussians:  # fmt: skip
+        if self.densifier.densify_due(it) and it <= c.densify_until and \
+                self.densifier.count.shape[0] == self.model.num_gaussians:  # fmt: skip
             grad = self.densifier.grad_accum / self.densifier.count.clamp_min(1)
             densify_nodes(nodes, self.model.means.detach(), grad, self.optimizer)
         elif it % c.refresh_every == 0:
@@ -480,7 +474,7 @@ class Phase1Trainer:
     def static_check_times(self) -> torch.Tensor:
         """The training times D_theta is evaluated at to find static Gaussians: `static.times`
         evenly spread over the sorted distinct times of the training frames."""
-        times = sorted({float(f.time) for f in self.scene.train})
+        times = self._times
         k = min(len(times), self.config.static.times)
         picks = torch.linspace(0, len(times) - 1, k).round().long()
         return torch.tensor(times, dtype=torch.float32)[picks]
