@@ -7,8 +7,6 @@ use another build. Outside CI a missing binary skips these tests; in CI it fails
 
 from __future__ import annotations
 
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -16,22 +14,12 @@ import pytest
 import torch
 from PIL import Image
 
-from support import ROOT
+from support.render import python_png, run_render, skip_without_adapter
 from support.scenes import orbit_scene, random_gaussians
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
 from sync4d.runs import camera_records, save_checkpoint
-
-
-def _binary() -> Path:
-    path = Path(os.environ.get("SYNC4D_RENDER", ROOT / "target" / "release" / "sync4d-render"))
-    if not path.exists():
-        # A bare `pytest` without the cargo build has no binary to test; CI builds it first.
-        if os.environ.get("CI"):
-            pytest.fail(f"{path} is missing: `cargo test --workspace --release` builds it")
-        pytest.skip(f"{path} is not built (run `cargo build --release -p sync4d-render`)")
-    return path
 
 
 @pytest.fixture(
@@ -65,38 +53,27 @@ def run(tmp_path_factory, request) -> tuple[Path, DeformableGaussians, object]:
     return ck, model, scene
 
 
-def _python_png(model: DeformableGaussians, frame, t: float) -> np.ndarray:
-    with torch.no_grad():
-        img = model.render(frame.camera, t, background=torch.ones(3), threads=1).features
-    return (img.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
-def _render(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(_binary()), *args], capture_output=True, text=True, timeout=300)
 
 
 @pytest.mark.parametrize("backend", ["cpu", "wgpu"])
 def test_matches_the_python_render_between_frames(run, tmp_path, backend) -> None:
     ck, model, scene = run
     out = tmp_path / f"{backend}.png"
-    proc = _render(str(ck), "--camera", "test:0", "--time", "0.37", "--out", str(out),
+    proc = run_render(str(ck), "--camera", "test:0", "--time", "0.37", "--out", str(out),
                    "--backend", backend, "--threads", "1")  # fmt: skip
-    if backend == "wgpu" and proc.returncode != 0 and "adapter" in proc.stderr:
-        # No Vulkan/Metal/DX12 adapter on this machine: nothing to compare; CI (which installs
-        # lavapipe and sets SYNC4D_REQUIRE_GPU=1) fails here instead.
-        if os.environ.get("SYNC4D_REQUIRE_GPU") == "1":
-            pytest.fail(proc.stderr)
-        pytest.skip(proc.stderr.strip())
+    skip_without_adapter(proc, backend)
     assert proc.returncode == 0, proc.stderr
     rust = np.asarray(Image.open(out).convert("RGB")).astype(np.float64) / 255.0
-    py = _python_png(model, scene.test[0], 0.37).astype(np.float64) / 255.0
+    py = python_png(model, scene.test[0], 0.37).astype(np.float64) / 255.0
     assert rust.shape == py.shape
     assert np.abs(rust - py).mean() < 1e-3, np.abs(rust - py).mean()
     # The deformation matters at this time: the canonical (t = 0) view differs.
-    assert np.abs(_python_png(model, scene.test[0], 0.0) / 255.0 - py).mean() > 5e-3
+    assert np.abs(python_png(model, scene.test[0], 0.0) / 255.0 - py).mean() > 5e-3
     if model.static.any():  # and so does the static set: all moving renders another image
         static, model.static = model.static, torch.zeros_like(model.static)
-        moving = _python_png(model, scene.test[0], 0.37) / 255.0
+        moving = python_png(model, scene.test[0], 0.37) / 255.0
         model.static = static
         assert np.abs(moving - py).mean() > 5e-3
     assert "frames per second" in proc.stderr
@@ -104,11 +81,11 @@ def test_matches_the_python_render_between_frames(run, tmp_path, backend) -> Non
 
 def test_time_sweep_and_orbit_write_one_png_per_frame(run, tmp_path) -> None:
     ck = run[0]
-    proc = _render(str(ck), "--sweep", "3", "--out", str(tmp_path / "sweep"), "--threads", "1")
+    proc = run_render(str(ck), "--sweep", "3", "--out", str(tmp_path / "sweep"), "--threads", "1")
     assert proc.returncode == 0, proc.stderr
     assert sorted(p.name for p in (tmp_path / "sweep").iterdir()) == [
         "frame_000.png", "frame_001.png", "frame_002.png"]  # fmt: skip
-    proc = _render(str(ck.parent), "--orbit", "4", "--camera", "train:2",
+    proc = run_render(str(ck.parent), "--orbit", "4", "--camera", "train:2",
                    "--out", str(tmp_path / "orbit"), "--threads", "1")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     frames = [np.asarray(Image.open(p)) for p in sorted((tmp_path / "orbit").iterdir())]
@@ -117,7 +94,7 @@ def test_time_sweep_and_orbit_write_one_png_per_frame(run, tmp_path) -> None:
 
 def test_help_and_bad_inputs(run, tmp_path) -> None:
     ck = run[0]
-    help_text = _render("--help").stdout
+    help_text = run_render("--help").stdout
     for flag in ("--camera", "--time", "--sweep", "--orbit", "--out", "--backend", "--threads"):
         assert flag in help_text
     truncated = tmp_path / "truncated.safetensors"
@@ -126,10 +103,10 @@ def test_help_and_bad_inputs(run, tmp_path) -> None:
         (truncated, "truncated.safetensors"),
         (tmp_path / "missing.safetensors", "cannot read"),
     ]:
-        proc = _render(str(bad), "--out", str(tmp_path / "x.png"))
+        proc = run_render(str(bad), "--out", str(tmp_path / "x.png"))
         assert proc.returncode == 2 and words in proc.stderr, proc.stderr
         assert "panicked" not in proc.stderr
-    proc = _render(str(ck), "--camera", "test:99", "--out", str(tmp_path / "x.png"))
+    proc = run_render(str(ck), "--camera", "test:99", "--out", str(tmp_path / "x.png"))
     assert proc.returncode == 2 and "test cameras" in proc.stderr
-    proc = _render(str(ck), "--time", "1.5", "--out", str(tmp_path / "x.png"))
+    proc = run_render(str(ck), "--time", "1.5", "--out", str(tmp_path / "x.png"))
     assert proc.returncode == 2 and "[0, 1]" in proc.stderr

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -22,27 +20,13 @@ from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from support import ROOT
+from support.render import python_png, run_render, skip_without_adapter
 from support.scenes import orbit_scene, random_gaussians
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.nodes import NodeConfig
 from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
 from sync4d.runs import camera_records, save_checkpoint
-
-
-def _binary() -> Path:
-    path = Path(os.environ.get("SYNC4D_RENDER", ROOT / "target" / "release" / "sync4d-render"))
-    if not path.exists():
-        if os.environ.get("CI"):
-            pytest.fail(f"{path} is missing: `cargo test --workspace --release` builds it")
-        pytest.skip(f"{path} is not built (run `cargo build --release -p sync4d-render`)")
-    return path
-
-
-def _render(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(_binary()), *args], capture_output=True, text=True, timeout=300)
-
 
 #: (blend, D_theta's position input, a static set left in the checkpoint).
 VARIANTS = {
@@ -89,10 +73,6 @@ def run(tmp_path_factory, request) -> tuple[Path, DeformableGaussians, object]:
     return ck, model, scene
 
 
-def _python_png(model: DeformableGaussians, frame, t: float) -> np.ndarray:
-    with torch.no_grad():
-        img = model.render(frame.camera, t, background=torch.ones(3), threads=1).features
-    return (img.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
 @pytest.mark.parametrize("backend", ["cpu", "wgpu"])
@@ -100,35 +80,31 @@ def test_node_checkpoints_match_the_python_render_between_frames(run, tmp_path, 
                                                                  ) -> None:  # fmt: skip
     ck, model, scene = run
     out = tmp_path / f"{backend}.png"
-    proc = _render(str(ck), "--camera", "test:0", "--time", "0.37", "--out", str(out),
+    proc = run_render(str(ck), "--camera", "test:0", "--time", "0.37", "--out", str(out),
                    "--backend", backend, "--threads", "1")  # fmt: skip
-    if backend == "wgpu" and proc.returncode != 0 and "adapter" in proc.stderr:
-        # No Vulkan/Metal/DX12 adapter here; CI (lavapipe, SYNC4D_REQUIRE_GPU=1) fails instead.
-        if os.environ.get("SYNC4D_REQUIRE_GPU") == "1":
-            pytest.fail(proc.stderr)
-        pytest.skip(proc.stderr.strip())
+    skip_without_adapter(proc, backend)
     assert proc.returncode == 0, proc.stderr
     nodes = model.nodes
     assert f"moved by {nodes.count} nodes ({nodes.config.neighbours} each" in proc.stderr
     rust = np.asarray(Image.open(out).convert("RGB")).astype(np.float64) / 255.0
-    py = _python_png(model, scene.test[0], 0.37).astype(np.float64) / 255.0
+    py = python_png(model, scene.test[0], 0.37).astype(np.float64) / 255.0
     assert rust.shape == py.shape
     assert np.abs(rust - py).mean() < 1e-3, np.abs(rust - py).mean()
     # The node motion matters at this time: the canonical (t = 0) view differs, and so does
     # the other blend's image.
-    assert np.abs(_python_png(model, scene.test[0], 0.0) / 255.0 - py).mean() > 5e-3
+    assert np.abs(python_png(model, scene.test[0], 0.0) / 255.0 - py).mean() > 5e-3
     kind = nodes.config
     other = "linear" if kind.blend == "dual_quaternion" else "dual_quaternion"
     nodes.config = dataclasses.replace(kind, blend=other)
     try:
-        assert np.abs(_python_png(model, scene.test[0], 0.37) / 255.0 - py).mean() > 1e-3
+        assert np.abs(python_png(model, scene.test[0], 0.37) / 255.0 - py).mean() > 1e-3
     finally:
         nodes.config = kind
 
 
 def test_a_sweep_of_a_node_checkpoint_moves(run, tmp_path) -> None:
     ck = run[0]
-    proc = _render(str(ck.parent), "--sweep", "3", "--out", str(tmp_path / "sweep"),
+    proc = run_render(str(ck.parent), "--sweep", "3", "--out", str(tmp_path / "sweep"),
                    "--threads", "1")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     frames = [np.asarray(Image.open(p)) for p in sorted((tmp_path / "sweep").iterdir())]
@@ -152,7 +128,7 @@ def test_node_checkpoints_that_do_not_fit_are_refused_by_name(run, tmp_path) -> 
         if header is not None:
             meta["sync4d"] = json.dumps(header)
         save_file(bad, str(path), meta)
-        proc = _render(str(path), "--out", str(tmp_path / "x.png"))
+        proc = run_render(str(path), "--out", str(tmp_path / "x.png"))
         assert proc.returncode == 2, proc.stderr
         assert "panicked" not in proc.stderr
         for w in [f"{name}.safetensors", *words]:
