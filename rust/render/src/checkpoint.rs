@@ -166,21 +166,27 @@ struct Tensors<'a> {
 }
 
 impl Tensors<'_> {
-    /// The f32 tensor `name`, which must have `shape`; finite values only.
-    fn get(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, CheckpointError> {
+    /// The bytes of tensor `name`, which must be of `dtype` (4-byte elements) and `shape`;
+    /// `missing` ends the message for an absent tensor.
+    fn bytes(
+        &self,
+        name: &str,
+        dtype: Dtype,
+        shape: &[usize],
+        missing: &str,
+    ) -> Result<&[u8], CheckpointError> {
         let t = self.st.tensor(name).map_err(|_| {
             err(
                 self.path,
                 format!(
-                    "tensor '{name}' is missing (expected F32 of shape {shape:?}; not a sync4d \
-                     checkpoint?)"
+                    "tensor '{name}' is missing (expected {dtype:?} of shape {shape:?}{missing})"
                 ),
             )
         })?;
-        if t.dtype() != Dtype::F32 {
+        if t.dtype() != dtype {
             return Err(err(
                 self.path,
-                format!("tensor '{name}' is {:?}, expected F32", t.dtype()),
+                format!("tensor '{name}' is {:?}, expected {dtype:?}", t.dtype()),
             ));
         }
         if t.shape() != shape {
@@ -196,6 +202,12 @@ impl Tensors<'_> {
         if data.len() != 4 * shape.iter().product::<usize>() {
             return Err(err(self.path, format!("tensor '{name}' is truncated")));
         }
+        Ok(data)
+    }
+
+    /// The f32 tensor `name`, which must have `shape`; finite values only.
+    fn get(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, CheckpointError> {
+        let data = self.bytes(name, Dtype::F32, shape, "; not a sync4d checkpoint?")?;
         let v: Vec<f32> = data
             .chunks_exact(4)
             .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
@@ -216,31 +228,7 @@ impl Tensors<'_> {
         shape: &[usize],
         bound: usize,
     ) -> Result<Vec<u32>, CheckpointError> {
-        let t = self.st.tensor(name).map_err(|_| {
-            err(
-                self.path,
-                format!("tensor '{name}' is missing (expected I32 of shape {shape:?})"),
-            )
-        })?;
-        if t.dtype() != Dtype::I32 {
-            return Err(err(
-                self.path,
-                format!("tensor '{name}' is {:?}, expected I32", t.dtype()),
-            ));
-        }
-        if t.shape() != shape {
-            return Err(err(
-                self.path,
-                format!(
-                    "tensor '{name}' has shape {:?}, expected {shape:?}",
-                    t.shape()
-                ),
-            ));
-        }
-        let data = t.data();
-        if data.len() != 4 * shape.iter().product::<usize>() {
-            return Err(err(self.path, format!("tensor '{name}' is truncated")));
-        }
+        let data = self.bytes(name, Dtype::I32, shape, "")?;
         data.chunks_exact(4)
             .enumerate()
             .map(|(i, b)| {
