@@ -10,7 +10,7 @@ M nodes at `positions` [M, 3] with inverse squared radii `inv_r2` [M] and values
     b_i   = sum_k w_ik table[j]                     [N, C]
 
 `node_weighted_sum` is this function with its exact backward to `x0`, `positions`, `inv_r2` and
-`table`, the same values as `gather_rows` + `softmax` + `gather_blend` in torch without their
+`table`, the same values as indexing + `softmax` + `gather_blend` in torch without their
 [N, K, 4] gathers, index_add_ scatters and autograd graph: one pass over the Gaussians forward,
 one over the Gaussians and one over the nodes backward, parallel over Gaussians (resp. nodes)
 on `threads` threads. Node gradients are summed in a fixed order, so results are bit-identical

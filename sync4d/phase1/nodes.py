@@ -65,7 +65,6 @@ __all__ = [
     "densify_nodes",
     "farthest_point_sample",
     "gather_blend",
-    "gather_rows",
     "knn",
     "node_transforms",
 ]
@@ -172,29 +171,6 @@ def blend_weights(x0: Tensor, positions: Tensor, log_radii: Tensor, index: Tenso
     d2 = ((x0.unsqueeze(1) - positions[index]) ** 2).sum(-1)
     inv_r2 = torch.exp(-2.0 * log_radii).clamp_max(1e20)[index]
     return torch.softmax(-0.5 * d2 * inv_r2, dim=-1)
-
-
-class _GatherRows(torch.autograd.Function):
-    """`table[index]` ([M, C] by [N, K] -> [N, K, C]) whose backward adds the rows' gradients
-    with one `index_add_` (autograd's own goes through a sorting `index_put_`)."""
-
-    @staticmethod
-    def forward(ctx, table: Tensor, index: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.save_for_backward(index)
-        ctx.rows = table.shape[0]
-        return table[index]
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
-        (index,) = ctx.saved_tensors
-        out = grad.new_zeros(ctx.rows, grad.shape[-1])
-        out.index_add_(0, index.reshape(-1), grad.reshape(-1, grad.shape[-1]))
-        return out, None
-
-
-def gather_rows(table: Tensor, index: Tensor) -> Tensor:
-    """Rows of `table` [M, C] at `index` [N, K]: [N, K, C] (gradients summed back per row)."""
-    return _GatherRows.apply(table, index)
 
 
 class _GatherBlend(torch.autograd.Function):

@@ -1,5 +1,5 @@
 """The fused node-weighted sum (sync4d.phase1.node_op) against the torch path of
-`sync4d.phase1.nodes.blend` (gather_rows + softmax + gather_blend): forward and every gradient,
+`sync4d.phase1.nodes.blend` (indexing + softmax + gather_blend): forward and every gradient,
 float32 against a float64 reference, far-away Gaussians, K = 1, float64 gradcheck,
 determinism across calls and thread counts, and the argument checks."""
 
@@ -10,15 +10,15 @@ import torch
 from torch import Tensor
 
 from sync4d.phase1.node_op import node_weighted_sum
-from sync4d.phase1.nodes import gather_blend, gather_rows
+from sync4d.phase1.nodes import gather_blend
 
 F64 = torch.float64
 
 
 def _torch_path(x0: Tensor, positions: Tensor, inv_r2: Tensor, table: Tensor, index: Tensor
                 ) -> Tensor:  # fmt: skip
-    """The weighted sum as `blend` computes it in torch."""
-    g = gather_rows(torch.cat([positions, inv_r2.unsqueeze(-1)], dim=-1), index.long())
+    """The weighted sum as `blend` computes it with given weights, in torch."""
+    g = torch.cat([positions, inv_r2.unsqueeze(-1)], dim=-1)[index.long()]
     d2 = ((x0.unsqueeze(1) - g[..., :3]) ** 2).sum(-1)
     weights = torch.softmax(-0.5 * d2 * g[..., 3], dim=-1)
     return gather_blend(table, index.long(), weights)
