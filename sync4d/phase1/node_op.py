@@ -1,5 +1,5 @@
-"""The fused node-weighted sum of the node motion model (`sync4d.phase1.nodes`), on the Rust
-kernel of sync4d-motion (`rust/motion`, through `sync4d._core`).
+"""The fused node-weighted sum of the node motion model (`sync4d.phase1.nodes`) and the linear
+blend's epilogue, on the Rust kernels of sync4d-motion (`rust/motion`, through `sync4d._core`).
 
 For N Gaussians at canonical means `x0` [N, 3], each blending its K nodes `index` [N, K] out of
 M nodes at `positions` [M, 3] with inverse squared radii `inv_r2` [M] and values `table`
@@ -16,6 +16,12 @@ one over the Gaussians and one over the nodes backward, parallel over Gaussians 
 on `threads` threads. Node gradients are summed in a fixed order, so results are bit-identical
 for any thread count. A Gaussian far from all its nodes gets finite weights (its nearest node's
 tends to 1). No double backward.
+
+`linear_epilogue` applies each Gaussian's blended row b_i [19] (affine map A [9], translation
+t [3], rotation quaternion p [4], log-scale offset dl [3]) to its canonical mean, unit
+quaternion and log-scales: x = A x0 + t, q = normalize(p (x) q0), s = exp(log_s0 + dl), the
+same values as the torch expression in `nodes.blend`'s reference path, in one pass over the
+Gaussians each way instead of about forty elementwise torch calls with their autograd graph.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from torch.autograd.function import once_differentiable
 
 from sync4d import _core
 
-__all__ = ["node_weighted_sum"]
+__all__ = ["linear_epilogue", "node_weighted_sum"]
 
 _FLOATS = (torch.float32, torch.float64)
 _INDICES = (torch.int32, torch.int64)
@@ -79,6 +85,14 @@ class _NodeWeightedSum(torch.autograd.Function):
         return (*(g if need[a] else None for a, g in enumerate(grads)), None, None)
 
 
+def _threads(threads: int | None) -> int:
+    if threads is None:
+        return 0
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"threads: expected a positive int or None, got {threads!r}")
+    return threads
+
+
 def node_weighted_sum(
     x0: Tensor, positions: Tensor, inv_r2: Tensor, table: Tensor, index: Tensor,
     *, threads: int | None = None,
@@ -102,8 +116,47 @@ def node_weighted_sum(
     for name, t, want in wants:
         if tuple(t.shape) != want:
             raise ValueError(f"{name}: expected shape {list(want)}, got {list(t.shape)}")
-    if threads is None:
-        threads = 0
-    elif isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ValueError(f"threads: expected a positive int or None, got {threads!r}")
-    return _NodeWeightedSum.apply(x0, positions, inv_r2, table, index, threads)
+    return _NodeWeightedSum.apply(x0, positions, inv_r2, table, index, _threads(threads))
+
+
+class _LinearEpilogue(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, blended, x0, q0, log_s0, threads):  # type: ignore[override]
+        arrays = tuple(_np(t) for t in (blended, x0, q0, log_s0))
+        means, quats, scales = _core.linear_epilogue_forward(*arrays, threads)
+        ctx.save_for_backward(blended, x0, q0, log_s0)
+        ctx.threads = threads
+        n = x0.shape[0]
+        return (torch.from_numpy(means).reshape(n, 3), torch.from_numpy(quats).reshape(n, 4),
+                torch.from_numpy(scales).reshape(n, 3))  # fmt: skip
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, gm, gq, gs):  # type: ignore[override]
+        blended, x0, q0, log_s0 = ctx.saved_tensors
+        arrays = tuple(_np(t) for t in (blended, x0, q0, log_s0))
+        grads = tuple(_np(torch.zeros_like(t) if g is None else g.to(x0.dtype))
+                      for g, t in ((gm, x0), (gq, q0), (gs, log_s0)))  # fmt: skip
+        out = _core.linear_epilogue_backward(*arrays, *grads, ctx.threads)
+        shapes = (blended.shape, x0.shape, q0.shape, log_s0.shape)
+        need = ctx.needs_input_grad
+        return (*(torch.from_numpy(g).reshape(s) if need[a] else None
+                  for a, (g, s) in enumerate(zip(out, shapes, strict=True))), None)  # fmt: skip
+
+
+def linear_epilogue(
+    blended: Tensor, x0: Tensor, q0: Tensor, log_s0: Tensor, *, threads: int | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    """The linear blend's epilogue (module docstring) of CPU tensors `blended` [N, 19], `x0`
+    [N, 3], `q0` [N, 4], `log_s0` [N, 3] (all float32, or all float64): deformed means [N, 3],
+    unit quaternions [N, 4] and scales [N, 3], differentiable in all four. `threads` as for
+    `node_weighted_sum`. Bad arguments raise ValueError naming them."""
+    _check("blended", blended, 2, _FLOATS)
+    for name, t in (("x0", x0), ("q0", q0), ("log_s0", log_s0)):
+        _check(name, t, 2, (blended.dtype,))
+    n = blended.shape[0]
+    for name, t, want in (("blended", blended, (n, 19)), ("x0", x0, (n, 3)), ("q0", q0, (n, 4)),
+                          ("log_s0", log_s0, (n, 3))):  # fmt: skip
+        if tuple(t.shape) != want:
+            raise ValueError(f"{name}: expected shape {list(want)}, got {list(t.shape)}")
+    return _LinearEpilogue.apply(blended, x0, q0, log_s0, _threads(threads))

@@ -51,7 +51,7 @@ import torch
 from torch import Tensor, nn
 
 from sync4d.geometry import axis_angle_to_quat, quat_multiply, quat_to_matrix
-from sync4d.phase1.node_op import node_weighted_sum
+from sync4d.phase1.node_op import linear_epilogue, node_weighted_sum
 from sync4d.phase1.rows import replace_param_rows
 from sync4d.settings import choice, ranged
 
@@ -221,7 +221,9 @@ def blend(
     of nodes at `positions` [M, 3]) over `index` [N, K] with `weights` [N, K], or, when
     `weights` is None, with `blend_weights` of the nodes' `log_radii` [M] computed from the
     same rows by the fused kernel (`sync4d.phase1.node_op`, on `threads` threads; None:
-    torch's thread count): deformed means [N, 3], unit quaternions [N, 4], scales [N, 3].
+    torch's thread count), and for the linear blend applied to the Gaussians by the fused
+    epilogue (`node_op.linear_epilogue`; with given `weights`, the torch expression its tests
+    compare with): deformed means [N, 3], unit quaternions [N, 4], scales [N, 3].
     `kind`: "linear" or "dual_quaternion" (module docstring). Every node value a Gaussian
     needs is gathered once, as one table row."""
     if kind not in BLENDS:
@@ -244,6 +246,8 @@ def blend(
                               threads=threads or torch.get_num_threads())  # [N, C]
     else:
         b = gather_blend(torch.cat(cols, dim=-1), index, weights)  # [N, C]
+    if kind == "linear" and weights is None:
+        return linear_epilogue(b, x0, q0, log_s0, threads=threads or torch.get_num_threads())
     if kind == "linear":
         a = b[:, :9].reshape(-1, 3, 3)
         x = (a * x0.unsqueeze(1)).sum(-1) + b[:, 9:12]

@@ -1,7 +1,8 @@
 """The fused node-weighted sum (sync4d.phase1.node_op) against the torch path of
 `sync4d.phase1.nodes.blend` (indexing + softmax + gather_blend): forward and every gradient,
 float32 against a float64 reference, far-away Gaussians, K = 1, float64 gradcheck,
-determinism across calls and thread counts, and the argument checks."""
+determinism across calls and thread counts, and the argument checks; the linear epilogue
+(`linear_epilogue`) against the torch expression of `blend`'s reference path, likewise."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import pytest
 import torch
 from torch import Tensor
 
-from sync4d.phase1.node_op import node_weighted_sum
+from sync4d.geometry import quat_multiply
+from sync4d.phase1.node_op import linear_epilogue, node_weighted_sum
 from sync4d.phase1.nodes import gather_blend
 
 F64 = torch.float64
@@ -159,3 +161,86 @@ def test_bad_arguments_raise_value_errors_naming_them() -> None:
         node_weighted_sum(x0, positions, inv_r2, table, bad)
     with pytest.raises(ValueError, match="^threads:"):
         node_weighted_sum(x0, positions, inv_r2, table, index, threads=0)
+
+
+def _torch_epilogue(b: Tensor, x0: Tensor, q0: Tensor, log_s0: Tensor
+                    ) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    """The linear epilogue as `blend`'s reference path computes it, in torch."""
+    x = (b[:, :9].reshape(-1, 3, 3) * x0.unsqueeze(1)).sum(-1) + b[:, 9:12]
+    r = quat_multiply(b[:, 12:16], q0)
+    q = r / r.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return x, q, torch.exp(log_s0 + b[:, 16:19])
+
+
+def _epilogue_case(n: int, seed: int, dtype: torch.dtype = torch.float32) -> list[Tensor]:
+    """(blended, x0, q0, log_s0) requiring gradients; q0 unit, blended rows near a rigid map."""
+    g = torch.Generator().manual_seed(seed)
+    b = torch.randn(n, 19, generator=g, dtype=F64) * 0.3
+    b[:, [0, 4, 8]] += 1.0
+    b[:, 12] += 1.0
+    q0 = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, dtype=F64), dim=-1)
+    x0 = torch.randn(n, 3, generator=g, dtype=F64)
+    log_s0 = torch.randn(n, 3, generator=g, dtype=F64) - 3.0
+    return [t.to(dtype).requires_grad_() for t in (b, x0, q0, log_s0)]
+
+
+EPILOGUE_NAMES = ("blended", "x0", "q0", "log_s0")
+
+
+@pytest.mark.parametrize("n", [1, 700, 1_500])
+def test_linear_epilogue_matches_the_float64_torch_expression(n: int) -> None:
+    inputs = _epilogue_case(n, seed=n)
+    g = torch.Generator().manual_seed(4)
+    grads_out = [torch.randn(n, w, generator=g, dtype=F64) for w in (3, 4, 3)]
+    outs = linear_epilogue(*inputs, threads=2)
+    ref_inputs = [t.detach().double().requires_grad_() for t in inputs]
+    refs = _torch_epilogue(*ref_inputs)
+    for name, o, r in zip(("means", "quats", "scales"), outs, refs, strict=True):
+        assert o.dtype == torch.float32 and o.shape == r.shape, name
+        _assert_close(name, o, r, 1e-5)
+    got = torch.autograd.grad(outs, inputs, [t.float() for t in grads_out])
+    want = torch.autograd.grad(refs, ref_inputs, grads_out)
+    for name, a, r in zip(EPILOGUE_NAMES, got, want, strict=True):
+        assert a.dtype == torch.float32 and a.shape == r.shape, name
+        _assert_close(name, a, r, 1e-4)
+
+
+def test_linear_epilogue_float64_gradcheck_and_unused_outputs() -> None:
+    inputs = _epilogue_case(9, seed=2, dtype=F64)
+
+    def fn(*args: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return linear_epilogue(*args, threads=1)
+
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-8, rtol=1e-6)
+    # Only the means used: the quaternion and scale outputs get no gradient (None), and the
+    # blended row's rotation and scale columns none either.
+    x, _, _ = linear_epilogue(*inputs)
+    gb, gq0 = torch.autograd.grad(x.sum(), [inputs[0], inputs[2]])
+    assert bool((gb[:, 12:] == 0).all()) and bool((gq0 == 0).all())
+
+
+def test_linear_epilogue_is_the_same_for_any_thread_count() -> None:
+    inputs = _epilogue_case(5_000, seed=9)
+    runs = []
+    for threads in (1, 2, 3, None):
+        outs = linear_epilogue(*inputs, threads=threads)
+        runs.append([o.detach() for o in outs]
+                    + list(torch.autograd.grad(sum(o.sum() for o in outs), inputs)))
+    for run in runs[1:]:
+        for a, b in zip(runs[0], run, strict=True):
+            assert torch.equal(a, b)
+
+
+def test_linear_epilogue_bad_arguments_raise_value_errors_naming_them() -> None:
+    b, x0, q0, log_s0 = (t.detach() for t in _epilogue_case(6, seed=1))
+    cases = {
+        "blended": (b[:, :18], x0, q0, log_s0),
+        "x0": (b, x0[:5], q0, log_s0),
+        "q0": (b, x0, q0.double(), log_s0),
+        "log_s0": (b, x0, q0, log_s0[:, :2]),
+    }
+    for name, args in cases.items():
+        with pytest.raises(ValueError, match=f"^{name}:"):
+            linear_epilogue(*args)
+    with pytest.raises(ValueError, match="^threads:"):
+        linear_epilogue(b, x0, q0, log_s0, threads=0)

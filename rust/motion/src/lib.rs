@@ -2,17 +2,27 @@
 //!
 //! [`blend`]: the fused node-weighted sum of a Gaussian's K nodes' table rows, the weights a
 //! softmax of `-|x0 - p|^2 / (2 r^2)` over those nodes, and its exact backward. Parallel over
-//! Gaussians with rayon in the calling pool; results do not depend on the pool's size. The crate
-//! knows nothing of Python: inputs are flat row-major slices and every bad input is a
+//! Gaussians with rayon in the calling pool; results do not depend on the pool's size.
+//!
+//! [`epilogue`]: the linear blend's per-Gaussian epilogue (the blended affine map, rotation
+//! and log-scale offset applied to the canonical mean, quaternion and scales) and its exact
+//! backward.
+//!
+//! The crate knows nothing of Python: inputs are flat row-major slices and every bad input is a
 //! [`MotionError`] naming the argument.
 #![warn(missing_docs)]
 
 pub mod blend;
+pub mod epilogue;
 pub mod error;
 pub mod real;
 
 pub use blend::{
     node_weighted_sum_backward, node_weighted_sum_forward, NodeBlend, NodeBlendGradsMut, NodeIndex,
+};
+pub use epilogue::{
+    linear_epilogue_backward, linear_epilogue_forward, LinearEpilogue, LinearEpilogueGradsMut,
+    LinearEpilogueOut, LINEAR_COLUMNS,
 };
 pub use error::{MotionError, Result};
 pub use real::Real;

@@ -22,7 +22,10 @@ use sync4d_raster as core;
 
 use gpu::{wgpu_adapter, wgpu_adapters, WgpuContext};
 use loss::photometric_loss;
-use motion::{node_weighted_sum_backward, node_weighted_sum_forward};
+use motion::{
+    linear_epilogue_backward, linear_epilogue_forward, node_weighted_sum_backward,
+    node_weighted_sum_forward,
+};
 use project::{project_backward, project_forward};
 use raster::RasterContext;
 use runtime::default_threads;
@@ -42,6 +45,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(photometric_loss, m)?)?;
     m.add_function(wrap_pyfunction!(node_weighted_sum_forward, m)?)?;
     m.add_function(wrap_pyfunction!(node_weighted_sum_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(linear_epilogue_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(linear_epilogue_backward, m)?)?;
     m.add_function(wrap_pyfunction!(default_threads, m)?)?;
     m.add("TILE_SIZE", core::TILE_SIZE)?;
     Ok(())

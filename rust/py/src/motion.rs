@@ -1,10 +1,14 @@
 //! Node motion bindings (sync4d-motion): `node_weighted_sum_forward` and
-//! `node_weighted_sum_backward` (float32 or float64 values, int32 or int64 node indices).
+//! `node_weighted_sum_backward` (float32 or float64 values, int32 or int64 node indices),
+//! `linear_epilogue_forward` and `linear_epilogue_backward` (float32 or float64).
 
 use numpy::Element;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
-use sync4d_motion::{self as motion, MotionError, NodeBlend, NodeBlendGradsMut, NodeIndex, Real};
+use sync4d_motion::{
+    self as motion, LinearEpilogue, LinearEpilogueGradsMut, LinearEpilogueOut, MotionError,
+    NodeBlend, NodeBlendGradsMut, NodeIndex, Real,
+};
 use sync4d_raster::RasterError;
 
 use crate::arrays::{flat, slice_mut, to_object, with_float_type, zeros, AnyArr, Arr, Out};
@@ -186,4 +190,136 @@ pub(crate) fn node_weighted_sum_backward<'py>(
             backward_typed::<T, I>(py, &a, neighbours, channels, &grad_out, threads)
         })
     })
+}
+
+/// The epilogue's arrays of one call, borrowed from NumPy as `T`.
+struct EpilogueInputs<'py, T: Element> {
+    blended: Arr<'py, T>,
+    x0: Arr<'py, T>,
+    q0: Arr<'py, T>,
+    log_s0: Arr<'py, T>,
+}
+
+impl<'py, T: Element> EpilogueInputs<'py, T> {
+    fn extract(a: [&AnyArr<'py>; 4]) -> PyResult<Self> {
+        let get = |i: usize, name: &str| {
+            a[i].extract::<Arr<'py, T>>().map_err(|_| {
+                PyValueError::new_err(format!("{name}: expected an array of blended's dtype"))
+            })
+        };
+        Ok(EpilogueInputs {
+            blended: get(0, "blended")?,
+            x0: get(1, "x0")?,
+            q0: get(2, "q0")?,
+            log_s0: get(3, "log_s0")?,
+        })
+    }
+
+    fn epilogue(&self) -> PyResult<LinearEpilogue<'_, T>> {
+        Ok(LinearEpilogue {
+            blended: flat(&self.blended, "blended")?,
+            x0: flat(&self.x0, "x0")?,
+            q0: flat(&self.q0, "q0")?,
+            log_s0: flat(&self.log_s0, "log_s0")?,
+        })
+    }
+}
+
+fn epilogue_forward_typed<'py, T: Real + Element>(
+    py: Python<'py>,
+    a: [&AnyArr<'py>; 4],
+    threads: usize,
+) -> PyResult<PyObject> {
+    let inputs = EpilogueInputs::<T>::extract(a)?;
+    let e = inputs.epilogue()?;
+    let n = e.x0.len() / 3;
+    let (means, quats, scales): (Out<'py, T>, Out<'py, T>, Out<'py, T>) =
+        (zeros(py, n * 3), zeros(py, n * 4), zeros(py, n * 3));
+    let out = LinearEpilogueOut {
+        means: slice_mut(&means),
+        quats: slice_mut(&quats),
+        scales: slice_mut(&scales),
+    };
+    run(py, threads, || {
+        motion::linear_epilogue_forward(&e, out).map_err(to_raster)
+    })?;
+    to_object(py, (means, quats, scales))
+}
+
+fn epilogue_backward_typed<'py, T: Real + Element>(
+    py: Python<'py>,
+    a: [&AnyArr<'py>; 4],
+    g: [&AnyArr<'py>; 3],
+    threads: usize,
+) -> PyResult<PyObject> {
+    let inputs = EpilogueInputs::<T>::extract(a)?;
+    let e = inputs.epilogue()?;
+    let grad = |i: usize, name: &str| {
+        g[i].extract::<Arr<'py, T>>().map_err(|_| {
+            PyValueError::new_err(format!("{name}: expected an array of blended's dtype"))
+        })
+    };
+    let (gm, gq, gs) = (
+        grad(0, "grad_means")?,
+        grad(1, "grad_quats")?,
+        grad(2, "grad_scales")?,
+    );
+    let (gm, gq, gs) = (
+        flat(&gm, "grad_means")?,
+        flat(&gq, "grad_quats")?,
+        flat(&gs, "grad_scales")?,
+    );
+    let n = e.x0.len() / 3;
+    let gb: Out<'py, T> = zeros(py, e.blended.len());
+    let (gx, gq0, gl): (Out<'py, T>, Out<'py, T>, Out<'py, T>) =
+        (zeros(py, n * 3), zeros(py, n * 4), zeros(py, n * 3));
+    let grads = LinearEpilogueGradsMut {
+        blended: slice_mut(&gb),
+        x0: slice_mut(&gx),
+        q0: slice_mut(&gq0),
+        log_s0: slice_mut(&gl),
+    };
+    run(py, threads, || {
+        motion::linear_epilogue_backward(&e, gm, gq, gs, grads).map_err(to_raster)
+    })?;
+    to_object(py, (gb, gx, gq0, gl))
+}
+
+/// The linear blend's epilogue: flat blended [N*19], x0 [N*3], q0 [N*4], log_s0 [N*3]
+/// (float32 or float64, one type). Returns (means [N*3], unit quaternions [N*4], scales [N*3]).
+#[pyfunction]
+pub(crate) fn linear_epilogue_forward<'py>(
+    py: Python<'py>,
+    blended: AnyArr<'py>,
+    x0: AnyArr<'py>,
+    q0: AnyArr<'py>,
+    log_s0: AnyArr<'py>,
+    threads: usize,
+) -> PyResult<PyObject> {
+    let a = [&blended, &x0, &q0, &log_s0];
+    with_float_type!(blended, "blended", |T| epilogue_forward_typed::<T>(
+        py, a, threads
+    ))
+}
+
+/// Backward of `linear_epilogue_forward` given dL/d(means [N*3], quats [N*4], scales [N*3]):
+/// returns (dL/dblended [N*19], dL/dx0 [N*3], dL/dq0 [N*4], dL/dlog_s0 [N*3]).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn linear_epilogue_backward<'py>(
+    py: Python<'py>,
+    blended: AnyArr<'py>,
+    x0: AnyArr<'py>,
+    q0: AnyArr<'py>,
+    log_s0: AnyArr<'py>,
+    grad_means: AnyArr<'py>,
+    grad_quats: AnyArr<'py>,
+    grad_scales: AnyArr<'py>,
+    threads: usize,
+) -> PyResult<PyObject> {
+    let a = [&blended, &x0, &q0, &log_s0];
+    let g = [&grad_means, &grad_quats, &grad_scales];
+    with_float_type!(blended, "blended", |T| epilogue_backward_typed::<T>(
+        py, a, g, threads
+    ))
 }
