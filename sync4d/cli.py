@@ -49,7 +49,8 @@ The grammar, the same for every command:
     (fit DATA --out RUN), or one continued (--resume), refit from Phase 2 (--phases 2) or
     given its language field (--phases 3), where DATA is optional: the run records it.
   * Every other command that reads a run takes it first, as RUN (eval, render, query, export,
-    bench raster, bench phase3, view); --data DATA names the run's dataset if it has moved.
+    bench raster, bench phase3, view, serve); --data DATA names the run's dataset if it has
+    moved.
   * export writes several files at once, so each of its options names one (--scene FILE)."""
 
 
@@ -281,6 +282,19 @@ def _view_arguments(p: argparse.ArgumentParser) -> None:
     _add_cpu_threads(p, "torch and the rasterizer")
 
 
+def _serve_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", help="run folder written by 'fit' (the language field "
+                   "of --phases 3 answers query, describe, track and events)")
+    p.add_argument("--http", default=None, metavar="[HOST:]PORT",
+                   help="serve over HTTP (streamable HTTP at http://HOST:PORT/mcp) instead of "
+                   "stdio; HOST defaults to 127.0.0.1 (this machine only)")
+    p.add_argument("--sse", action="store_true",
+                   help="with --http: the older SSE transport (at /sse) for clients without "
+                   "streamable HTTP")
+    _add_field_encoder(p)
+    _add_cpu_threads(p, "torch and the rasterizer")
+
+
 def _bench_phase3_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("runs", nargs="+", metavar="RUN", help="Phase 2 run folders")
     p.add_argument("--encoder", default=None, metavar="DIR",
@@ -422,6 +436,17 @@ COMMANDS: tuple[Command, ...] = (
         "active, and a button that renders the current view through sync4d's rasterizer "
         "into RUN/renders. Ctrl-C, or closing the last tab, stops it.",
         "sync4d.commands.view", _view_arguments,
+    ),
+    Command(
+        "serve", ("serve RUN [--http [HOST:]PORT]",),
+        "serve a run to AI agents over the Model Context Protocol (MCP)",
+        "Serve a run to an MCP client (an LLM desktop app, an agent): tools describe (the "
+        "scene description), query (which object matches a text, and when), track (an "
+        "object's pose, velocity and box over an interval), events (contacts, approaches, "
+        "motion segments) and render (a PNG at a time and camera), and the scene JSON and "
+        "LLM prompt as resources. Over stdio (the client starts it), or --http. docs/mcp.md "
+        "has a client's configuration.",
+        "sync4d.commands.serve", _serve_arguments,
     ),
     Command(
         "sweep", ("sweep MANIFEST.toml --out SWEEP [--address auto|HOST:PORT]",),

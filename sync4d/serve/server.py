@@ -1,0 +1,322 @@
+"""`sync4d serve RUN` on the Model Context Protocol (docs/mcp.md): the tools of
+`sync4d.serve.tools.RunTools` and the scene description and prompt as resources, through the
+official `mcp` SDK's `MCPServer`, over stdio (the default: a desktop client starts the server)
+or HTTP (streamable HTTP at ``/mcp``, or the older SSE transport).
+
+Design:
+
+* **Typed results.** Each tool but `render` declares a pydantic model as its result, so its
+  output schema is published with the tool list and every answer carries
+  ``structuredContent`` (and the same as JSON text, for clients that read text only). The
+  models allow extra keys where sync4d's own data may grow (the query answer's plan, new event
+  fields), so what `sync4d query` learns reaches the agent without a change here. `render`
+  answers an image (PNG) and a line of JSON saying what it shows.
+* **Errors as results.** A `ToolProblem` (a bad argument, a run that cannot answer) becomes a
+  tool error result whose text is the problem's one sentence (the SDK prefixes the tool's
+  name); the caller can read it and correct the call. Anything else is a crash: logged here,
+  reported to the caller without its text (the SDK's rule).
+* **Fast start.** Importing this module imports the SDK and pydantic, not torch or the
+  phases; `RunTools` loads the field and the run on first use.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from collections.abc import Callable
+from typing import Annotated, Any, TypeVar
+
+from mcp.server.mcpserver import Image, MCPServer
+from mcp.server.mcpserver.exceptions import ToolError
+from mcp_types import ImageContent, TextContent, ToolAnnotations
+from pydantic import BaseModel, ConfigDict, Field
+
+from sync4d import __version__
+from sync4d.serve.tools import PROMPT_URI, SCENE_URI, RunTools, ToolProblem
+
+__all__ = ["build_server", "serve"]
+
+_T = TypeVar("_T")
+
+INSTRUCTIONS = """\
+A 4D reconstruction of a dynamic scene by sync4d: objects that move over time, with a language
+field that says which object matches a text and when. Times are normalised: 0 is the first
+frame, 1 the last; lengths are in the scene's world units. Start with `describe` (objects,
+what each does, the cameras), then `query` a text, `track` an object, list `events`, or
+`render` a view. The resources hold the full scene description (JSON) and a text summary."""
+
+
+# --------------------------------------------------------------------------------------------
+# Results
+# --------------------------------------------------------------------------------------------
+
+class _Open(BaseModel):
+    """A record that may carry more keys than it names (sync4d's data may grow)."""
+
+    model_config = ConfigDict(extra="allow")
+
+
+class Interval(_Open):
+    """Inclusive stored-frame range [start, end] and its times [t0, t1]."""
+
+    start: int
+    end: int
+    t0: float
+    t1: float
+
+
+class RankedObject(_Open):
+    """An object of a query's answer: its label, name, score and active intervals."""
+
+    label: int
+    name: str
+    score: float
+    intervals: list[Interval]
+    active_frames: int
+
+
+class QueryResult(_Open):
+    """`sync4d query --json`'s answer: the top object (`answer`) and every object ranked."""
+
+    query: str
+    scorer: str
+    rule: str
+    answer: RankedObject | None
+    objects: list[RankedObject]
+    motion_phrases: list[dict[str, Any]] = []
+    timeline: dict[str, list[float]] | None = Field(
+        None, description="with timeline=true: 'times' and each object's per-frame similarity")
+
+
+class ObjectSummary(_Open):
+    """An object of the scene: id (Phase 2 label), name, Gaussians, extent, motion segments,
+    language slots."""
+
+    id: int
+    name: str
+    gaussians: int
+    extent: dict[str, Any] = {}
+    segments: list[dict[str, Any]] = []
+    slots: list[dict[str, Any]] = []
+
+
+class Frames(BaseModel):
+    """The stored frames: how many, and the first and last time."""
+
+    count: int
+    t0: float
+    t1: float
+
+
+class DescribeResult(BaseModel):
+    """The scene in brief, the LLM prompt, and (full=true) the whole scene description."""
+
+    run: dict[str, Any]
+    frames: Frames
+    units: dict[str, str]
+    up: list[float]
+    objects: list[ObjectSummary]
+    events: int = Field(description="number of events (the events tool lists them)")
+    cameras: dict[str, int] = Field(description="stored cameras per split (render's camera)")
+    prompt: str
+    resources: list[str]
+    scene: dict[str, Any] | None = None
+
+
+class ObjectRef(BaseModel):
+    """An object by id and name."""
+
+    id: int
+    name: str
+
+
+class TrackFrame(BaseModel):
+    """An object's pose and motion at one stored frame (world units, normalised time)."""
+
+    frame: int
+    t: float
+    position: list[float] = Field(description="M_phi's centroid [x, y, z]")
+    rotation: list[float] = Field(description="unit quaternion [w, x, y, z]")
+    translation: list[float]
+    velocity: list[float] = Field(description="length per unit of normalised time")
+    speed: float
+    acceleration: list[float]
+    box_min: list[float] = Field(description="2nd-percentile corner of its Gaussians")
+    box_max: list[float] = Field(description="98th-percentile corner of its Gaussians")
+    visible: float | None = None
+    observed: bool
+
+
+class TrackResult(BaseModel):
+    """An object's track over [t0, t1], one entry per stored frame in it."""
+
+    object: ObjectRef
+    t0: float
+    t1: float
+    units: dict[str, str]
+    note: str | None = None
+    frames: list[TrackFrame]
+
+
+class Event(_Open):
+    """A pairwise event: kind, the two objects (0: the background) and when."""
+
+    kind: str
+    objects: list[int]
+    names: list[str]
+    start: int
+    end: int
+    t0: float
+    t1: float
+
+
+class Segment(_Open):
+    """A motion segment: an object in a state (at rest, moving, rising, ...) and when."""
+
+    object: int
+    name: str
+    state: str
+    start: int
+    end: int
+    t0: float
+    t1: float
+
+
+class EventsResult(BaseModel):
+    """The events and motion segments that overlap [t0, t1]."""
+
+    t0: float
+    t1: float
+    events: list[Event]
+    segments: list[Segment]
+
+
+# --------------------------------------------------------------------------------------------
+# The server
+# --------------------------------------------------------------------------------------------
+
+def _answers(fn: Callable[..., _T]) -> Callable[..., _T]:
+    """`fn` with a `ToolProblem` turned into the SDK's `ToolError` (an error result)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> _T:
+        try:
+            return fn(*args, **kwargs)
+        except ToolProblem as e:
+            raise ToolError(str(e)) from None
+
+    return wrapper
+
+
+_READ_ONLY = ToolAnnotations(read_only_hint=True, destructive_hint=False, idempotent_hint=True,
+                             open_world_hint=False)  # fmt: skip
+
+Time = Annotated[float, Field(description="normalised time: 0 first frame, 1 last frame")]
+ObjectKey = Annotated[str, Field(description="an object's name (e.g. 'red ball') or id")]
+
+
+def build_server(tools: RunTools) -> MCPServer:
+    """The MCP server of `tools`' run: five tools and two resources."""
+    server = MCPServer(
+        name="sync4d", title=f"sync4d: {tools.run_dir.name}", version=__version__,
+        instructions=INSTRUCTIONS, log_level="WARNING",
+    )  # fmt: skip
+
+    @server.tool(annotations=_READ_ONLY)
+    @_answers
+    def describe(
+        full: Annotated[bool, Field(description="also the whole scene description: every "
+                                    "frame's track, the events, metadata")] = False,
+    ) -> DescribeResult:  # fmt: skip
+        """The scene: the objects (size, Gaussians, motion segments such as 'at rest' or
+        'falling' with their times), how many events, the cameras, and a plain-text summary
+        for reading. Call it first."""
+        return DescribeResult.model_validate(tools.describe(full))
+
+    @server.tool(annotations=_READ_ONLY)
+    @_answers
+    def query(
+        text: Annotated[str, Field(description="what to look for, e.g. 'the red ball while "
+                                   "it is falling'")],
+        scorer: Annotated[str | None, Field(description="the scorer (default: sync4d "
+                                            "query's default)")] = None,
+        rule: Annotated[str | None, Field(description="the temporal activation rule "
+                                          "(default: the field's)")] = None,
+        timeline: Annotated[bool, Field(description="also each object's per-frame "
+                                        "similarity")] = False,
+    ) -> QueryResult:  # fmt: skip
+        """Which object matches a text, and when: every object ranked by score with the
+        intervals (frames and times) where it is active; `answer` is the top one. As the
+        command `sync4d query RUN TEXT --json`."""
+        return QueryResult.model_validate(tools.query(text, scorer, rule, timeline))
+
+    @server.tool(annotations=_READ_ONLY)
+    @_answers
+    def track(object: ObjectKey, t0: Time = 0.0, t1: Time = 1.0) -> TrackResult:
+        """An object's pose, velocity and box over [t0, t1]: at each stored frame in it the
+        centroid, rotation quaternion (w, x, y, z), translation, velocity, speed,
+        acceleration and the box of its Gaussians, from the run's per-object motion (M_phi)."""
+        return TrackResult.model_validate(tools.track(object, t0, t1))
+
+    @server.tool(annotations=_READ_ONLY)
+    @_answers
+    def events(
+        object: Annotated[str | None, Field(description="only this object's (name or id)")]
+        = None,
+        kind: Annotated[str | None, Field(description="an event kind (approach, contact, "
+                                          "separation) or a motion state (at rest, moving, "
+                                          "rising, falling, turning)")] = None,
+        t0: Time = 0.0, t1: Time = 1.0,
+    ) -> EventsResult:  # fmt: skip
+        """When objects approach, touch and move away from each other or the ground (object
+        0, the background), and each object's motion segments (at rest, moving, rising,
+        falling, turning), that overlap [t0, t1]."""
+        return EventsResult.model_validate(tools.events(object, kind, t0, t1))
+
+    @server.tool(annotations=_READ_ONLY)
+    @_answers
+    def render(
+        t: Time,
+        camera: Annotated[str | None, Field(description="test:K or train:K (the K-th camera "
+                                            "of that split, from 0), K (a test camera) or a "
+                                            "frame name; default: the first test camera")]
+        = None,
+    ) -> list[ImageContent | TextContent]:  # fmt: skip
+        """An image (PNG) of the scene at time t from one of the run's cameras, and a line of
+        JSON saying which (camera, split, width, height)."""
+        png, info = tools.render(t, camera)
+        return [Image(data=png, format="png").to_image_content(),
+                TextContent(type="text", text=json.dumps(info))]  # fmt: skip
+
+    @server.resource(SCENE_URI, name="scene", title="Scene description (JSON)",
+                     mime_type="application/json",
+                     description="the scene description `sync4d export --scene` writes")
+    def scene_json() -> str:
+        try:
+            return tools.scene_json()
+        except ToolProblem as e:
+            raise ValueError(str(e)) from None
+
+    @server.resource(PROMPT_URI, name="prompt", title="Scene summary for an LLM",
+                     mime_type="text/plain",
+                     description="the plain-text summary `sync4d export --prompt` writes")
+    def prompt() -> str:
+        try:
+            return tools.prompt()
+        except ToolProblem as e:
+            raise ValueError(str(e)) from None
+
+    return server
+
+
+def serve(tools: RunTools, http: tuple[str, int] | None = None, sse: bool = False) -> None:
+    """Serve `tools`' run: over stdio, or with `http` (host, port) over streamable HTTP at
+    ``/mcp`` (`sse`: the SSE transport at ``/sse``). Returns when the client disconnects
+    (stdio) or on Ctrl-C (HTTP)."""
+    server = build_server(tools)
+    if http is None:
+        server.run("stdio")
+    elif sse:
+        server.run("sse", host=http[0], port=http[1])
+    else:
+        server.run("streamable-http", host=http[0], port=http[1])

@@ -1,0 +1,373 @@
+"""What `sync4d serve` answers, without the protocol: one run's scene description, queries,
+tracks, events and renders as plain data (`RunTools`). `sync4d.serve.server` puts these on the
+Model Context Protocol; the tests and other front ends can call them directly.
+
+Design:
+
+* **One source of numbers.** The scene description is the one `sync4d export --scene` writes:
+  `sync4d.export.describe.describe` on the run (`load_run`) and its field (`load_field`), then
+  `write_scene` (rounding, schema check) into a temporary folder and read back, and the prompt
+  is `prompt_text` of that file, so the `describe`, `track` and `events` tools and the two
+  resources say exactly what the exported files say. Queries go through
+  `sync4d.phase3.query.answer`, as `sync4d query` does (whatever that learns, the server
+  answers too).
+* **Lazy and torch-free until needed.** Nothing is read at construction; the field (numpy) is
+  loaded by the first query, the run (torch) by the first description or render, each once, and
+  a render or description imports torch only then. A query never imports torch.
+* **Clear refusals.** Every argument a caller can get wrong (an unknown object, a time outside
+  [0, 1], an interval backwards, an unknown camera, kind or scorer) and every run that cannot
+  answer (no Phase 2, no language field: the message names the command to run) raises
+  `ToolProblem` with one sentence saying what to do; the server turns it into an error result.
+* **Thread-safe.** The protocol runs synchronous tools on worker threads; one lock serialises
+  the loads and the calls (torch and the rasterizer use every core anyway).
+
+Times are the run's normalised times, 0 to 1 (the description's `metadata.units.time`); frames
+are the stored frames of the field and M_phi, intervals inclusive [start, end].
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+from sync4d.runs.names import CHECKPOINT_NAME
+
+__all__ = ["EVENT_KINDS", "SCENE_URI", "PROMPT_URI", "RunTools", "ToolProblem"]
+
+#: The resources' addresses: the scene description JSON and the LLM prompt.
+SCENE_URI = "sync4d://scene.json"
+PROMPT_URI = "sync4d://prompt.txt"
+#: Event kinds of the scene description (`sync4d.export.describe.EVENT_KINDS`, torch-free here).
+EVENT_KINDS = ("approach", "contact", "separation")
+#: Slack on time bounds (rounding of the stored frame times).
+_EPS = 1e-6
+
+
+class ToolProblem(ValueError):
+    """A call that cannot be answered as asked; the message says why and what to do."""
+
+
+def _problem(e: BaseException) -> ToolProblem:
+    """`e` (a sync4d error whose message names the file and the fix) as a `ToolProblem`."""
+    return e if isinstance(e, ToolProblem) else ToolProblem(str(e))
+
+
+class RunTools:
+    """The tools of one run folder `run_dir`: `describe`, `query`, `track`, `events`, `render`,
+    and the resources `scene_json` and `prompt`. `encoder`: the encoder the field was built
+    with, if it moved (as `query --encoder`); `threads`: torch's threads for renders and the
+    description (default: torch's own)."""
+
+    def __init__(self, run_dir: str | Path, encoder: str | None = None,
+                 threads: int | None = None) -> None:  # fmt: skip
+        self.run_dir = Path(run_dir)
+        self.encoder = encoder
+        self.threads = threads
+        self._lock = threading.RLock()
+        self._field = None
+        self._cache = None
+        self._run = None
+        self._scene: dict | None = None
+        self._scene_text: str | None = None
+        self._prompt: str | None = None
+
+    # -- loading --------------------------------------------------------------------------
+    def check(self) -> None:
+        """Refuse a folder that is no run (missing, or no checkpoint), before serving it."""
+        if not self.run_dir.is_dir():
+            raise ToolProblem(f"{self.run_dir}: no such run folder; train one with "
+                              f"`sync4d fit DATA --out {self.run_dir}`")  # fmt: skip
+        if not (self.run_dir / CHECKPOINT_NAME).is_file():
+            raise ToolProblem(f"{self.run_dir}: no {CHECKPOINT_NAME} (not a run folder, or its "
+                              f"training never saved); train it with `sync4d fit DATA --out "
+                              f"{self.run_dir}`")  # fmt: skip
+
+    def field(self):
+        """The run's language field (`load_field`, numpy only), loaded once."""
+        from sync4d.phase3.store import FieldError, load_field
+
+        with self._lock:
+            if self._field is None:
+                try:
+                    self._field = load_field(self.run_dir)
+                except (FieldError, OSError) as e:
+                    raise _problem(e) from None
+            return self._field
+
+    def run(self):
+        """The run (`load_run`: the model, M_phi, labels, cameras; imports torch), loaded once."""
+        from sync4d.runs import CheckpointError, RunError, load_run
+
+        with self._lock:
+            if self._run is None:
+                if self.threads:
+                    import torch
+
+                    torch.set_num_threads(self.threads)
+                try:
+                    self._run = load_run(self.run_dir)
+                except (RunError, CheckpointError, OSError) as e:
+                    raise _problem(e) from None
+            return self._run
+
+    def _build_scene(self) -> None:
+        """The scene description and the prompt exactly as `export --scene --prompt` writes
+        them (through a temporary file), kept as text and as data."""
+        from sync4d.export.describe import describe
+        from sync4d.export.errors import ExportError
+        from sync4d.export.prompt import prompt_text
+        from sync4d.export.scene import SceneError, load, write_scene
+        from sync4d.phase3.store import FieldError
+
+        field = self.field()
+        run = self.run()
+        try:
+            doc, emb = describe(run, field)
+            with tempfile.TemporaryDirectory() as tmp:
+                path = write_scene(Path(tmp) / "scene.json", doc, emb)
+                text = path.read_text(encoding="utf-8")
+                loaded = load(path, embeddings=False).doc
+        except (SceneError, ExportError, FieldError, OSError) as e:
+            raise _problem(e) from None
+        self._scene, self._scene_text = loaded, text
+        self._prompt = prompt_text(loaded)
+
+    def scene(self) -> dict:
+        """The scene description as data (numbers rounded as in the exported file)."""
+        with self._lock:
+            if self._scene is None:
+                self._build_scene()
+            assert self._scene is not None
+            return self._scene
+
+    def scene_json(self) -> str:
+        """The scene description as the JSON text `export --scene` writes."""
+        with self._lock:
+            self.scene()
+            assert self._scene_text is not None
+            return self._scene_text
+
+    def prompt(self) -> str:
+        """The plain-text summary for an LLM that `export --prompt` writes."""
+        with self._lock:
+            self.scene()
+            assert self._prompt is not None
+            return self._prompt
+
+    # -- helpers --------------------------------------------------------------------------
+    def _names(self) -> dict[int, str]:
+        """Object id -> name, the background (0) included."""
+        return {0: "background"} | {o["id"]: o["name"] for o in self.scene()["objects"]}
+
+    def _object(self, key: str | int) -> dict:
+        """The description's object named or numbered `key` (case and spaces ignored)."""
+        objects = self.scene()["objects"]
+        text = " ".join(str(key).split()).lower()
+        for o in objects:
+            if text in (str(o["id"]), o["name"].lower()):
+                return o
+        # "ball" for "red ball", "the red ball" for "red ball": when one object alone fits
+        hits = [o for o in objects
+                if text and (text in o["name"].lower() or o["name"].lower() in text)]  # fmt: skip
+        if len(hits) == 1:
+            return hits[0]
+        known = ", ".join(f"{o['id']} ({o['name']})" for o in objects)
+        raise ToolProblem(f"unknown object {key!r}: this run's objects are {known}; give a name "
+                          "or an id")  # fmt: skip
+
+    def _interval(self, t0: float | None, t1: float | None) -> tuple[float, float]:
+        """[t0, t1] checked: normalised times in [0, 1], t0 <= t1 (None: the bound)."""
+        a = 0.0 if t0 is None else float(t0)
+        b = 1.0 if t1 is None else float(t1)
+        for name, t in (("t0", a), ("t1", b)):
+            _check_time(name, t)
+        if a > b:
+            raise ToolProblem(f"t0 = {a:g} is after t1 = {b:g}: give t0 <= t1")
+        return a, b
+
+    # -- the tools ------------------------------------------------------------------------
+    def describe(self, full: bool = False) -> dict:
+        """The scene in brief: run, frames, units, the objects (extent, motion segments,
+        language slots), the number of events, the cameras, the LLM prompt; `full`: also the
+        whole scene description (tracks of every frame, events, metadata)."""
+        doc = self.scene()
+        meta = doc["metadata"]
+        times = meta["frames"]["times"]
+        splits: dict[str, int] = {"test": 0, "train": 0}
+        for c in meta["cameras"]:
+            splits[c["split"]] = splits.get(c["split"], 0) + 1
+        keep = ("id", "name", "gaussians", "radius", "rigid_share", "observed_frames", "extent",
+                "segments", "slots", "vocabulary")  # fmt: skip
+        out = {
+            "run": meta["run"],
+            "frames": {"count": meta["frames"]["count"], "t0": times[0], "t1": times[-1]},
+            "units": meta["units"],
+            "up": meta["axes"]["up"],
+            "objects": [{k: o[k] for k in keep if k in o} for o in doc["objects"]],
+            "events": len(doc["events"]),
+            "cameras": splits,
+            "prompt": self.prompt(),
+            "resources": [SCENE_URI, PROMPT_URI],
+            "scene": doc if full else None,
+        }  # fmt: skip
+        return out
+
+    def query(self, text: str, scorer: str | None = None, rule: str | None = None,
+              timeline: bool = False) -> dict:  # fmt: skip
+        """The answer to `text` as `sync4d query --json` gives it: every object ranked with its
+        score and active intervals, the top one as `answer`; `timeline`: with each object's
+        per-frame similarity."""
+        from sync4d.phase3.encoders.encoder import EncoderError
+        from sync4d.phase3.query import DEFAULT_SCORER, QueryError, TextCache, answer
+
+        with self._lock:
+            field = self.field()
+            if self._cache is None:
+                self._cache = TextCache(self.run_dir, field, self.encoder)
+            try:
+                ans = answer(field, text, cache=self._cache, scorer=scorer or DEFAULT_SCORER,
+                             rule=rule)  # fmt: skip
+                self._cache.save()
+            except (QueryError, EncoderError, OSError) as e:
+                raise _problem(e) from None
+        out = {k: v for k, v in ans.items() if k not in ("timeline", "active", "times")}
+        out["answer"] = ans["objects"][0] if ans["objects"] else None
+        out["timeline"] = {"times": ans["times"], **ans["timeline"]} if timeline else None
+        return out
+
+    def track(self, obj: str | int, t0: float | None = None, t1: float | None = None) -> dict:
+        """Object `obj`'s pose over [t0, t1]: at each stored frame in it (or, when none falls
+        inside, the frame nearest its middle) the centroid, rotation (quaternion w, x, y, z),
+        translation, velocity, speed, acceleration and the box of its Gaussians (2nd-98th
+        percentile, world axes), from M_phi and the Gaussians (the description's track)."""
+        a, b = self._interval(t0, t1)
+        o = self._object(obj)
+        doc = self.scene()
+        times = doc["metadata"]["frames"]["times"]
+        tr = next(t for t in doc["tracks"] if t["id"] == o["id"])
+        idx = [i for i, t in enumerate(times) if a - _EPS <= t <= b + _EPS]
+        note = None
+        if not idx:
+            mid = 0.5 * (a + b)
+            idx = [min(range(len(times)), key=lambda i: abs(times[i] - mid))]
+            note = (f"no stored frame lies in [{a:g}, {b:g}]: the nearest frame, "
+                    f"t = {times[idx[0]]:g}")  # fmt: skip
+        frames = []
+        for i in idx:
+            v = tr["velocity"][i]
+            frames.append({
+                "frame": i, "t": times[i], "position": tr["centroid"][i],
+                "rotation": tr["rotation"][i], "translation": tr["translation"][i],
+                "velocity": v, "speed": float(sum(x * x for x in v) ** 0.5),
+                "acceleration": tr["acceleration"][i],
+                "box_min": tr["box_min"][i], "box_max": tr["box_max"][i],
+                "visible": tr["visible"][i], "observed": tr["observed"][i],
+            })  # fmt: skip
+        return {"object": {"id": o["id"], "name": o["name"]}, "t0": a, "t1": b,
+                "units": doc["metadata"]["units"], "note": note, "frames": frames}  # fmt: skip
+
+    def events(self, obj: str | int | None = None, kind: str | None = None,
+               t0: float | None = None, t1: float | None = None) -> dict:  # fmt: skip
+        """The contact / approach / separation events and the motion segments of the scene
+        description that overlap [t0, t1], of object `obj` if given (as either party of an
+        event), of `kind` if given (an event kind, or a motion state for the segments)."""
+        a, b = self._interval(t0, t1)
+        doc = self.scene()
+        names = self._names()
+        oid = None if obj is None else self._object(obj)["id"]
+        states = sorted({s["state"] for o in doc["objects"] for s in o.get("segments", [])})
+        if kind is not None and kind not in EVENT_KINDS and kind not in states:
+            raise ToolProblem(f"unknown kind {kind!r}: events are {', '.join(EVENT_KINDS)}; "
+                              f"motion segments are {', '.join(states) or 'none'}")  # fmt: skip
+
+        def overlaps(x: dict) -> bool:
+            return x["t0"] <= b + _EPS and x["t1"] >= a - _EPS
+
+        events = []
+        for e in doc["events"]:
+            if overlaps(e) and (oid is None or oid in e["objects"]) and kind in (None, e["kind"]):
+                events.append({**e, "names": [names.get(i, str(i)) for i in e["objects"]]})
+        segments = []
+        for o in doc["objects"]:
+            if oid is not None and o["id"] != oid:
+                continue
+            for s in o.get("segments", []):
+                if overlaps(s) and kind in (None, s["state"]):
+                    segments.append({"object": o["id"], "name": o["name"], **s})
+        segments.sort(key=lambda s: (s["start"], s["object"]))
+        return {"t0": a, "t1": b, "events": events, "segments": segments}
+
+    def cameras(self) -> list[dict]:
+        """The run's stored cameras (checkpoint records: name, split, size)."""
+        return list(self.run().cameras)
+
+    def render(self, t: float, camera: str | int | None = None) -> tuple[bytes, dict]:
+        """A PNG of the run at time `t` seen by `camera` (``test:K``, ``train:K``, ``K``: the
+        K-th test camera, or a frame name; default the first test camera, the run's default
+        view) and what was rendered (time, camera, split, width, height)."""
+        _check_time("t", float(t))
+        with self._lock:
+            run = self.run()
+            rec = pick_camera(run.cameras, camera)
+            import numpy as np
+            import torch
+            from PIL import Image
+
+            from sync4d.data.scene import Camera
+
+            vm = np.asarray(rec["viewmat"], dtype=np.float64).reshape(4, 4)
+            cam = Camera(vm, float(rec["fx"]), float(rec["fy"]), float(rec["cx"]),
+                         float(rec["cy"]), int(rec["width"]), int(rec["height"]))  # fmt: skip
+            bg = torch.as_tensor(run.background, dtype=torch.float32)
+            with torch.no_grad():
+                img = run.model.render(cam, float(t), background=bg, threads=self.threads)
+            rgb = (img.features.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+        buf = io.BytesIO()
+        Image.fromarray(rgb).save(buf, format="PNG")
+        info = {"t": float(t), "camera": rec["name"], "split": rec["split"],
+                "width": int(rec["width"]), "height": int(rec["height"])}  # fmt: skip
+        return buf.getvalue(), info
+
+
+def _check_time(name: str, t: float) -> None:
+    """`t` must be a normalised time in [0, 1]."""
+    if not (0.0 - _EPS <= t <= 1.0 + _EPS):  # also refuses NaN
+        raise ToolProblem(f"{name} = {t:g} is out of range: times are normalised, 0 (first "
+                          "frame) to 1 (last frame)")  # fmt: skip
+
+
+def pick_camera(records: list[dict], spec: str | int | None) -> dict:
+    """The camera record `spec` names: ``test:K`` / ``train:K`` (the K-th camera of that
+    split), ``K`` (a test camera), or a frame's name; None: the first test camera."""
+    if not records:
+        raise ToolProblem("the checkpoint stores no cameras (written by an older sync4d?); "
+                          "render it with `sync4d render RUN --camera ...` after a refit")
+    pools: dict[str, list[dict]] = {"train": [], "test": []}
+    for r in records:
+        pools.setdefault(r["split"], []).append(r)
+    counts = f"{len(pools['test'])} test and {len(pools['train'])} train cameras"
+    if spec is None or str(spec).strip() == "":
+        return (pools["test"] or pools["train"])[0]
+    text = str(spec).strip()
+    split, _, index = text.rpartition(":")
+    if index.lstrip("-").isdigit() and split in ("", "test", "train"):
+        pool = pools[split or "test"] or (pools["train"] if not split else [])
+        k = int(index)
+        if not 0 <= k < len(pool):
+            raise ToolProblem(f"camera {text!r}: no such camera; this run has {counts} "
+                              "(test:K or train:K, K from 0)")  # fmt: skip
+        return pool[k]
+    for r in records:
+        if r["name"] == text or Path(r["name"]).stem == text:
+            return r
+    raise ToolProblem(f"camera {text!r}: no camera of that name; give test:K or train:K (this "
+                      f"run has {counts}) or a frame name")  # fmt: skip
+
+
+def as_json(obj: Any) -> str:
+    """`obj` as compact JSON (the text block beside a render)."""
+    return json.dumps(obj, separators=(", ", ": "))
