@@ -13,8 +13,9 @@ Design:
   answers an image (PNG) and a line of JSON saying what it shows.
 * **Errors as results.** A `ToolProblem` (a bad argument, a run that cannot answer) becomes a
   tool error result whose text is the problem's one sentence (the SDK prefixes the tool's
-  name); the caller can read it and correct the call. Anything else is a crash: logged here,
-  reported to the caller without its text (the SDK's rule).
+  name); the caller can read it and correct the call. A resource that cannot be read answers
+  a protocol error with that sentence (`ResourceError`). Anything else is a crash: logged
+  here, reported to the caller without its text (the SDK's rule).
 * **Fast start.** Importing this module imports the SDK and pydantic, not torch or the
   phases; `RunTools` loads the field and the run on first use.
 """
@@ -27,7 +28,7 @@ from collections.abc import Callable
 from typing import Annotated, Any, TypeVar
 
 from mcp.server.mcpserver import Image, MCPServer
-from mcp.server.mcpserver.exceptions import ToolError
+from mcp.server.mcpserver.exceptions import ResourceError, ToolError
 from mcp_types import ImageContent, TextContent, ToolAnnotations
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -247,7 +248,8 @@ def build_server(tools: RunTools) -> MCPServer:
     ) -> QueryResult:  # fmt: skip
         """Which object matches a text, and when: every object ranked by score with the
         intervals (frames and times) where it is active; `answer` is the top one. As the
-        command `sync4d query RUN TEXT --json`."""
+        command `sync4d query RUN TEXT --json`, which also reads relational questions ('which
+        ball lands first') into a plan over the objects' states and events when it can."""
         return QueryResult.model_validate(tools.query(text, scorer, rule, timeline))
 
     @server.tool(annotations=_READ_ONLY)
@@ -295,7 +297,7 @@ def build_server(tools: RunTools) -> MCPServer:
         try:
             return tools.scene_json()
         except ToolProblem as e:
-            raise ValueError(str(e)) from None
+            raise ResourceError(str(e)) from None
 
     @server.resource(PROMPT_URI, name="prompt", title="Scene summary for an LLM",
                      mime_type="text/plain",
@@ -304,7 +306,7 @@ def build_server(tools: RunTools) -> MCPServer:
         try:
             return tools.prompt()
         except ToolProblem as e:
-            raise ValueError(str(e)) from None
+            raise ResourceError(str(e)) from None
 
     return server
 
