@@ -213,7 +213,7 @@ _READ_ONLY = ToolAnnotations(read_only_hint=True, destructive_hint=False, idempo
                              open_world_hint=False)  # fmt: skip
 
 Time = Annotated[float, Field(description="normalised time: 0 first frame, 1 last frame")]
-ObjectKey = Annotated[str, Field(description="an object's name (e.g. 'red ball') or id")]
+ObjectKey = Annotated[str | int, Field(description="an object's name (e.g. 'red ball') or id")]
 
 
 def build_server(tools: RunTools) -> MCPServer:
@@ -263,8 +263,8 @@ def build_server(tools: RunTools) -> MCPServer:
     @server.tool(annotations=_READ_ONLY)
     @_answers
     def events(
-        object: Annotated[str | None, Field(description="only this object's (name or id)")]
-        = None,
+        object: Annotated[str | int | None,
+                          Field(description="only this object's (name or id)")] = None,
         kind: Annotated[str | None, Field(description="an event kind (approach, contact, "
                                           "separation) or a motion state (at rest, moving, "
                                           "rising, falling, turning)")] = None,
@@ -279,10 +279,9 @@ def build_server(tools: RunTools) -> MCPServer:
     @_answers
     def render(
         t: Time,
-        camera: Annotated[str | None, Field(description="test:K or train:K (the K-th camera "
-                                            "of that split, from 0), K (a test camera) or a "
-                                            "frame name; default: the first test camera")]
-        = None,
+        camera: Annotated[str | int | None, Field(
+            description="test:K or train:K (the K-th camera of that split, from 0), K (a test "
+            "camera) or a frame name; default: the first test camera")] = None,
     ) -> list[ImageContent | TextContent]:  # fmt: skip
         """An image (PNG) of the scene at time t from one of the run's cameras, and a line of
         JSON saying which (camera, split, width, height)."""

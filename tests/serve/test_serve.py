@@ -66,11 +66,12 @@ def test_the_sdk_client_lists_the_tools_and_gets_right_answers(run_dir, tmp_path
             out["describe"] = await call("describe", {})
             out["full"] = await call("describe", {"full": True})
             out["track"] = await call("track", {"object": "red ball", "t0": 0.2, "t1": 0.3})
-            out["one"] = await call("track", {"object": "2", "t0": 0.51, "t1": 0.52})
+            out["one"] = await call("track", {"object": 2, "t0": 0.51, "t1": 0.52})
             out["events"] = await call("events", {"object": "the red ball"})
             out["contacts"] = await call("events", {"kind": "contact", "t0": 0.8})
             out["render"] = await call("render", {"t": 0.5})
             out["render_train"] = await call("render", {"t": 0.5, "camera": "train:1"})
+            out["render_int"] = await call("render", {"t": 0.5, "camera": 0})
             out["resources"] = (await c.list_resources()).resources
             out["scene"] = (await c.read_resource("sync4d://scene.json")).contents[0].text
             out["prompt"] = (await c.read_resource("sync4d://prompt.txt")).contents[0].text
@@ -155,6 +156,7 @@ def test_the_sdk_client_lists_the_tools_and_gets_right_answers(run_dir, tmp_path
     other = out["render_train"].content[0]
     assert json.loads(out["render_train"].content[1].text)["split"] == "train"
     assert other.data != img.data
+    assert out["render_int"].content[0].data == img.data  # camera 0: the first test camera
 
     # resources: what `sync4d export --scene --prompt` writes, byte for byte
     assert {str(r.uri) for r in out["resources"]} == {"sync4d://scene.json",
