@@ -28,15 +28,19 @@ are the stored frames of the field and M_phi, intervals inclusive [start, end].
 from __future__ import annotations
 
 import io
-import json
 import tempfile
 import threading
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from sync4d.runs.names import CHECKPOINT_NAME
 
-__all__ = ["EVENT_KINDS", "SCENE_URI", "PROMPT_URI", "RunTools", "ToolProblem"]
+if TYPE_CHECKING:  # torch-free at run time: the run and the field load on first use
+    from sync4d.phase3.query import TextCache
+    from sync4d.phase3.store import Field
+    from sync4d.runs import Run
+
+__all__ = ["EVENT_KINDS", "PROMPT_URI", "SCENE_URI", "RunTools", "ToolProblem", "pick_camera"]
 
 #: The resources' addresses: the scene description JSON and the LLM prompt.
 SCENE_URI = "sync4d://scene.json"
@@ -68,9 +72,9 @@ class RunTools:
         self.encoder = encoder
         self.threads = threads
         self._lock = threading.RLock()
-        self._field = None
-        self._cache = None
-        self._run = None
+        self._field: Field | None = None
+        self._cache: TextCache | None = None
+        self._run: Run | None = None
         self._scene: dict | None = None
         self._scene_text: str | None = None
         self._prompt: str | None = None
@@ -86,7 +90,7 @@ class RunTools:
                               f"training never saved); train it with `sync4d fit DATA --out "
                               f"{self.run_dir}`")  # fmt: skip
 
-    def field(self):
+    def field(self) -> Field:
         """The run's language field (`load_field`, numpy only), loaded once."""
         from sync4d.phase3.store import FieldError, load_field
 
@@ -98,7 +102,7 @@ class RunTools:
                     raise _problem(e) from None
             return self._field
 
-    def run(self):
+    def run(self) -> Run:
         """The run (`load_run`: the model, M_phi, labels, cameras; imports torch), loaded once."""
         from sync4d.runs import CheckpointError, RunError, load_run
 
@@ -229,9 +233,9 @@ class RunTools:
             if self._cache is None:
                 self._cache = TextCache(self.run_dir, field, self.encoder)
             try:
+                # the cache writes RUN/phase3/texts.json itself when it encodes a new text
                 ans = answer(field, text, cache=self._cache, scorer=scorer or DEFAULT_SCORER,
                              rule=rule)  # fmt: skip
-                self._cache.save()
             except (QueryError, EncoderError, OSError) as e:
                 raise _problem(e) from None
         out = {k: v for k, v in ans.items() if k not in ("timeline", "active", "times")}
@@ -366,8 +370,3 @@ def pick_camera(records: list[dict], spec: str | int | None) -> dict:
             return r
     raise ToolProblem(f"camera {text!r}: no camera of that name; give test:K or train:K (this "
                       f"run has {counts}) or a frame name")  # fmt: skip
-
-
-def as_json(obj: Any) -> str:
-    """`obj` as compact JSON (the text block beside a render)."""
-    return json.dumps(obj, separators=(", ", ": "))
