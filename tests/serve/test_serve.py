@@ -1,9 +1,9 @@
 """`sync4d serve` as an agent meets it: the server started as a subprocess and driven by the
-official MCP SDK's own client, over stdio (as a desktop client starts it) and over HTTP, on the
-oracle run of the embedded scene (true motion, so the answers can be checked against the truth):
-the tools listed with their schemas, a query answered right, the description, a track, the
-events and a render checked, the resources equal to what `export` writes, and one clear error
-result for each argument a caller can get wrong."""
+official MCP SDK's own client, over stdio (as a desktop client starts it) and over HTTP
+(streamable HTTP and SSE), on the oracle run of the embedded scene (true motion, so the answers
+can be checked against the truth): the tools listed with their schemas, a query answered right,
+the description, a track, the events and a render checked, the resources equal to what
+`export` writes, and one clear error result for each argument a caller can get wrong."""
 
 from __future__ import annotations
 
@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcp import Client
+from mcp import Client, ClientSession
+from mcp.client.sse import sse_client
 from mcp.client.stdio import StdioServerParameters
 from PIL import Image
 
@@ -198,24 +199,36 @@ def test_a_run_without_a_field_says_which_command_builds_it(run_dir, tmp_path):
     assert not r.is_error and r.content[0].type == "image"  # renders need no field
 
 
-def test_serve_over_http(run_dir):
+@pytest.mark.parametrize("sse", [False, True], ids=["streamable-http", "sse"])
+def test_serve_over_http(run_dir, sse):
     port = free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "sync4d", "serve", str(run_dir), "--http", str(port)],
+        [sys.executable, "-m", "sync4d", "serve", str(run_dir), "--http", str(port),
+         *(["--sse"] if sse else [])],
         env={**os.environ, **ENV}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
         assert proc.stdout is not None
         line = proc.stdout.readline()
-        url = f"http://127.0.0.1:{port}/mcp"
+        url = f"http://127.0.0.1:{port}/{'sse' if sse else 'mcp'}"
         assert url in line, (line, proc.stderr.read() if proc.poll() is not None else "")
+
+        async def ask(session) -> tuple[set[str], object]:
+            names = {t.name for t in (await session.list_tools()).tools}
+            return names, await session.call_tool("query", {"text": "the red ball"})
+
+        async def connect():
+            if not sse:
+                async with Client(url, read_timeout_seconds=120) as c:
+                    return await ask(c)
+            async with sse_client(url) as (read, write), ClientSession(read, write) as c:
+                await c.initialize()
+                return await ask(c)
 
         async def session():
             for _ in range(100):  # the address is printed just before uvicorn listens
                 try:
-                    async with Client(url, read_timeout_seconds=120) as c:
-                        names = {t.name for t in (await c.list_tools()).tools}
-                        return names, await c.call_tool("query", {"text": "the red ball"})
+                    return await connect()
                 except Exception:  # noqa: BLE001 - not listening yet
                     await asyncio.sleep(0.2)
             raise AssertionError("the HTTP server never answered")
