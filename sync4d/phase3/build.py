@@ -118,8 +118,9 @@ def build_field(
     tracks = _tracks(run, obs, hand)
     feats = kinematic_features(tracks)
     static = fm.static_embeddings(e_obs, obs.observed)
-    std = fm.standardise(feats, obs.observed)
-    pred, w = fm.predict_embeddings(std, e_obs, obs.observed, static, cfg.ridge_lambda)
+    std = fm.standardise(feats, obs.observed, cfg.clip_unobserved)
+    pred, w = fm.predict_embeddings(std, e_obs, obs.observed, static, cfg.ridge_lambda,
+                                    cfg.kinematics)  # fmt: skip
     mixed = fm.blend(pred, e_obs, obs.observed, cfg.beta, cfg.beta_on)
     sync = fm.temporal_ema(mixed, cfg.ema_gamma)
     for name, arr in (("the kinematic features", feats), ("the standardised features", std),

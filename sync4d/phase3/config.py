@@ -42,6 +42,10 @@ class Phase3Config:
     #: also crops and encodes the unobserved ones that have a crop box and discards them (the
     #: same field, at the cost the skip saves: for measuring it).
     skip_unobserved: bool = True
+    #: At an object's unobserved frames, clip each standardised kinematic feature to the range
+    #: it spans over the observed frames, so the ridge map is not extrapolated (an occluded
+    #: object's visible fraction drops to 0; docs/phase3.md); false: Eq. 14 as written.
+    clip_unobserved: bool = True
     #: Ridge regularisation lambda (Eq. 13).
     ridge_lambda: float = ranged(0.01, 0.0, lo_open=True)
     #: Blend weight beta between prediction and observation where observed ...
@@ -60,6 +64,10 @@ class Phase3Config:
     #: Static-only ablation: e_sync = e_static at every frame in every scorer (Table 5's
     #: "static only"; `query --scorer static` gives it for one query).
     static_only: bool = False
+    #: False: the W = 0 ablation, every ridge map W_k = 0 (e_hat = e_static; the observations
+    #: still blended and smoothed): the field without its kinematic conditioning
+    #: (`query --scorer no-kinematics` gives it for one query on a field built with it on).
+    kinematics: bool = True
     #: Name of the hand object for Appendix B dims 26-27 (zero when no object has this name).
     hand_object: str = choice("hand", check=_name_problem, text="an object name")
     #: World up for the motion phrases: "auto" (mean of the training cameras' up vectors) or

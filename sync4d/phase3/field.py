@@ -10,8 +10,14 @@ Decisions the paper leaves open (each with its reason in docs/phase3.md):
   first, and the prediction is the method's point) unless `beta_on = "observation"`;
 * the temporal EMA (gamma = 0.15) is the weight of the neighbouring smoothed frame, run forward
   and then backward (zero phase: an activation interval is not delayed), renormalised;
-* statistics of the standardisation and the ridge fit use the observed frames F_k only; an
-  object observed in fewer than 2 frames gets W = 0 (its prediction is the static anchor).
+* statistics of the standardisation and the ridge fit use the observed frames F_k only, and
+  at unobserved frames the standardised features are clipped to their observed range (the
+  ridge map is not extrapolated; `clip_unobserved`); an
+  object observed in fewer than 2 frames gets W = 0 (its prediction is the static anchor);
+* the W = 0 ablation (`Phase3Config.kinematics = False`, `query --scorer no-kinematics`): the
+  same field with every W_k = 0, so e_hat = e_static at every frame while the observations are
+  blended and smoothed as usual: what the kinematic conditioning alone adds
+  (`unconditioned_sync`; docs/results/phase3.md).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ __all__ = [
     "standardise",
     "static_embeddings",
     "temporal_ema",
+    "unconditioned_sync",
 ]
 
 
@@ -55,10 +62,15 @@ CONSTANT_FEATURE = 1e-3
 VECTOR_DIMS = ((6, 7, 8), (9, 10, 11))
 
 
-def standardise(features: np.ndarray, observed: np.ndarray) -> np.ndarray:
+def standardise(features: np.ndarray, observed: np.ndarray, clip_unobserved: bool = True
+                ) -> np.ndarray:  # fmt: skip
     """f~ [K, T, F + 1]: per-object standardised `features` [K, T, F] (mean and standard
     deviation over the observed frames, sigma + 1e-8; a feature constant for the object, see
-    `CONSTANT_FEATURE`, is 0) with a bias column of ones appended."""
+    `CONSTANT_FEATURE`, is 0) with a bias column of ones appended. `clip_unobserved`: at the
+    object's unobserved frames each feature is clipped to the range it spans over the observed
+    ones, so the ridge map is never extrapolated (an occluded object's visible fraction, dim 5,
+    drops to 0, far outside what the map was fitted on: unclipped, that one dim decides e_hat
+    there; docs/results/phase3.md, "The kinematic claim")."""
     k, t, nf = features.shape
     out = np.ones((k, t, nf + 1))
     seen = observed if observed.any() else np.ones_like(observed)
@@ -72,7 +84,10 @@ def standardise(features: np.ndarray, observed: np.ndarray) -> np.ndarray:
         sd = features[j, sel].std(0)
         z = (features[j] - mu) / (sd + 1e-8)
         constant = sd <= CONSTANT_FEATURE * scene_sd + 1e-12
-        out[j, :, :nf] = np.where(constant[None], 0.0, z)
+        z = np.where(constant[None], 0.0, z)
+        if clip_unobserved and not sel.all():
+            z[~sel] = np.clip(z[~sel], z[sel].min(0), z[sel].max(0))
+        out[j, :, :nf] = z
     return out
 
 
@@ -87,18 +102,19 @@ def fit_ridge(x: np.ndarray, y: np.ndarray, lam: float = 0.01) -> np.ndarray:
 
 def predict_embeddings(
     feats: np.ndarray, obs: np.ndarray, observed: np.ndarray, static: np.ndarray,
-    lam: float = 0.01,
+    lam: float = 0.01, kinematics: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """(e_hat [K, T, D], W [K, P, D]): per object the ridge map from standardised features
     `feats` [K, T, P] to residuals e_obs - e_static on the observed frames, and the predicted
-    embeddings norm(e_static + f~ W) at every frame (Eq. 14)."""
+    embeddings norm(e_static + f~ W) at every frame (Eq. 14). `kinematics` False: the W = 0
+    ablation (every W_k = 0, e_hat = e_static)."""
     k, t, p = feats.shape
     d = obs.shape[-1]
     w_all = np.zeros((k, p, d))
     pred = np.zeros((k, t, d))
     for j in range(k):
         sel = observed[j]
-        if sel.sum() >= 2:
+        if kinematics and sel.sum() >= 2:
             w_all[j] = fit_ridge(feats[j, sel], obs[j, sel] - static[j], lam)
         pred[j] = _unit(static[j] + feats[j] @ w_all[j])
     return pred, w_all
@@ -113,6 +129,18 @@ def blend(
     wp = beta if beta_on == "prediction" else 1.0 - beta
     mixed = _unit(wp * pred + (1.0 - wp) * obs)
     return np.where(observed[..., None], mixed, pred)
+
+
+def unconditioned_sync(
+    static: np.ndarray, obs: np.ndarray, observed: np.ndarray, beta: float = 0.65,
+    beta_on: str = "prediction", gamma: float = 0.15,
+) -> np.ndarray:  # fmt: skip
+    """e_sync [K, T, D] of the W = 0 ablation: e_hat = e_static [K, D] at every frame, blended
+    with the observations `obs` [K, T, D] where `observed` [K, T] and smoothed as e_sync is;
+    the observations are kept, the kinematic term is dropped."""
+    pred = np.repeat(_unit(np.asarray(static, dtype=np.float64))[:, None], obs.shape[1], axis=1)
+    return temporal_ema(blend(pred, np.asarray(obs, dtype=np.float64), observed, beta, beta_on),
+                        gamma)  # fmt: skip
 
 
 def temporal_ema(x: np.ndarray, gamma: float = 0.15) -> np.ndarray:

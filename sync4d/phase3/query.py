@@ -233,6 +233,19 @@ def _static(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCa
     return _by_frames(field, text, rule, s, sims)
 
 
+@_scorer("no-kinematics", "the W = 0 ablation: observations kept, no kinematic term")
+def _no_kinematics(field: Field, text: str, rule: str, cfg: Phase3Config,
+                   cache: TextCache) -> _Result:  # fmt: skip
+    """`paper` on the field with every ridge map W_k = 0 (`Field.unconditioned`: e_hat =
+    e_static, blended with the observations and smoothed as e_sync is): what the kinematic
+    conditioning adds (`phase3.kinematics = false` builds the same field)."""
+    if cfg.static_only or not text.strip():
+        return _static(field, text, rule, cfg, cache)
+    s, sims = query_scores(field.static, field.unconditioned(), cache.get([text])[0],
+                           cfg.w_static, cfg.w_temporal)  # fmt: skip
+    return _by_frames(field, text, rule, s, sims)
+
+
 @_scorer("motion", "the query's motion phrases, then the paper's score")
 def _motion_only(field: Field, text: str, rule: str, cfg: Phase3Config,
                  cache: TextCache) -> _Result:  # fmt: skip

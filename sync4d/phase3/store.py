@@ -81,6 +81,16 @@ class Field:
             return np.repeat(self.static[:, None], len(self.times), axis=1)
         return self.sync
 
+    def unconditioned(self) -> np.ndarray:
+        """The per-frame embeddings [K, T, D] of the W = 0 ablation of this field (every
+        W_k = 0, observations blended and smoothed with the field's own beta and gamma;
+        `sync4d.phase3.field.unconditioned_sync`): e_sync without the kinematic term."""
+        from sync4d.phase3.field import unconditioned_sync
+
+        c = self.config
+        return unconditioned_sync(self.static, self.obs, self.observed, c.get("beta", 0.65),
+                                  c.get("beta_on", "prediction"), c.get("ema_gamma", 0.15))
+
     def save(self, run_dir: str | Path) -> Path:
         """Write the field into ``run_dir/phase3`` atomically; returns the folder."""
         out = Path(run_dir) / FIELD_DIR

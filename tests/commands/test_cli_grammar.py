@@ -43,7 +43,8 @@ def test_every_command_is_a_row_with_a_module() -> None:
 
 
 def test_choices_and_help_come_from_the_registries() -> None:
-    assert SCORERS == ("full", "paper", "static", "motion", "names")  # eval's table order
+    assert SCORERS == ("full", "paper", "static", "no-kinematics", "motion",
+                       "names")  # eval's table order
     assert DEFAULT_SCORER == "full" and tuple(SCORER_TABLE) == SCORERS
     assert [n for n, s in SCORER_TABLE.items() if s.needs_names] == ["names"]
     assert tuple(RULES) == ("half-peak", "mean") and DEFAULT_RULE == "half-peak"
