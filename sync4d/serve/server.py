@@ -16,8 +16,9 @@ Design:
   name); the caller can read it and correct the call. A resource that cannot be read answers
   a protocol error with that sentence (`ResourceError`). Anything else is a crash: logged
   here, reported to the caller without its text (the SDK's rule).
-* **Fast start.** Importing this module imports the SDK and pydantic, not torch or the
-  phases; `RunTools` loads the field and the run on first use.
+* **Fast start.** Importing this module imports the SDK, pydantic and the query registries
+  (numpy: the scorers' and rules' names become the schema's choices), not torch; `RunTools`
+  loads the field and the run on first use.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from __future__ import annotations
 import functools
 import json
 from collections.abc import Callable
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 from mcp.server.mcpserver import Image, MCPServer
 from mcp.server.mcpserver.exceptions import ResourceError, ToolError
@@ -33,6 +34,8 @@ from mcp_types import ImageContent, TextContent, ToolAnnotations
 from pydantic import BaseModel, ConfigDict, Field
 
 from sync4d import __version__
+from sync4d.phase3.evaluation.metrics import RULES
+from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS
 from sync4d.serve.tools import PROMPT_URI, SCENE_URI, RunTools, ToolProblem
 
 __all__ = ["build_server", "serve"]
@@ -214,6 +217,13 @@ _READ_ONLY = ToolAnnotations(read_only_hint=True, destructive_hint=False, idempo
 
 Time = Annotated[float, Field(description="normalised time: 0 first frame, 1 last frame")]
 ObjectKey = Annotated[str | int, Field(description="an object's name (e.g. 'red ball') or id")]
+#: The scorers and activation rules of their registries (`sync4d query --scorer`, `--rule`).
+ScorerName = Annotated[Literal[SCORERS] | None, Field(  # type: ignore[valid-type]
+    description="; ".join(f"{n}: {s.summary}" for n, s in SCORER_TABLE.items())
+    + f" (default {DEFAULT_SCORER})")]
+RuleName = Annotated[Literal[tuple(RULES)] | None, Field(  # type: ignore[valid-type]
+    description="; ".join(f"{n}: {r.summary}" for n, r in RULES.items())
+    + " (default: the field's)")]
 
 
 def build_server(tools: RunTools) -> MCPServer:
@@ -239,10 +249,8 @@ def build_server(tools: RunTools) -> MCPServer:
     def query(
         text: Annotated[str, Field(description="what to look for, e.g. 'the red ball while "
                                    "it is falling'")],
-        scorer: Annotated[str | None, Field(description="the scorer (default: sync4d "
-                                            "query's default)")] = None,
-        rule: Annotated[str | None, Field(description="the temporal activation rule "
-                                          "(default: the field's)")] = None,
+        scorer: ScorerName = None,
+        rule: RuleName = None,
         timeline: Annotated[bool, Field(description="also each object's per-frame "
                                         "similarity")] = False,
     ) -> QueryResult:  # fmt: skip

@@ -94,6 +94,8 @@ def test_the_sdk_client_lists_the_tools_and_gets_right_answers(run_dir, tmp_path
         assert tools[name].output_schema["type"] == "object", name
     assert "object" in tools["track"].input_schema["required"]
     assert set(tools["query"].output_schema["required"]) >= {"query", "answer", "objects"}
+    scorer = tools["query"].input_schema["properties"]["scorer"]
+    assert "full" in json.dumps(scorer) and "static" in json.dumps(scorer)
 
     # query: the answer `sync4d query` gives, and the right one
     red = out["red"].structured_content
@@ -174,7 +176,7 @@ def test_the_sdk_client_lists_the_tools_and_gets_right_answers(run_dir, tmp_path
     assert "t = 1.5 is out of range" in messages[2]
     assert "camera 'test:99'" in messages[3] and "test and" in messages[3]
     assert "unknown kind 'jumping'" in messages[4] and "contact" in messages[4]
-    assert "unknown scorer 'best'" in messages[5]
+    assert "best" in messages[5] and "'paper'" in messages[5]  # the schema's choices
     assert "empty query" in messages[6]
 
 
