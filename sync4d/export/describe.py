@@ -19,10 +19,16 @@ that is not sync4d (a person, a script, a multimodal LLM):
   ``separation`` (the centroid distance, or for the background the object's height above the
   surface under it, falls or grows faster than ``closing_speed`` times the scene's reference
   speed) and ``contact`` (the robust gap below ``contact_gap`` times the object's radius:
-  evidence "gap"; or, with the background, a fall that turns straight into a rise: evidence
-  "rebound"); runs shorter than ``phrase_min_frames`` are dropped, one-frame gaps closed;
-* **language slots**: for each vocabulary entry and query, the object the default scorer ranks
-  first and the frames where it is active (Appendix F's rule of the field);
+  evidence "gap"; or, with the background, a fall that turns straight into a rise near the
+  object's lowest height over the clip and near the surface under it, `rebound_gap` radii at
+  most: evidence "rebound"; a pendulum's swing or a jump's turn in mid-air is no contact); runs
+  shorter than ``phrase_min_frames`` are dropped, one-frame gaps closed;
+* **language slots**: for each query, the object the default scorer ranks first and the frames
+  where it is active (Appendix F's rule of the field); for each vocabulary entry the same, but
+  only when that object's appearance score (Eq. 15) beats every other object's by at least
+  `SceneSettings.slot_margin` (an entry no object separates is attached to none: the prompt
+  lists it as unattached); an object's nearest vocabulary entries (`vocabulary`) by the same
+  margin of the static similarity;
 * **embeddings** (static [K, D], e_sync [K, T, D], the texts' [V, D]) go to a safetensors side
   file, referenced from the description by name and SHA-256, never inline.
 
@@ -45,6 +51,7 @@ from sync4d.export.schema import SceneError
 from sync4d.files import file_sha256
 from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.evaluation.metrics import intervals
+from sync4d.phase3.field import query_scores
 from sync4d.phase3.kinematics import FEATURE_NAMES
 from sync4d.phase3.query import TextCache, answer, field_settings
 from sync4d.phase3.store import Field
@@ -75,6 +82,21 @@ class SceneSettings:
     vocab_top: int = 3
     #: Percentiles of an object's Gaussian positions that bound its extent (floaters aside).
     extent_percentiles: tuple[float, float] = (2.0, 98.0)
+    #: A vocabulary entry is attached to an object (a slot, a `vocabulary` match) only when the
+    #: object's appearance score for it (Eq. 15 for a slot, the static cosine for a match)
+    #: beats every other object's by at least this much (cosine units; measured in
+    #: docs/results/phase3.md, "Slots": on the embedded scene with the offline encoder the
+    #: objects' own colours separate by 0.24-0.43, colours no object has by 0.08 at most).
+    slot_margin: float = 0.12
+    #: A fall that turns into a rise is a contact with the surface under the object
+    #: (evidence "rebound") only when, at the turn, the object's height above that surface is
+    #: at most this many object radii (bouncingballs' red ball: 0.77 at its bounces, where the
+    #: measured gap stays open; apexes 1.4-1.9) ...
+    rebound_gap: float = 1.2
+    #: ... and its centroid is at most max(`contact_gap` radii, this fraction of its height
+    #: range over the clip) above its lowest height (as `sync4d.phase3.relational` reads
+    #: contact with the ground).
+    rebound_height: float = 0.25
 
 
 def _span(a: int, b: int, times: np.ndarray) -> dict:
@@ -148,25 +170,35 @@ def motion_segments(field: Field, cfg) -> list[list[dict]]:
     return out
 
 
-def _rebounds(down: np.ndarray, up: np.ndarray, min_frames: int) -> np.ndarray:
+def _rebounds(down: np.ndarray, up: np.ndarray, min_frames: int, height: np.ndarray,
+              gap: np.ndarray, height_band: float, surface: float) -> np.ndarray:  # fmt: skip
     """Frames [T] bool where an object comes down onto the surface under it and goes straight
     back up: from the last frame of an approach run to the first of the separation run that
-    follows within `min_frames` frames. Nothing turns a fall into a rise in mid-air, so the
-    object touched the surface there, however large the reconstruction leaves the measured
-    gap (a small ball's lowest Gaussians sit above the plate's surface Gaussians)."""
+    follows within `min_frames` frames, when at the turn (the lowest `height` [T] between them)
+    the object is within `height_band` of its lowest height over the clip and its `gap` [T]
+    above the surface under it is at most `surface`. A bounce touched the surface however
+    large the reconstruction leaves the measured gap (a small ball's lowest Gaussians sit
+    above the plate's surface Gaussians); a turn in mid-air (a pendulum, an arm lowered and
+    raised, a jump's apex seen upside down) is not a contact."""
     out = np.zeros(len(down), bool)
     falls = _runs(down, min_frames)
     rises = _runs(up, min_frames)
+    low = float(np.min(height))
     for _, end in falls:
         nxt = [s for s, _ in rises if end < s <= end + min_frames]
-        if nxt:
+        if not nxt:
+            continue
+        f = end + int(np.argmin(height[end:nxt[0] + 1]))
+        if height[f] - low <= height_band and float(np.min(gap[end:nxt[0] + 1])) <= surface:
             out[end:nxt[0] + 1] = True
     return out
 
 
-def pairwise_events(field: Field, cfg) -> list[dict]:
+def pairwise_events(field: Field, cfg, settings: SceneSettings = SceneSettings()
+                    ) -> list[dict]:  # fmt: skip
     """Approach, contact and separation intervals of every pair of objects and of every object
-    with the background, sorted by start frame."""
+    with the background, sorted by start frame (rebounds: `settings.rebound_gap`,
+    `settings.rebound_height`)."""
     times, labels, radius = field.times, field.labels, field.radius
     c, _, s_ref = mp.smoothed_motion(field.centroids, times, radius, cfg.phrase_smooth)
     closing_tol = cfg.closing_speed * s_ref
@@ -202,8 +234,12 @@ def pairwise_events(field: Field, cfg) -> list[dict]:
                 g = np.where(ok, g, np.interp(times, times[ok], g[ok]))
                 gs = mp.smooth_in_time(g[None], times, cfg.phrase_smooth)[0]
                 down, up = -rate(gs) > closing_tol, rate(gs) > closing_tol
+                h = c[k] @ np.asarray(field.up, np.float64)
+                band = max(tol, settings.rebound_height * float(np.ptp(h)))
                 add("approach", a, 0, down, g)
-                add("contact", a, 0, g < tol, g, _rebounds(down, up, minf))
+                add("contact", a, 0, g < tol, g,
+                    _rebounds(down, up, minf, h, gs, band,
+                              settings.rebound_gap * float(radius[k])))
                 add("separation", a, 0, up, g)
         for j in range(k + 1, len(labels)):
             b = labels[j]
@@ -221,6 +257,12 @@ def pairwise_events(field: Field, cfg) -> list[dict]:
             add("separation", a, b, rate(d) > closing_tol, d)
     events.sort(key=lambda e: (e["start"], EVENT_KINDS.index(e["kind"]), e["objects"]))
     return events
+
+
+def _margin(scores: np.ndarray, k: int) -> float:
+    """How far `scores` [K] of object `k` beats the best other object's (inf when alone)."""
+    others = np.delete(np.asarray(scores, np.float64), k)
+    return float(scores[k] - others.max()) if len(others) else math.inf
 
 
 def _cameras(run: Run) -> list[dict]:
@@ -268,8 +310,17 @@ def describe(
         ans = answer(field, text, cache=cache)
         top = ans["objects"][0]
         k = field.labels.index(top["label"])
-        slots[k].append({"text": text, "source": "vocab" if i < len(vocab) else "query",
-                         "score": top["score"], "intervals": top["intervals"]})  # fmt: skip
+        slot = {"text": text, "source": "vocab" if i < len(vocab) else "query",
+                "score": top["score"], "intervals": top["intervals"]}  # fmt: skip
+        if i < len(vocab):
+            appearance, _ = query_scores(field.static, field.sync, text_emb[i], cfg.w_static,
+                                         cfg.w_temporal)  # fmt: skip
+            margin = _margin(appearance, k)
+            if margin < settings.slot_margin:
+                continue  # no object separates: attached to none
+            if math.isfinite(margin):  # (a scene of one object: nothing to separate from)
+                slot["margin"] = margin
+        slots[k].append(slot)
     objects, tracks = [], []
     for k, label in enumerate(field.labels):
         sel = run.labels == label
@@ -278,7 +329,8 @@ def describe(
         rot = _rotations(linear[label].astype(np.float64), bool(run.motion.rigid))
         matches = []
         if vsims is not None:
-            order = np.argsort(-vsims[k], kind="stable")[: settings.vocab_top]
+            order = [v for v in np.argsort(-vsims[k], kind="stable")
+                     if _margin(vsims[:, v], k) >= settings.slot_margin][: settings.vocab_top]
             matches = [{"text": vocab[v], "similarity": float(vsims[k, v])} for v in order]
         objects.append({
             "id": int(label), "label": int(label), "name": field.names[k],
@@ -329,10 +381,13 @@ def describe(
                   "extent": float(np.linalg.norm(hi - lo))},
         "frames": {"count": len(times), "times": times.tolist()},
         "cameras": _cameras(run),
-        "thresholds": {k: getattr(cfg, k) for k in THRESHOLD_KEYS},
+        "thresholds": {**{k: getattr(cfg, k) for k in THRESHOLD_KEYS},
+                       "slot_margin": settings.slot_margin,
+                       "rebound_gap": settings.rebound_gap,
+                       "rebound_height": settings.rebound_height},
     }  # fmt: skip
     doc = {"metadata": metadata, "objects": objects, "tracks": tracks,
-           "events": pairwise_events(field, cfg), "texts": texts}  # fmt: skip
+           "events": pairwise_events(field, cfg, settings), "texts": texts}  # fmt: skip
     embeddings = {
         "static": np.ascontiguousarray(field.static, np.float32),
         "sync": np.ascontiguousarray(field.sync, np.float32),

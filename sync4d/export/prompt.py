@@ -56,8 +56,9 @@ def _object_lines(obj: dict, track: dict, up: np.ndarray) -> list[str]:
         lines.append("  Motion: no motion state holds for long enough to report.")
     for slot in obj["slots"]:
         when = _spans(slot["intervals"]) or "never active"
+        margin = f", margin {slot['margin']:.2f}" if "margin" in slot else ""
         lines.append(f"  Matches \"{slot['text']}\" ({slot['source']}, score "
-                     f"{slot['score']:.2f}): {when}.")  # fmt: skip
+                     f"{slot['score']:.2f}{margin}): {when}.")  # fmt: skip
     return lines
 
 
@@ -84,6 +85,13 @@ def prompt_text(doc: dict) -> str:
     ]
     for obj in doc["objects"]:
         out += _object_lines(obj, tracks[obj["id"]], up)
+    attached = {slot["text"] for obj in doc["objects"] for slot in obj["slots"]}
+    loose = [t for t in doc.get("texts", []) if t not in attached]
+    if loose:
+        margin = meta.get("thresholds", {}).get("slot_margin")
+        why = f" by {margin:.2f} or more" if margin is not None else ""
+        out.append("No object matches " + ", ".join(f"\"{t}\"" for t in loose) + " (no "
+                   f"object's appearance score beats the others'{why}).")  # fmt: skip
     out += ["", "Interactions:"]
     if not doc["events"]:
         out.append("- none detected.")

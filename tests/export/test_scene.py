@@ -16,7 +16,7 @@ import pytest
 from support.encoders import ColourEncoder
 from support.oracle import oracle_phase2_run
 from sync4d.data import synthetic as syn
-from sync4d.export.describe import describe, pairwise_events
+from sync4d.export.describe import SceneSettings, describe, pairwise_events
 from sync4d.export.prompt import count_tokens, prompt_text
 from sync4d.export.scene import SceneError, embeddings_path, load, write_scene
 from sync4d.export.schema import schema
@@ -25,7 +25,9 @@ from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.evaluation.metrics import temporal_iou
 from sync4d.phase3.query import TextCache
 
-VOCAB = ["red", "blue", "green"]
+#: The objects' colours, then a colour no object has (the colour encoder puts every object at
+#: the same similarity to it: no object separates).
+VOCAB = ["red", "blue", "green", "yellow"]
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +67,7 @@ def test_the_export_is_valid_against_the_shipped_schema(oracle):
     assert [t["id"] for t in doc["tracks"]] == [1, 2, 3]
     assert len(doc["tracks"][0]["kinematics"]) == 28
     # each object's nearest vocabulary entry is its colour
-    assert [o["vocabulary"][0]["text"] for o in doc["objects"]] == VOCAB
+    assert [o["vocabulary"][0]["text"] for o in doc["objects"]] == VOCAB[:3]
     # embeddings live in the side file, never inline
     assert embeddings_path(oracle["path"]).is_file()
     assert doc["embeddings"]["arrays"]["sync"] == [3, 21, 4]
@@ -130,7 +132,7 @@ def test_load_gives_back_the_same_numbers(oracle):
         np.testing.assert_allclose(np.linalg.norm(tr.rotation, axis=1), 1.0, atol=2e-6)
     np.testing.assert_array_equal(scene.embeddings["static"], field.static)
     np.testing.assert_array_equal(scene.embeddings["sync"], field.sync)
-    assert scene.embeddings["texts"].shape == (4, field.dim)
+    assert scene.embeddings["texts"].shape == (len(VOCAB) + 1, field.dim)
     # the box turns 45 degrees about z: its last quaternion says so
     w = scene.object("blue box").track.rotation[-1, 0]
     assert np.degrees(2 * np.arccos(w)) == pytest.approx(45.0, abs=2.0)
@@ -178,6 +180,26 @@ def test_the_prompt_comes_from_the_json_alone(oracle):
     assert 100 < n < 5000 and "WordPiece" in tokenizer
 
 
+def test_a_vocabulary_entry_is_attached_only_where_it_separates(oracle):
+    """Each colour's slot and match sit on its object, by a margin above `slot_margin`; the
+    colour no object has is attached to none, and the prompt says so."""
+    doc = json.loads(oracle["path"].read_text())
+    margin = doc["metadata"]["thresholds"]["slot_margin"]
+    assert margin == SceneSettings().slot_margin
+    for obj, colour in zip(doc["objects"], VOCAB, strict=False):
+        vocab_slots = [s for s in obj["slots"] if s["source"] == "vocab"]
+        assert [s["text"] for s in vocab_slots] == [colour]
+        assert vocab_slots[0]["margin"] >= margin
+        assert [v["text"] for v in obj["vocabulary"]] == [colour]
+    assert "yellow" not in json.dumps(doc["objects"])
+    assert 'No object matches "yellow"' in prompt_text(doc)
+    # with no margin required, the old behaviour: every entry goes to its top object
+    field, cache = oracle["field"], oracle["cache"]
+    loose, _ = describe(oracle["run"], field, cache=cache, vocab=VOCAB,
+                        settings=SceneSettings(slot_margin=-1.0))  # fmt: skip
+    assert sum(len(o["slots"]) for o in loose["objects"]) == len(VOCAB)
+
+
 def test_a_phase1_run_has_no_description(oracle):
     run = oracle["run"]
     phase1 = type(run)(path=run.path, checkpoint=Path(run.checkpoint), kind="sync4d.phase1",
@@ -199,7 +221,8 @@ def _bouncing_field(lowest_gap: float):
     gaps = np.full((2, 3, len(times)), 1.0)
     gaps[0, 0], gaps[1, 0] = height, 0.0
     return SimpleNamespace(times=times, labels=[1, 2], radius=np.array([0.1, 0.1]),
-                           centroids=centroids, gaps=gaps, gap_labels=[0, 1, 2])
+                           centroids=centroids, gaps=gaps, gap_labels=[0, 1, 2],
+                           up=np.array([0.0, 0.0, 1.0]))  # fmt: skip
 
 
 @pytest.mark.parametrize("lowest_gap", [0.0, 0.09])
@@ -226,3 +249,45 @@ def test_each_bounce_is_a_contact_with_the_background(lowest_gap):
     late = [e for e in pairwise_events(field, Phase3Config())
             if e["objects"] == [1, 0] and e["kind"] == "contact" and e["t0"] >= 0.45]
     assert late == [] or lowest_gap == 0.0, late
+
+
+def _mid_air_field(height: np.ndarray) -> SimpleNamespace:
+    """A ball of radius 0.1 whose height above the plate (the background) follows `height`."""
+    times = np.linspace(0.0, 1.0, len(height))
+    centroids = np.zeros((1, len(times), 3))
+    centroids[0, :, 2] = 0.1 + height
+    gaps = np.full((1, 2, len(times)), np.inf)
+    gaps[0, 0] = height
+    return SimpleNamespace(times=times, labels=[1], radius=np.array([0.1]), centroids=centroids,
+                           gaps=gaps, gap_labels=[0, 1], up=np.array([0.0, 0.0, 1.0]))
+
+
+@pytest.mark.parametrize("shape", ["swing", "jump with a dip"])
+def test_a_fall_then_rise_in_mid_air_is_no_contact(shape):
+    """A swing down and straight back up whose lowest point is 5 radii above the plate, and a
+    jump that dips in mid-air (3 radii below its top, 4 above the plate) before landing: each
+    is a fall that turns into a rise, neither touches the plate there."""
+    t = np.linspace(0.0, 1.0, 61)
+    if shape == "swing":  # down from 1.3 to 0.5 at t = 0.5, straight back up: lowest there
+        height = 0.5 + 0.8 * np.abs(2.0 * t - 1.0)
+    else:  # on the plate, up to 0.7, dips to 0.4 at t = 0.5, up to 0.7, down on the plate
+        height = np.interp(t, [0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0],
+                           [0.0, 0.0, 0.7, 0.4, 0.7, 0.0, 0.0])  # fmt: skip
+    events = pairwise_events(_mid_air_field(height), Phase3Config())
+    kinds = [(e["kind"], round(e["t0"], 2), round(e["t1"], 2)) for e in events]
+    contacts = [e for e in events if e["kind"] == "contact"]
+    assert not [c for c in contacts if c["t0"] <= 0.5 <= c["t1"]], kinds
+    assert [e for e in events if e["kind"] == "approach" and e["t1"] <= 0.5], kinds
+    assert [e for e in events if e["kind"] == "separation" and e["t0"] >= 0.45], kinds
+    if shape == "jump with a dip":  # on the plate at both ends, by its gap
+        assert [(c["start"] == 0, c["end"] == 60, c["evidence"]) for c in contacts] == [
+            (True, False, "gap"), (False, True, "gap")], kinds
+    # without the two conditions (any fall turning into a rise) the turn was a contact
+    anywhere = SceneSettings(rebound_gap=np.inf, rebound_height=np.inf)
+    events = pairwise_events(_mid_air_field(height), Phase3Config(), anywhere)
+    assert [e for e in events if e["kind"] == "contact" and e["t0"] <= 0.5 <= e["t1"]
+            and e["evidence"] == "rebound"], kinds
+    if shape == "swing":  # the same turn lowered to 0.9 radii above the plate: a bounce
+        events = pairwise_events(_mid_air_field(height - height[30] + 0.09), Phase3Config())
+        assert [e for e in events if e["kind"] == "contact" and e["t0"] <= 0.5 <= e["t1"]
+                and e["evidence"] == "rebound"], kinds
