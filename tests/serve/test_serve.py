@@ -24,6 +24,7 @@ from mcp.client.sse import sse_client
 from mcp.client.stdio import StdioServerParameters
 from PIL import Image
 
+from support import ROOT
 from support.oracle import oracle_run_folder
 from support.ports import free_port
 from sync4d.cli import main
@@ -284,3 +285,16 @@ def test_startup_and_queries_import_no_torch(run_dir):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env={**os.environ, **ENV}, timeout=120)  # fmt: skip
     assert done.returncode == 0, done.stderr
+
+
+def test_the_example_drives_the_server(run_dir, tmp_path):
+    """examples/serve.sh: the SDK's client over stdio, as a user runs it."""
+    done = subprocess.run(
+        ["sh", str(ROOT / "examples" / "serve.sh"), str(run_dir), "the red ball"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        env={**os.environ, **ENV, "PYTHON": sys.executable},
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "tools: describe, query, track, events, render" in done.stdout
+    assert "query 'the red ball': red ball" in done.stdout and "contact" in done.stdout
+    assert Image.open(tmp_path / "serve-render.png").size == (48, 48)
