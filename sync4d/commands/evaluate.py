@@ -29,10 +29,13 @@ def _queries(args: argparse.Namespace) -> int:
     from sync4d.phase3.encoders.encoder import EncoderError
     from sync4d.phase3.evaluation.annotations import AnnotationError
     from sync4d.phase3.evaluation.evaluate import evaluate_queries
+    from sync4d.phase3.evaluation.relational_eval import is_relational
     from sync4d.phase3.query import SCORERS, QueryError
     from sync4d.phase3.store import FieldError
     from sync4d.report import align_table
 
+    if is_relational(args.queries):
+        return _relational(args)
     try:
         with RunLock(args.run, "eval"):
             if args.threads:
@@ -54,6 +57,33 @@ def _queries(args: argparse.Namespace) -> int:
              cell(m.get("object_accuracy"))] for s, m in summary.items()]  # fmt: skip
     print(align_table(["scorer", "Acc", "vIoU", "tIoU", "object"], rows))
     print(f"rows: {Path(args.run) / 'phase3'}/eval-*.csv")
+    return 0
+
+
+def _relational(args: argparse.Namespace) -> int:
+    """`eval RUN --queries QUESTIONS.json` with a relational question file: Acc (right
+    object), tIoU and count accuracy per question form, printed as a table."""
+    from sync4d.phase3.encoders.encoder import EncoderError
+    from sync4d.phase3.evaluation.annotations import AnnotationError
+    from sync4d.phase3.evaluation.relational_eval import evaluate_relational
+    from sync4d.phase3.query import QueryError
+    from sync4d.phase3.store import FieldError
+    from sync4d.report import align_table
+
+    try:
+        with RunLock(args.run, "eval"):
+            summary = evaluate_relational(args.run, args.queries, encoder=args.encoder)
+    except (RunBusy, WriteFailed, AnnotationError, EncoderError, QueryError, FieldError) as e:
+        print(f"eval: {e}", file=sys.stderr)
+        return 2
+
+    def cell(v: object) -> str:
+        return "-" if v is None else f"{v:.3f}"
+
+    rows = [[form, str(m["n"]), cell(m["acc"]), cell(m["tiou"]), cell(m["count_acc"])]
+            for form, m in [*summary["forms"].items(), ("all", summary["all"])]]  # fmt: skip
+    print(align_table(["form", "questions", "Acc (object)", "tIoU", "count"], rows))
+    print(f"rows: {summary['rows_file']}")
     return 0
 
 

@@ -64,6 +64,13 @@ def main(args: argparse.Namespace) -> int:
             else ""
         print(f"\"{ans['query']}\" — {ans['scorer']} scorer, {ans['rule']} rule, encoder "
               f"{ans['encoder']}{vocab}")  # fmt: skip
+        if ans.get("plan"):
+            top = ans["objects"][0]
+            spans = ", ".join(f"{iv['start']}-{iv['end']}" for iv in top["intervals"]) or "none"
+            count = "" if ans.get("count") is None else f", count {ans['count']}"
+            print(f"plan: {ans['plan']} -> {top['name']}, frames {spans}{count}")
+        elif ans.get("fallback"):
+            print(f"plan: none ({ans['fallback']})")
         if ans["motion_phrases"]:
             print("motion: " + ", ".join(
                 m["predicate"] + (f" ({m['target']})" if m["target"] is not None else "")

@@ -290,10 +290,13 @@ def field_settings(field: Field) -> SimpleNamespace:
 
 def answer(
     field: Field, text: str, *, cache: TextCache, scorer: str = DEFAULT_SCORER,
-    rule: str | None = None, cfg: Phase3Config | None = None,
+    rule: str | None = None, cfg: Phase3Config | None = None, relational: bool = True,
 ) -> dict:  # fmt: skip
     """The answer to `text` on `field` as plain data: every object ranked with its score and
-    active frame intervals (frames and times), the matched motion phrases, the timeline."""
+    active frame intervals (frames and times), the matched motion phrases, the timeline.
+    With the default scorer (and `relational`), a relational question ("which ball lands
+    first", `sync4d.phase3.relational`) is answered by its plan: ``plan`` says how it was read
+    (None: no relational question), ``fallback`` why one was not (today's scorer answered)."""
     text = " ".join(str(text).split())
     if not text:
         raise QueryError("empty query: give a text such as \"the red ball while it is falling\"")
@@ -301,8 +304,22 @@ def answer(
         raise QueryError(f"unknown scorer {scorer!r}: expected one of {', '.join(SCORERS)}")
     cfg = cfg or field_settings(field)
     rule = rule or cfg.activation
-    sc, matched, rest = SCORER_TABLE[scorer].score(field, text, rule, cfg, cache)
-    order = np.argsort(-sc.score, kind="stable")
+    plan = fallback = None
+    if relational and scorer == DEFAULT_SCORER:
+        from sync4d.phase3.relational import RelationalError, answer_relational
+
+        try:
+            rel = answer_relational(field, text, cache, cfg)
+        except RelationalError as e:
+            rel, fallback = None, f"{e}; answered by the {scorer} scorer instead"
+        if rel is not None:
+            plan = rel
+            sc = _Scored(rel["score"], rel["active"], rel["active"].astype(np.float64),
+                         rel["score"])  # fmt: skip
+            matched, rest = [], text
+    if plan is None:
+        sc, matched, rest = SCORER_TABLE[scorer].score(field, text, rule, cfg, cache)
+    order = np.argsort(-sc.score, kind="stable") if plan is None else np.asarray(plan["order"])
     times = field.times
     objects = []
     for j in order:
@@ -317,6 +334,9 @@ def answer(
         })  # fmt: skip
     return {
         "query": text, "scorer": scorer, "rule": rule, "identity_text": rest,
+        "plan": None if plan is None else plan["plan"],
+        "form": None if plan is None else plan["form"],
+        "count": None if plan is None else plan["count"], "fallback": fallback,
         "encoder": field.encoder.get("kind"),
         "closed_vocabulary": bool(field.encoder.get("closed_vocabulary", False)),
         "motion_phrases": [{"predicate": m.predicate.name, "phrase": m.phrase,

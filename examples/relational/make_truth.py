@@ -1,0 +1,325 @@
+"""Ground truth of the relational question sets in this folder, from the true states only.
+
+    python examples/relational/make_truth.py [--data /path/to/dnerf/bouncingballs]
+
+writes ``embedded.json`` (the embedded synthetic scene: its true object poses,
+`sync4d.data.synthetic.object_poses`, and its named states) and, when the D-NeRF scene is there,
+``bouncingballs.json`` (each ball's centre triangulated from its instance masks in the 150
+training views: the ray through the mask's centroid in each view, with a second-difference
+smoothness prior over time; no reconstruction of ours is read).
+
+Each question below is written with its meaning by hand (the form, the subject, the state or
+event, the relation), independently of how `sync4d.phase3.relational` reads the wording; the
+answer is then computed by the grammar's operators (`evaluate_plan`, the documented semantics)
+on a timeline of the *true* states, and stored as the object, its time ranges (normalised
+time, half a truth frame of slack each side) and, for counts, the number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from sync4d.data import synthetic as syn
+from sync4d.phase3 import motion_phrases as mp
+from sync4d.phase3.config import Phase3Config
+from sync4d.phase3.relational import Atom, Clause, Plan, Timeline, evaluate_plan, rebounds
+
+HERE = Path(__file__).resolve().parent
+CFG = Phase3Config()
+
+
+def Q(question, form, subject=None, atoms=(), n=None, quantity=None, direction=None,
+      relation=None, negated=False, target=0):  # fmt: skip
+    """A question and its meaning: `subject` an object name (None: every object), `atoms`
+    state / event names, `relation` (word, other object name or None for "it", its atoms,
+    negated)."""
+    return dict(question=question, form=form, subject=subject, atoms=list(atoms), n=n,
+                quantity=quantity, direction=direction, relation=relation, negated=negated,
+                target=target)  # fmt: skip
+
+
+def _clause(names, subject, atoms, negated, target):
+    objs = list(range(len(names))) if subject is None else [names.index(subject)]
+    return Clause(text="", identity=subject or "", objects=objs,
+                  atoms=[Atom(a, a, 1.0, target=target if a == "contact" else None)
+                         for a in atoms], negated=negated, pronoun=subject is None,
+                  specific=subject is not None)  # fmt: skip
+
+
+def truth_answer(spec, names, tl):
+    subj = _clause(names, spec["subject"], spec["atoms"], spec["negated"], spec["target"])
+    rel = None
+    if spec["relation"]:
+        word, other, atoms, neg, *nth = spec["relation"]
+        oc = _clause(names, other, atoms, neg, 0)
+        oc.ordinal = nth[0] if nth else None
+        if other is None:
+            oc.pronoun, oc.identity = True, ""
+        elif not subj.specific:
+            subj.objects = [k for k in subj.objects if k not in oc.objects]
+        rel = (word, oc)
+    plan = Plan(spec["form"], subj, rel, spec["n"], spec["quantity"], spec["direction"],
+                list(names))  # fmt: skip
+    sel = evaluate_plan(plan, tl)
+    k = sel.order[0]
+    dt = float(np.median(np.diff(tl.times)))
+    times = [[max(0.0, float(tl.times[s]) - dt / 2), min(1.0, float(tl.times[e]) + dt / 2)]
+             for s, e in sel.spans.get(k, [])]  # fmt: skip
+    out = {"question": spec["question"], "form": spec["form"], "object": names[k],
+           "times": times}  # fmt: skip
+    if spec["form"] in ("count", "count-select"):
+        out["count"] = sel.count
+    return out
+
+
+def timeline(times, centres, radius, contact, extra=None):
+    """A truth timeline: motion states by the query's predicates (`motion_phrases`, the
+    Phase 3 defaults) on the true centres, contact with the ground from `contact` [K, T]."""
+    cfg = SimpleNamespace(**{k: getattr(CFG, k) for k in (
+        "moving_speed", "rest_speed", "vertical_speed", "closing_speed", "contact_gap",
+        "phrase_smooth", "phrase_min_frames")})  # fmt: skip
+    up = np.array([0.0, 0.0, 1.0])
+    c, vel, s_ref = mp.smoothed_motion(centres, times, radius, cfg.phrase_smooth)
+    k, t = centres.shape[:2]
+    feats = np.zeros((k, t, 28))
+    feats[..., 2] = (extra or {}).get("turning", np.zeros((k, t)))
+
+    def activation(a):
+        if a.name == "contact":
+            return contact
+        pred = next(p for p in mp.PREDICATES if p.name == a.name)
+        m = mp.MatchedPredicate(pred, a.name, 1.0, target=a.target)
+        return mp.evaluate(m, feats, centres, np.zeros((k, 0, t)), [], list(range(1, k + 1)),
+                           radius, up, np.array([1.0, 0.0, 0.0]), times, cfg)  # fmt: skip
+
+    return Timeline(times, c @ up, np.linalg.norm(vel, axis=-1), activation)
+
+
+# --- the embedded scene ----------------------------------------------------------------------
+
+EMBEDDED = [
+    # ordinals over objects
+    Q("which object starts moving first", "ordinal-objects", atoms=["moving"], n=1),
+    Q("which thing comes to a stop first", "ordinal-objects", atoms=["at rest"], n=1),
+    Q("the first object to leave the ground", "ordinal-objects", atoms=["rising"], n=1),
+    Q("which object is the last to begin moving", "ordinal-objects", atoms=["moving"], n=-1),
+    # ordinals within one object's episodes
+    Q("the second time the red ball touches the floor", "ordinal-episodes", "red ball",
+      ["contact"], n=2),
+    Q("the first episode of the blue box standing still", "ordinal-episodes", "blue box",
+      ["at rest"], n=1),
+    Q("the last time the blue box is motionless", "ordinal-episodes", "blue box", ["at rest"],
+      n=-1),
+    Q("the red ball's first contact with the ground", "ordinal-episodes", "red ball",
+      ["contact"], n=1),
+    # counts
+    Q("how many times does the blue box stop", "count", "blue box", ["at rest"]),
+    Q("how often is the red ball on the ground", "count", "red ball", ["contact"]),
+    Q("how many times does the red ball go up", "count", "red ball", ["rising"]),
+    Q("the object that rises only once", "count-select", atoms=["rising"], n=1),
+    Q("which object is at rest twice", "count-select", atoms=["at rest"], n=2),
+    # relations
+    Q("the red ball while the blue box is sliding", "relation", "red ball",
+      relation=("while", "blue box", ["moving"], False)),
+    Q("the blue box while the red ball is not on the ground", "relation", "blue box",
+      relation=("while", "red ball", ["contact"], True)),
+    Q("the red ball before it jumps", "relation", "red ball",
+      relation=("before", None, ["rising"], False)),
+    Q("the blue box after it stops moving", "relation", "blue box",
+      relation=("after", None, ["moving"], True)),
+    Q("the red ball rolling after it lands", "relation", "red ball", ["moving"],
+      relation=("after", None, ["contact"], False)),
+    Q("the blue box during the red ball's descent", "relation", "blue box",
+      relation=("during", "red ball", ["falling"], False)),
+    Q("the green pillar until the blue box starts to move", "relation", "green pillar",
+      relation=("until", "blue box", ["moving"], False)),
+    # extremes
+    Q("the highest object", "extreme", quantity="height", direction="max"),
+    Q("which object moves the fastest", "extreme", atoms=["moving"], quantity="speed",
+      direction="max"),
+    Q("the object that stays still the longest", "extreme", atoms=["at rest"],
+      quantity="duration", direction="max"),
+    Q("the shortest rise", "extreme", atoms=["rising"], quantity="duration", direction="min"),
+    # negation
+    Q("the object that never moves", "negation", atoms=["moving"]),
+    Q("which object never turns", "negation", atoms=["turning"]),
+    Q("the red ball when it is not touching the ground", "relation", "red ball",
+      relation=("while", None, ["contact"], True)),
+    Q("the object that is never at rest", "negation", atoms=["at rest"]),
+]
+
+
+def embedded_truth() -> dict:
+    times = np.linspace(0.0, 1.0, 201)
+    names = [o.name for o in syn.OBJECTS]
+    centres = np.array([[syn.object_poses(float(t))[o.label][1] for t in times]
+                        for o in syn.OBJECTS])  # fmt: skip
+    radius = np.array([min(o.size) for o in syn.OBJECTS])
+    k, t = len(names), len(times)
+    contact = np.ones((k, t), bool)  # the box and the pillar stand on the plate throughout
+    contact[0] = ~((times > syn.HOP[0]) & (times < syn.HOP[2]))  # the ball's hop
+    turning = np.zeros((k, t))
+    turning[0] = 1.0  # the ball rolls throughout
+    s = (times - syn.SLIDE[0]) / (syn.SLIDE[1] - syn.SLIDE[0])
+    turning[1] = ((s > 0) & (s < 1)).astype(float)
+    tl = timeline(times, centres, radius, contact, {"turning": turning})
+    return {"version": 1, "kind": "relational", "scene": "embedded synthetic scene",
+            "truth": "sync4d.data.synthetic.object_poses (true poses) and STATES, on 201 "
+                     "times; examples/relational/make_truth.py",
+            "questions": [truth_answer(q, names, tl) for q in EMBEDDED]}  # fmt: skip
+
+
+# --- bouncingballs ---------------------------------------------------------------------------
+
+BB_NAMES = ["red ball", "green ball", "blue ball"]
+
+
+def _solve(rays: np.ndarray, keep: np.ndarray, smooth: float) -> np.ndarray:
+    """Points [T, 3] nearest the rays [T, 2, 3] (origin, unit direction) kept by `keep` [T],
+    with a second-difference smoothness prior of weight `smooth`."""
+    t = len(rays)
+    d2 = np.zeros((t - 2, t))
+    for i in range(t - 2):
+        d2[i, i:i + 3] = [1.0, -2.0, 1.0]
+    a, b = np.kron(d2.T @ d2, np.eye(3)) * smooth, np.zeros(3 * t)
+    for i in range(t):
+        if not keep[i]:
+            continue
+        o, d = rays[i]
+        q = np.eye(3) - np.outer(d, d)
+        a[3 * i:3 * i + 3, 3 * i:3 * i + 3] += q
+        b[3 * i:3 * i + 3] += q @ o
+    return np.linalg.solve(a, b).reshape(t, 3)
+
+
+def triangulate(root: Path, smooth: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
+    """(times [T], centres [3, T, 3]) of the three balls from their instance masks: in each
+    view the ray through the centre of the largest disc inside the ball's mask (a shadow or
+    highlight that the colour threshold attached to the ball moves the mask's mean, not
+    this), solved with a smoothness prior; then again without the views where that disc is
+    under 85 % of the ball's median size at its distance (another ball hides part of it)."""
+    from PIL import Image
+    from scipy.ndimage import distance_transform_edt
+
+    meta = json.loads((root / "transforms_train.json").read_text())
+    frames = sorted(meta["frames"], key=lambda f: f["time"])
+    t = len(frames)
+    rays = np.full((3, t, 2, 3), np.nan)
+    size = np.full((3, t), np.nan)  # inscribed radius / focal
+    for i, f in enumerate(frames):
+        m = np.asarray(Image.open(root / "masks" / (f["file_path"][2:] + ".png")))
+        w = m.shape[1]
+        focal = 0.5 * w / np.tan(0.5 * meta["camera_angle_x"])
+        c2w = np.asarray(f["transform_matrix"], np.float64)
+        for k in (1, 2, 3):
+            sel = m == k
+            if sel.sum() < 5:
+                continue
+            dist = distance_transform_edt(sel)
+            ys, xs = np.nonzero(dist >= dist.max() - 0.5)
+            d = np.array([(xs.mean() + 0.5 - w / 2) / focal, -(ys.mean() + 0.5 - w / 2) / focal,
+                          -1.0])  # fmt: skip
+            rays[k - 1, i] = [c2w[:3, 3], c2w[:3, :3] @ (d / np.linalg.norm(d))]
+            size[k - 1, i] = dist.max() / focal
+    out = np.zeros((3, t, 3))
+    for k in range(3):
+        seen = ~np.isnan(rays[k]).any(axis=(1, 2))
+        first = _solve(rays[k], seen, smooth)
+        radius = size[k] * np.linalg.norm(first - rays[k, :, 0], axis=1)
+        keep = seen & (radius >= 0.85 * np.nanmedian(radius))
+        out[k] = _solve(rays[k], keep, smooth)
+    return np.array([f["time"] for f in frames], np.float64), out
+
+
+BB = [
+    # ordinals over objects
+    Q("which ball lands first", "ordinal-objects", atoms=["contact"], n=1),
+    Q("which ball is the last to touch the ground", "ordinal-objects", atoms=["contact"], n=-1),
+    Q("the first ball to hit the floor", "ordinal-objects", atoms=["contact"], n=1),
+    Q("the third ball to land", "ordinal-objects", atoms=["contact"], n=3),
+    Q("the second ball to bounce", "ordinal-objects", atoms=["contact"], n=2),
+    # ordinals within one ball's episodes
+    Q("the second bounce of the red ball", "ordinal-episodes", "red ball", ["contact"], n=2),
+    Q("the blue ball's first bounce", "ordinal-episodes", "blue ball", ["contact"], n=1),
+    Q("the last time the red ball touches down", "ordinal-episodes", "red ball", ["contact"],
+      n=-1),
+    Q("the first time the green ball goes up", "ordinal-episodes", "green ball", ["rising"],
+      n=1),
+    Q("the second descent of the blue ball", "ordinal-episodes", "blue ball", ["falling"], n=2),
+    # counts
+    Q("how many times does the red ball bounce", "count", "red ball", ["contact"]),
+    Q("how many times does the green ball hit the ground", "count", "green ball",
+      ["contact"]),
+    Q("how often does the blue ball strike the plate", "count", "blue ball", ["contact"]),
+    Q("the ball that bounces only once", "count-select", atoms=["contact"], n=1),
+    Q("which ball bounces exactly one time", "count-select", atoms=["contact"], n=1),
+    Q("which ball bounces the fewest times", "count-select", atoms=["contact"],
+      quantity="count", direction="min"),
+    # relations
+    Q("the blue ball while the red ball is falling", "relation", "blue ball",
+      relation=("while", "red ball", ["falling"], False)),
+    Q("the red ball after it first lands", "relation", "red ball",
+      relation=("after", None, ["contact"], False)),
+    Q("the green ball before it hits the ground", "relation", "green ball",
+      relation=("before", None, ["contact"], False)),
+    Q("the green ball until the blue ball touches the plate", "relation", "green ball",
+      relation=("until", "blue ball", ["contact"], False)),
+    Q("the red ball rising after the green ball lands", "relation", "red ball", ["rising"],
+      relation=("after", "green ball", ["contact"], False)),
+    Q("the blue ball during the green ball's descent", "relation", "blue ball",
+      relation=("during", "green ball", ["falling"], False)),
+    Q("the green ball going up while the blue ball comes down", "relation", "green ball",
+      ["rising"], relation=("while", "blue ball", ["falling"], False)),
+    # extremes
+    Q("the highest ball", "extreme", quantity="height", direction="max"),
+    Q("which ball drops the fastest", "extreme", atoms=["falling"], quantity="speed",
+      direction="max"),
+    Q("the fastest ball", "extreme", quantity="speed", direction="max"),
+    Q("the longest fall", "extreme", atoms=["falling"], quantity="duration", direction="max"),
+    Q("which ball rises highest", "extreme", atoms=["rising"], quantity="height",
+      direction="max"),
+    # negation
+    Q("the red ball while it is not falling", "relation", "red ball",
+      relation=("while", None, ["falling"], True)),
+    Q("which ball never bounces after the red ball's second bounce", "negation",
+      atoms=["contact"], relation=("after", "red ball", ["contact"], False, 2)),
+    Q("which ball never touches the ground before the blue ball does", "negation",
+      atoms=["contact"], relation=("before", "blue ball", ["contact"], False)),
+]
+
+
+def bb_truth(root: Path) -> dict:
+    times, centres = triangulate(root)
+    radius = np.full(3, 0.15)  # world units: the balls' size in the masks' triangulation
+    c, _, s_ref = mp.smoothed_motion(centres, times, radius, CFG.phrase_smooth)
+    contact = rebounds(times, c[..., 2], s_ref, CFG.contact_gap * radius, CFG)
+    tl = timeline(times, centres, radius, contact)
+    return {"version": 1, "kind": "relational", "scene": "D-NeRF bouncingballs",
+            "truth": "ball centres triangulated from the instance masks of the 150 training "
+                     "views (masks/train, labels.json) with a smoothness prior; contact: "
+                     "rebounds of the true height (relational.rebounds); "
+                     "examples/relational/make_truth.py",
+            "questions": [truth_answer(q, BB_NAMES, tl) for q in BB]}  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(HERE.parents[2] / "shared" / "data" / "dnerf" /
+                                          "bouncingballs"))  # fmt: skip
+    ap.add_argument("--out", default=str(HERE))
+    args = ap.parse_args()
+    out = Path(args.out)
+    (out / "embedded.json").write_text(json.dumps(embedded_truth(), indent=1) + "\n")
+    data = Path(args.data)
+    if (data / "masks" / "train").is_dir():
+        (out / "bouncingballs.json").write_text(json.dumps(bb_truth(data), indent=1) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
