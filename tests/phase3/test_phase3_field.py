@@ -149,6 +149,32 @@ def test_standardise_per_object_over_observed_frames():
         np.testing.assert_allclose(s[k, :, 5], 0.0)
 
 
+def test_unobserved_frames_stay_in_the_observed_range():
+    """`clip_unobserved`: an occluded object's visible fraction (dim 5) drops to 0, far below
+    what it was when seen; its standardised value there is clipped to the seen range, so the
+    ridge map is not extrapolated. Observed frames are untouched; off, Eq. 14 as written."""
+    rng = np.random.default_rng(2)
+    feats = rng.normal(0.0, 1.0, (1, 30, 28))
+    feats[0, :, 5] = rng.uniform(0.6, 0.9, 30)
+    observed = np.ones((1, 30), bool)
+    observed[0, 10:15] = False
+    feats[0, 10:15, 5] = 0.0
+    on, off = fm.standardise(feats, observed), fm.standardise(feats, observed, False)
+    sel = observed[0]
+    np.testing.assert_array_equal(on[0, sel], off[0, sel])
+    lo, hi = off[0, sel].min(0), off[0, sel].max(0)
+    assert np.all(on[0, ~sel] >= lo - 1e-12) and np.all(on[0, ~sel] <= hi + 1e-12)
+    assert off[0, 10, 5] < lo[5] - 5.0 and on[0, 10, 5] == pytest.approx(lo[5])
+    # W = 0: e_hat is the static anchor at every frame, the observations still blended
+    obs = fm._unit(rng.normal(size=(1, 30, 8)))
+    static = fm.static_embeddings(obs, observed)
+    pred, w = fm.predict_embeddings(on, obs, observed, static, kinematics=False)
+    assert not w.any()
+    np.testing.assert_allclose(pred, np.repeat(static[:, None], 30, 1), atol=1e-12)
+    sync = fm.temporal_ema(fm.blend(pred, obs, observed), 0.15)
+    np.testing.assert_allclose(fm.unconditioned_sync(static, obs, observed), sync, atol=1e-12)
+
+
 def test_ridge_equals_a_direct_solve():
     rng = np.random.default_rng(2)
     x = rng.normal(size=(40, 29))
