@@ -312,6 +312,10 @@ def answer(
             rel = answer_relational(field, text, cache, cfg)
         except RelationalError as e:
             rel, fallback = None, f"{e}; answered by the {scorer} scorer instead"
+        else:
+            if rel is None:
+                fallback = (f"no relational word read (first, how many, before, while, "
+                            f"highest, never, ...); answered by the {scorer} scorer")  # fmt: skip
         if rel is not None:
             plan = rel
             sc = _Scored(rel["score"], rel["active"], rel["active"].astype(np.float64),

@@ -30,19 +30,19 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   side) of the lowest point, so an interval score of an instant measures its timing rather
   than failing on one frame. Approaching / moving away from the ground is falling / rising.
 * **Operators** (`Plan`), applied in this order: an optional *relation* filters the subject's
-  frames by another clause (while / during: both hold; before / until: before the other
-  clause's first onset, an episode starting after the first frame; after: from that onset
-  on; "it" in the other clause is the subject itself; an ordinal there picks that episode,
-  "after its second bounce"; a clause without a state or event repeats the subject's,
-  "before the blue ball does"); then one *selection*: an ordinal over objects (the objects
-  ordered by the onset of their first episode: "first", "second", "last"; an episode under
-  way at the first frame has no onset in the clip and ranks after every observed one; "stops
-  X" reads as the onset of not-X), an ordinal over one object's episodes ("the second bounce
-  of X"), a count ("how many times": the number of episodes), a count selection ("once",
-  "twice", "N times"; "most", "fewest"), an extreme over a kinematic quantity ("highest" /
-  "lowest": height along the field's up vector; "fastest" / "slowest": speed; "longest" /
-  "shortest": an episode's duration) or a negation ("never": the object whose frames are all
-  false; "not" inside a clause: the complement).
+  frames by another clause (while / during: both hold; before / until: before the other clause's
+  first onset, an episode starting after the first frame; after: from that onset on; "it" in the
+  other clause is the subject itself; an ordinal there picks that episode, "after its second
+  bounce"; a clause without a state or event repeats the subject's, "before the blue ball does";
+  "before / after the others" is the first / last over the class); then one *selection*: an
+  ordinal over objects (the objects ordered by the onset of their first episode: "first",
+  "second", "last"; an episode under way at the first frame has no onset in the clip and ranks
+  after every observed one; "stops X" reads as the onset of not-X), an ordinal over one object's
+  episodes ("the second bounce of X"), a count ("how many times": the number of episodes), a
+  count selection ("once", "twice", "N times"; "most", "fewest"), an extreme over a kinematic
+  quantity ("highest" / "lowest": height along the field's up vector; "fastest" / "slowest":
+  speed; "longest" / "shortest": an episode's duration) or a negation ("never": the object whose
+  frames are all false; "not" inside a clause: the complement).
 * **Subjects.** A selection over objects (ordinals over objects, count selections, extremes,
   "never", "which ...") reads its subject as a class: every object whose name's similarity to
   the identity words is within `CLASS_MARGIN` of the best ("ball" keeps every ball, "object"
@@ -106,7 +106,9 @@ EXTREMES = {"highest": ("height", "max"), "lowest": ("height", "min"),
 NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "four": 4,
            "five": 5, "six": 6, "seven": 7, "eight": 8, "nine": 9, "ten": 10}
 #: A count question.
-COUNT_WORDS = (("how", "many"), ("how", "often"), ("number", "of"))
+COUNT_WORDS = (("how", "many"), ("how", "often"), ("number", "of"), ("count",))
+#: "... before the others": the relation is an ordinal over the subject's class.
+OTHERS = ("others", "other", "rest", "ones", "remaining")
 #: Negation.
 NEGATIONS = ("never", "not", "no")
 #: Words that carry no content (questions, articles, auxiliaries, pronouns).
@@ -306,9 +308,10 @@ def _split(text: str) -> _Reading | None:
     while i < len(lw):
         w = lw[i]
         nxt = lw[i + 1] if i + 1 < len(lw) else ""
-        if any(tuple(lw[i:i + len(c)]) == c for c in COUNT_WORDS):
+        hit = next((c for c in COUNT_WORDS if tuple(lw[i:i + len(c)]) == c), None)
+        if hit is not None:
             r.count_ask = True
-            i += 2
+            i += len(hit)
             if i < len(lw) and lw[i] in ("times", "time"):
                 i += 1
             continue
@@ -337,6 +340,11 @@ def _split(text: str) -> _Reading | None:
         out.append(w)
         i += 1
     r.left = out
+    if r.relation in ("before", "after") and r.right is not None and r.ordinal is None \
+            and any(w in OTHERS for w in r.right) \
+            and all(w in OTHERS or w in STOP for w in r.right):  # fmt: skip
+        r.ordinal = 1 if r.relation == "before" else -1
+        r.relation, r.right, r.which = None, None, True
     if r.right is not None:
         rest = []
         for w in r.right:
@@ -447,6 +455,12 @@ def _read_clause(words: list[str], field: Field, cache: TextCache, cfg, *,
     if ending and any(not (s <= ending[0] < e) for s, e, _ in found):
         found = [f for f in found if not (f[0] <= ending[0] < f[1])]
         negated = not negated
+    if not subject_words:  # "how many bounces does the blue ball make": the subject
+        for _, _, a in found:
+            tw = a.target_text.split()
+            if tw and not any(w in mp.BACKGROUND_WORDS for w in tw):
+                subject_words, a.target_text = tw, ""
+                break
     for _, _, a in found:
         _resolve(a, field, cache)
     identity = " ".join(subject_words)
@@ -724,7 +738,8 @@ def select(plan: Plan, act: np.ndarray, tl: Timeline) -> Selected:
                 cand.append((float(v) * sign, (s, e)))
             best[k] = max(cand, key=lambda x: x[0]) if cand else (-np.inf, None)
         else:
-            qq = np.where(act[k], q, np.nan) if not act[k].all() else q
+            events = bool(plan.subject.atoms) and plan.relation is None
+            qq = np.where(act[k], q, np.nan) if not (act[k].all() or events) else q
             if np.isnan(qq).all():
                 best[k] = (-np.inf, None)
                 continue

@@ -59,28 +59,29 @@ def read_relational(path: str | Path, names: list[str]) -> list[dict]:
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
-        raise AnnotationError(f"{p}: not a readable JSON file ({e})") from None
+        raise AnnotationError(p, f"not a readable JSON file ({e})") from None
     qs = doc.get("questions")
     if not isinstance(qs, list) or not qs:
-        raise AnnotationError(f"{p}: needs a non-empty \"questions\" list")
+        raise AnnotationError(p, "no \"questions\" list", "give a non-empty list of questions")
     for i, q in enumerate(qs):
-        where = f"{p}: question {i + 1}"
+        where = f"question {i + 1}"
         if not isinstance(q, dict) or not isinstance(q.get("question"), str):
-            raise AnnotationError(f"{where}: each question is an object with a \"question\" text")
+            raise AnnotationError(p, f"{where} is not an object with a \"question\" text")
         extra = set(q) - _KEYS
         if extra:
-            raise AnnotationError(f"{where}: unknown keys {sorted(extra)}; allowed: "
-                                  f"{sorted(_KEYS)}")  # fmt: skip
+            raise AnnotationError(p, f"{where} has unknown keys {sorted(extra)}",
+                                  f"allowed: {sorted(_KEYS)}")  # fmt: skip
         if q.get("form") not in FORMS:
-            raise AnnotationError(f"{where}: \"form\" must be one of {list(FORMS)}")
+            raise AnnotationError(p, f"{where} has form {q.get('form')!r}",
+                                  f"\"form\" must be one of {list(FORMS)}")  # fmt: skip
         if q.get("object") not in names:
-            raise AnnotationError(f"{where}: \"object\" {q.get('object')!r} is no object of "
-                                  f"this run ({', '.join(names)})")  # fmt: skip
+            raise AnnotationError(p, f"{where}: \"object\" {q.get('object')!r} is no object "
+                                  "of this run", f"use one of {', '.join(names)}")  # fmt: skip
         times = q.get("times")
         if not isinstance(times, list) or any(
                 not isinstance(r, list) or len(r) != 2 or r[0] > r[1] for r in times):
-            raise AnnotationError(f"{where}: \"times\" is a list of [t0, t1] ranges of "
-                                  "normalised time, t0 <= t1")  # fmt: skip
+            raise AnnotationError(p, f"{where} has bad \"times\"", "give a list of [t0, t1] "
+                                  "ranges of normalised time, t0 <= t1")  # fmt: skip
     return qs
 
 
