@@ -97,7 +97,8 @@ def timeline(times, centres, radius, contact, extra=None):
         return mp.evaluate(m, feats, centres, np.zeros((k, 0, t)), [], list(range(1, k + 1)),
                            radius, up, np.array([1.0, 0.0, 0.0]), times, cfg)  # fmt: skip
 
-    return Timeline(times, c @ up, np.linalg.norm(vel, axis=-1), activation)
+    return Timeline(times, c @ up, np.linalg.norm(vel, axis=-1), activation,
+                    cfg.phrase_min_frames)  # fmt: skip
 
 
 # --- the embedded scene ----------------------------------------------------------------------
@@ -138,8 +139,15 @@ EMBEDDED = [
       relation=("during", "red ball", ["falling"], False)),
     Q("the green pillar until the blue box starts to move", "relation", "green pillar",
       relation=("until", "blue box", ["moving"], False)),
+    Q("which object turns first", "ordinal-objects", atoms=["turning"], n=1),
+    Q("how many times does the blue box slide", "count", "blue box", ["moving"]),
+    Q("the blue box before the red ball jumps", "relation", "blue box",
+      relation=("before", "red ball", ["rising"], False)),
+    Q("the red ball while the blue box is at rest", "relation", "red ball",
+      relation=("while", "blue box", ["at rest"], False)),
     # extremes
     Q("the highest object", "extreme", quantity="height", direction="max"),
+    Q("the lowest object", "extreme", quantity="height", direction="min"),
     Q("which object moves the fastest", "extreme", atoms=["moving"], quantity="speed",
       direction="max"),
     Q("the object that stays still the longest", "extreme", atoms=["at rest"],

@@ -34,15 +34,16 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   first onset, an episode starting after the first frame; after: from that onset on; "it" in the
   other clause is the subject itself; an ordinal there picks that episode, "after its second
   bounce"; a clause without a state or event repeats the subject's, "before the blue ball does";
-  "before / after the others" is the first / last over the class); then one *selection*: an
-  ordinal over objects (the objects ordered by the onset of their first episode: "first",
-  "second", "last"; an episode under way at the first frame has no onset in the clip and ranks
-  after every observed one; "stops X" reads as the onset of not-X), an ordinal over one object's
-  episodes ("the second bounce of X"), a count ("how many times": the number of episodes), a
-  count selection ("once", "twice", "N times"; "most", "fewest"), an extreme over a kinematic
-  quantity ("highest" / "lowest": height along the field's up vector; "fastest" / "slowest":
-  speed; "longest" / "shortest": an episode's duration) or a negation ("never": the object whose
-  frames are all false; "not" inside a clause: the complement).
+  "before / after the others" is the first / last over the class); then one *selection* on the
+  resulting episodes (gaps shorter than `phrase_min_frames` closed): an ordinal over objects
+  (the objects ordered by the onset of their first episode: "first", "second", "last"; an
+  episode under way at the first frame has no onset in the clip and ranks after every observed
+  one; "stops X" reads as the onset of not-X), an ordinal over one object's episodes ("the
+  second bounce of X"), a count ("how many times": the number of episodes), a count selection
+  ("once", "twice", "N times"; "most", "fewest"), an extreme over a kinematic quantity
+  ("highest" / "lowest": height along the field's up vector; "fastest" / "slowest": speed;
+  "longest" / "shortest": an episode's duration) or a negation ("never": the object whose frames
+  are all false; "not" inside a clause: the complement).
 * **Subjects.** A selection over objects (ordinals over objects, count selections, extremes,
   "never", "which ...") reads its subject as a class: every object whose name's similarity to
   the identity words is within `CLASS_MARGIN` of the best ("ball" keeps every ball, "object"
@@ -53,7 +54,8 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   atom's episodes when the atom is a state (for rising and falling: the height an episode
   gains or loses, "rises highest"), else over the whole clip; the answer's interval is
   the atom episode holding it, or the run of frames around it on the extreme side of the
-  object's mid-range (Appendix F's half-peak rule on the quantity). Durations need an atom.
+  object's mid-range (Appendix F's half-peak rule on the quantity; the whole clip when the
+  object's quantity is flat, `FLAT`). Durations need an atom.
 * **Unparsed.** A text without any function word is no relational question (`parse` returns
   None and `query` answers it with today's scorer); a text with one that cannot be read raises
   `RelationalError`, which says what to write, and `query` falls back to today's scorer,
@@ -142,6 +144,9 @@ ATOM_EXTRA = 0.7
 CLASS_MARGIN = 0.12
 #: Half-width (normalised time) of the interval reported for an instantaneous event.
 EVENT_WINDOW = 0.03
+#: A quantity varying by at most this fraction of the largest range among the compared
+#: objects has no peak of its own (extremes answer the whole clip for it).
+FLAT = 0.05
 #: Names of the contact event (the scene description's "contact", "rebound").
 CONTACT_WORDS = ("contact", "rebound", "bounce")
 
@@ -606,6 +611,9 @@ class Timeline:
     height: np.ndarray
     speed: np.ndarray
     activation: object  # Callable[[Atom], np.ndarray [K, T]]
+    #: Gaps shorter than this many frames inside a clause's episodes are closed (an episode
+    #: is not two because a slow motion dips under a threshold for a frame or two).
+    merge: int = 0
 
     def window(self) -> int:
         """Frames each side of an instantaneous event (`EVENT_WINDOW`, at least 1)."""
@@ -618,7 +626,13 @@ def _clause_active(c: Clause, tl: Timeline) -> np.ndarray:
     act = np.ones((k, t), bool)
     for a in c.atoms:
         act &= np.asarray(tl.activation(a), bool)
-    return ~act if c.negated else act
+    act = ~act if c.negated else act
+    for row in act:
+        eps = _episodes(row)
+        for (_, e), (s, _) in zip(eps, eps[1:], strict=False):
+            if s - e - 1 < tl.merge:
+                row[e:s] = True
+    return act
 
 
 def relate(a: np.ndarray, b: np.ndarray, word: str) -> np.ndarray:
@@ -644,12 +658,14 @@ def _episodes(row: np.ndarray) -> list[tuple[int, int]]:
     return intervals(np.asarray(row, bool))
 
 
-def _peak_run(q: np.ndarray, direction: str) -> tuple[float, tuple[int, int]]:
-    """(extreme value, the run around it on its side of the mid-range) of `q` [T]."""
+def _peak_run(q: np.ndarray, direction: str, scale: float = 0.0) -> tuple[float, tuple[int, int]]:
+    """(extreme value, the run around it on its side of the mid-range) of `q` [T]; the whole
+    clip when `q` varies by at most `FLAT` of `scale` (the largest range among the compared
+    objects): a still object's speed or height has no peak but its noise."""
     f = int(np.argmax(q) if direction == "max" else np.argmin(q))
     lo, hi = float(q.min()), float(q.max())
     side = q >= lo + 0.5 * (hi - lo) if direction == "max" else q <= lo + 0.5 * (hi - lo)
-    if hi == lo:
+    if hi - lo <= FLAT * scale or hi == lo:
         side = np.ones_like(q, bool)
     for s, e in _episodes(side):
         if s <= f <= e:
@@ -722,6 +738,8 @@ def select(plan: Plan, act: np.ndarray, tl: Timeline) -> Selected:
     # extreme
     sign = 1.0 if plan.direction == "max" else -1.0
     best: dict[int, tuple[float, tuple[int, int] | None]] = {}
+    quantity = tl.height if plan.quantity == "height" else tl.speed
+    scale = max(float(np.ptp(quantity[k])) for k in cands) if cands else 0.0
     for k in cands:
         if plan.quantity == "duration":
             cand = [((e - s + 1) * sign, (s, e)) for s, e in eps[k]]
@@ -744,7 +762,8 @@ def select(plan: Plan, act: np.ndarray, tl: Timeline) -> Selected:
                 best[k] = (-np.inf, None)
                 continue
             fill = np.nanmin(qq) if sign > 0 else np.nanmax(qq)
-            v, run = _peak_run(np.where(np.isnan(qq), fill, qq), plan.direction or "max")
+            v, run = _peak_run(np.where(np.isnan(qq), fill, qq), plan.direction or "max",
+                               scale)  # fmt: skip
             best[k] = (v * sign, run)
     key = {k: best[k][0] for k in cands}
     order = ranked(key, reverse=True)
@@ -859,7 +878,7 @@ def field_timeline(field: Field, cfg) -> Timeline:
         return memo[key]
 
     return Timeline(np.asarray(field.times), c @ field.up, np.linalg.norm(vel, axis=-1),
-                    activation)  # fmt: skip
+                    activation, int(cfg.phrase_min_frames))  # fmt: skip
 
 
 def answer_relational(field: Field, text: str, cache: TextCache, cfg) -> dict | None:
