@@ -34,16 +34,16 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   first onset, an episode starting after the first frame; after: from that onset on; "it" in the
   other clause is the subject itself; an ordinal there picks that episode, "after its second
   bounce"; a clause without a state or event repeats the subject's, "before the blue ball does";
-  "before / after the others" is the first / last over the class); then one *selection* on the
-  resulting episodes (gaps shorter than `phrase_min_frames` closed): an ordinal over objects
-  (the objects ordered by the onset of their first episode: "first", "second", "last"; an
-  episode under way at the first frame has no onset in the clip and ranks after every observed
-  one; "stops X" reads as the onset of not-X), an ordinal over one object's episodes ("the
-  second bounce of X"), a count ("how many times": the number of episodes), a count selection
-  ("once", "twice", "N times"; "most", "fewest"), an extreme over a kinematic quantity
-  ("highest" / "lowest": height along the field's up vector; "fastest" / "slowest": speed;
-  "longest" / "shortest": an episode's duration) or a negation ("never": the object whose frames
-  are all false; "not" inside a clause: the complement).
+  "before / after the others" is the first / last over the class; "which ball X after Y" is the
+  first to X after Y); then one *selection* on the resulting episodes (gaps shorter than
+  `phrase_min_frames` closed): an ordinal over objects (the objects ordered by the onset of
+  their first episode: "first", "second", "last"; an episode under way at the first frame has no
+  onset in the clip and ranks after every observed one; "stops X" reads as the onset of not-X),
+  an ordinal over one object's episodes ("the second bounce of X"), a count ("how many times":
+  the number of episodes), a count selection ("once", "twice", "N times"; "most", "fewest"), an
+  extreme over a kinematic quantity ("highest" / "lowest": height along the field's up vector;
+  "fastest" / "slowest": speed; "longest" / "shortest": an episode's duration) or a negation
+  ("never": the object whose frames are all false; "not" inside a clause: the complement).
 * **Subjects.** A selection over objects (ordinals over objects, count selections, extremes,
   "never", "which ...") reads its subject as a class: every object whose name's similarity to
   the identity words is within `CLASS_MARGIN` of the best ("ball" keeps every ball, "object"
@@ -111,6 +111,11 @@ NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "
 COUNT_WORDS = (("how", "many"), ("how", "often"), ("number", "of"), ("count",))
 #: "... before the others": the relation is an ordinal over the subject's class.
 OTHERS = ("others", "other", "rest", "ones", "remaining")
+#: Adverbs that only tighten a relation word ("right after", "just before").
+HEDGES = ("right", "just", "immediately", "shortly", "soon", "directly", "long")
+#: Comparatives read as superlatives before "than the others / any other".
+COMPARATIVES = {"higher": "highest", "lower": "lowest", "faster": "fastest",
+                "slower": "slowest", "longer": "longest", "shorter": "shortest"}
 #: Negation.
 NEGATIONS = ("never", "not", "no")
 #: Words that carry no content (questions, articles, auxiliaries, pronouns).
@@ -197,7 +202,8 @@ class Atom:
     def __str__(self) -> str:
         if self.target is None or not ATOMS[self.name].relational:
             return self.name
-        return f"{self.name} with {self.target_text or 'background'}"
+        prep = {"contact": " with", "moving away": " from"}.get(self.name, "")
+        return f"{self.name}{prep} {self.target_text or 'background'}"
 
 
 @dataclass
@@ -301,6 +307,13 @@ def _split(text: str) -> _Reading | None:
     """The question's function words; None when it has none (not a relational question)."""
     words = _words(text)
     which = bool(words) and words[0] in ("which", "what", "who")
+    words = [w for i, w in enumerate(words)
+             if not (w in HEDGES and i + 1 < len(words) and words[i + 1] in RELATIONS)]
+    for i, w in enumerate(words[:-2]):  # "higher than the others": a superlative
+        if w in COMPARATIVES and words[i + 1] == "than" and any(
+                x in OTHERS or x in ("any", "all", "every") for x in words[i + 2:]):
+            words = words[:i] + [COMPARATIVES[w]]
+            break
     rel, right, left = None, None, words
     for i, w in enumerate(words):
         if w in RELATIONS and i > 0:
@@ -364,6 +377,18 @@ def _split(text: str) -> _Reading | None:
     return r
 
 
+def _stems(word: str) -> list[str]:
+    """`word` and, for a third-person verb form, its stems ("leaves": "leave", "leav")."""
+    out = [word]
+    if len(word) > 3 and word.endswith("ies"):
+        out.append(word[:-3] + "y")
+    elif len(word) > 3 and word.endswith("es"):
+        out += [word[:-1], word[:-2]]
+    elif len(word) > 3 and word.endswith("s") and not word.endswith("ss"):
+        out.append(word[:-1])
+    return out
+
+
 def _sim(cache: TextCache, a: list[str], b: list[str]) -> np.ndarray:
     return cache.similarity(a, b) if a and b else np.zeros((len(a), len(b)))
 
@@ -405,7 +430,16 @@ def _read_clause(words: list[str], field: Field, cache: TextCache, cfg, *,
     named = not all(n.startswith("object ") for n in field.names)
     if content:
         cw = [words[i] for i in content]
-        sa = _sim(cache, cw, phrases).max(1)
+        # a verb's third person ("leaves", "lands") read as its stem when that is nearer
+        forms = [_stems(w) for w in cw]
+        flat = [f for fs in forms for f in fs]
+        sims = _sim(cache, flat, phrases).max(1)
+        sa, pos = np.zeros(len(cw)), 0
+        for j, fs in enumerate(forms):
+            best = int(np.argmax(sims[pos:pos + len(fs)]))
+            sa[j] = sims[pos + best]
+            words[content[j]] = fs[best]
+            pos += len(fs)
         sn = _sim(cache, cw, field.names).max(1) if named else np.full(len(cw), -1.0)
         for j, i in enumerate(content):
             need = ATOM_STRONG if i > 0 and words[i - 1] in DETERMINERS else ATOM_MATCH
@@ -576,6 +610,9 @@ def parse(text: str, field: Field, cache: TextCache, cfg) -> Plan | None:
         if form == "ordinal-objects" and len(subject.objects) < 2 and r.which:
             form = "ordinal-episodes"
         plan = Plan(form, subject, relation, r.ordinal, names=names)
+    elif relation is not None and relation[0] == "after" and not subject.specific \
+            and subject.atoms:  # "which ball lands after the red ball": the next one
+        plan = Plan("ordinal-objects", subject, relation, 1, names=names)
     else:
         plan = Plan("relation", subject, relation, names=names)
     return plan

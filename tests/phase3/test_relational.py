@@ -170,6 +170,16 @@ def test_others_make_an_ordinal_and_count_is_a_count_word(bb):
         "count(contact with background) of red ball")  # fmt: skip
 
 
+def test_verb_forms_hedges_comparatives_and_the_next_one(bb):
+    # "leaves" reads through its stem "leave" (the encoder finds "leaves" far from "leaving")
+    assert _plan(bb, "the ball that never leaves the ground").startswith(
+        "never(moving away from background) over {")  # fmt: skip
+    plan = _plan(bb, "which ball hits the plate right after the red ball does")
+    head = "first(contact with background after contact with background of {red ball}) over {"
+    assert plan.startswith(head) and "red" not in plan[len(head):]  # the next one of the rest
+    assert _plan(bb, "which ball is higher than the others").startswith("max(height, present)")
+
+
 def test_answers_on_a_bouncing_field(bb):
     ans, name, spans = _top(bb, "which ball lands first")
     assert name == "red ball" and len(spans) == 1 and spans[0][0] <= 20 <= spans[0][1]
