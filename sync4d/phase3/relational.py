@@ -105,8 +105,8 @@ EXTREMES = {"highest": ("height", "max"), "lowest": ("height", "min"),
             "shortest": ("duration", "min"), "most": ("count", "max"),
             "fewest": ("count", "min"), "least": ("count", "min")}
 #: Count words of a count selection ("twice", "three times").
-NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "two": 2, "three": 3, "four": 4,
-           "five": 5, "six": 6, "seven": 7, "eight": 8, "nine": 9, "ten": 10}
+NUMBERS = {"once": 1, "twice": 2, "thrice": 3, "one": 1, "single": 1, "two": 2, "three": 3,
+           "four": 4, "five": 5, "six": 6, "seven": 7, "eight": 8, "nine": 9, "ten": 10}
 #: A count question.
 COUNT_WORDS = (("how", "many"), ("how", "often"), ("number", "of"), ("count",))
 #: "... before the others": the relation is an ordinal over the subject's class.
@@ -277,14 +277,6 @@ def plan_text(plan: Plan) -> str:
 
 
 # --- parsing ---------------------------------------------------------------------------------
-
-
-def _has(words: list[str], seq: tuple[str, ...]) -> int:
-    n = len(seq)
-    for i in range(len(words) - n + 1):
-        if tuple(words[i:i + n]) == seq:
-            return i
-    return -1
 
 
 @dataclass
