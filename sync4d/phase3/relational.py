@@ -22,7 +22,9 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   wordings, only the grammar's function words (`ORDINALS`, `RELATIONS`, `EXTREMES`, ...).
 * **Contact with the ground** is the union of rebounds and the gap evidence (the height
   above the surface under the object below `contact_gap` times its radius, as "touching the
-  ground" reads today) where a run of it holds no rebound (rolling, resting; around a rebound
+  ground" reads today, and the object within that of its lowest height over the clip: a
+  reconstruction whose plate Gaussians cling to a ball would keep it "touching" in the air)
+  where a run of it holds no rebound (rolling, resting; around a rebound
   it is the ball passing near the surface). A rebound is a fall followed by a rise whose
   lowest point between them is at most max(`contact_gap` radius, a quarter of the object's
   height range) above the object's lowest height over the clip. A rebound is an instant; it
@@ -31,19 +33,20 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   than failing on one frame. Approaching / moving away from the ground is falling / rising.
 * **Operators** (`Plan`), applied in this order: an optional *relation* filters the subject's
   frames by another clause (while / during: both hold; before / until: before the other clause's
-  first onset, an episode starting after the first frame; after: from that onset on; "it" in the
-  other clause is the subject itself; an ordinal there picks that episode, "after its second
-  bounce"; a clause without a state or event repeats the subject's, "before the blue ball does";
-  "before / after the others" is the first / last over the class; "which ball X after Y" is the
-  first to X after Y); then one *selection* on the resulting episodes (gaps shorter than
-  `phrase_min_frames` closed): an ordinal over objects (the objects ordered by the onset of
-  their first episode: "first", "second", "last"; an episode under way at the first frame has no
-  onset in the clip and ranks after every observed one; "stops X" reads as the onset of not-X),
-  an ordinal over one object's episodes ("the second bounce of X"), a count ("how many times":
-  the number of episodes), a count selection ("once", "twice", "N times"; "most", "fewest"), an
-  extreme over a kinematic quantity ("highest" / "lowest": height along the field's up vector;
-  "fastest" / "slowest": speed; "longest" / "shortest": an episode's duration) or a negation
-  ("never": the object whose frames are all false; "not" inside a clause: the complement).
+  first onset, the start of an episode that begins after the first `phrase_min_frames` frames;
+  after: from that onset on; "it" in the other clause is the subject itself; an ordinal there
+  picks that episode, "after its second bounce"; a clause without a state or event repeats the
+  subject's, "before the blue ball does"; "before / after the others" is the first / last over
+  the class; "which ball X after Y" is the first to X after Y); then one *selection* on the
+  resulting episodes (gaps shorter than `phrase_min_frames` closed): an ordinal over objects
+  (the objects ordered by the onset of their first episode: "first", "second", "last"; an
+  episode under way in the first `phrase_min_frames` frames has no onset in the clip and ranks
+  after every observed one; "stops X" reads as the onset of not-X), an ordinal over one object's
+  episodes ("the second bounce of X"), a count ("how many times": the number of episodes), a
+  count selection ("once", "twice", "N times"; "most", "fewest"), an extreme over a kinematic
+  quantity ("highest" / "lowest": height along the field's up vector; "fastest" / "slowest":
+  speed; "longest" / "shortest": an episode's duration) or a negation ("never": the object whose
+  frames are all false; "not" inside a clause: the complement).
 * **Subjects.** A selection over objects (ordinals over objects, count selections, extremes,
   "never", "which ...") reads its subject as a class: every object whose name's similarity to
   the identity words is within `CLASS_MARGIN` of the best ("ball" keeps every ball, "object"
@@ -644,6 +647,12 @@ class Timeline:
     #: is not two because a slow motion dips under a threshold for a frame or two).
     merge: int = 0
 
+    def onset_frames(self) -> int:
+        """The first frame an onset can be at: a state needs to be absent for `merge`
+        frames (the shortest state) before it begins, so an episode that starts earlier was
+        under way when the clip began (at least 1: frame 0 is never an onset)."""
+        return max(1, self.merge)
+
     def window(self) -> int:
         """Frames each side of an instantaneous event (`EVENT_WINDOW`, at least 1)."""
         dt = float(np.median(np.diff(self.times))) if len(self.times) > 1 else 1.0
@@ -664,16 +673,16 @@ def _clause_active(c: Clause, tl: Timeline) -> np.ndarray:
     return act
 
 
-def relate(a: np.ndarray, b: np.ndarray, word: str) -> np.ndarray:
+def relate(a: np.ndarray, b: np.ndarray, word: str, lead: int = 1) -> np.ndarray:
     """Frames [T] of `a` [T] in relation `word` to `b` [T]: while / during: both; before /
-    until: before the first onset of `b` (an episode that starts after the first frame);
+    until: before the first onset of `b` (an episode that starts at frame `lead` or later);
     after: from that onset on (after the end of `b`'s first episode when it has no onset)."""
     if word in ("while", "during"):
         return a & b
     iv = intervals(b)
     t = len(a)
     idx = np.arange(t)
-    onsets = [s for s, _ in iv if s > 0]
+    onsets = [s for s, _ in iv if s >= lead]
     if word in ("before", "until"):
         return a & (idx < onsets[0]) if onsets else np.zeros(t, bool)
     if word == "after":
@@ -728,10 +737,11 @@ def select(plan: Plan, act: np.ndarray, tl: Timeline) -> Selected:
         order = ranked(cnt, reverse=True)
         return Selected(order, eps, None, cnt)
     if form == "ordinal-objects":
-        # by onset: an episode under way at the first frame has none in the clip
-        start = {k: next((float(s) for s, _ in eps[k] if s > 0), t + (0.0 if eps[k] and
-                         eps[k][0][0] == 0 else np.inf)) for k in cands}  # fmt: skip
-        eps = {k: [e for e in eps[k] if e[0] > 0] or eps[k] for k in cands}
+        # by onset: an episode under way from the clip's first frames has none in the clip
+        lead = tl.onset_frames()
+        start = {k: next((float(s) for s, _ in eps[k] if s >= lead), t + (0.0 if eps[k]
+                         else np.inf)) for k in cands}  # fmt: skip
+        eps = {k: [e for e in eps[k] if e[0] >= lead] or eps[k] for k in cands}
         order = sorted([k for k in cands if np.isfinite(start[k])],
                        key=lambda k: (start[k], cands.index(k)))  # fmt: skip
         n = plan.n or 1
@@ -819,7 +829,7 @@ def evaluate_plan(plan: Plan, tl: Timeline) -> Selected:
                     s, e = eps[-1] if n == -1 else eps[n - 1]
                     row_b[s:e + 1] = True
             row_a = act[k] if has_atoms else np.ones_like(act[k])
-            act[k] = relate(row_a, row_b, word)
+            act[k] = relate(row_a, row_b, word, tl.onset_frames())
     return select(plan, act, tl)
 
 
@@ -858,8 +868,9 @@ def rebounds(times: np.ndarray, height: np.ndarray, s_ref: float, tol: np.ndarra
 
 def ground_contact(field: Field, cfg) -> np.ndarray:
     """Contact with the background [K, T] (see the module notes): a rebound (`rebounds`) of
-    M_phi's smoothed centroid height, or a run of small gaps that holds no rebound (rolling,
-    resting: a run around a rebound is the ball passing near the surface on its way)."""
+    M_phi's smoothed centroid height, or a run of small gaps, within the same tolerance of the
+    object's lowest height, that holds no rebound (rolling, resting: a run around a rebound is
+    the ball passing near the surface on its way)."""
     times, k = field.times, len(field.labels)
     c, _, s_ref = mp.smoothed_motion(field.centroids, times, field.radius, cfg.phrase_smooth)
     tol = cfg.contact_gap * np.asarray(field.radius, np.float64)
@@ -871,6 +882,8 @@ def ground_contact(field: Field, cfg) -> np.ndarray:
         g = np.asarray(field.gaps[:, gl.index(0)], np.float64)
         near = mp.clean_runs(np.where(np.isfinite(g), g, np.inf) < tol[:, None],
                              int(cfg.phrase_min_frames))  # fmt: skip
+        h = c @ field.up  # touching needs the object near its lowest height, too
+        near &= (h - h.min(axis=1, keepdims=True)) <= tol[:, None]
         for j in range(k):  # a run of small gaps around a rebound is that rebound's
             for s, e in _episodes(near[j]):
                 if not lowest[j, s:e + 1].any():

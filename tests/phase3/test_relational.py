@@ -199,6 +199,18 @@ def test_answers_on_a_bouncing_field(bb):
     assert name == "red ball"
 
 
+def test_contact_needs_the_ball_near_its_lowest_height(bb):
+    from sync4d.phase3.relational import ground_contact
+
+    field, _ = bb
+    cfg = Phase3Config()
+    clinging = dataclasses.replace(field, gaps=np.zeros_like(field.gaps))  # gap 0 in the air
+    contact = ground_contact(clinging, cfg)
+    # only the two rebounds, each its lowest frame +- the event window (2 frames of 61)
+    assert np.flatnonzero(contact[0]).tolist() == [18, 19, 20, 21, 22, 42, 43, 44, 45, 46]
+    assert contact[2].all()  # the blue ball lies on the plate throughout
+
+
 def test_an_unreadable_question_falls_back_and_says_so(bb):
     field, cache = bb
     ans = answer(field, "the red ball before", cache=cache)
