@@ -62,6 +62,10 @@ def main() -> None:
                     if k in meta}  # fmt: skip
     except (OSError, ValueError):
         pass
+    try:  # the run's own test metrics, when it was evaluated
+        settings["test_metrics"] = json.loads((run / "eval.json").read_text())["mean"]
+    except (OSError, ValueError, KeyError):
+        pass
     field = json.loads((run / "phase3" / "field.json").read_text())
     entry = {
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
