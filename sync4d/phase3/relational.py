@@ -43,10 +43,10 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   episode under way in the first `phrase_min_frames` frames has no onset in the clip and ranks
   after every observed one; "stops X" reads as the onset of not-X), an ordinal over one object's
   episodes ("the second bounce of X"), a count ("how many times": the number of episodes), a
-  count selection ("once", "twice", "N times"; "most", "fewest"), an extreme over a kinematic
-  quantity ("highest" / "lowest": height along the field's up vector; "fastest" / "slowest":
-  speed; "longest" / "shortest": an episode's duration) or a negation ("never": the object whose
-  frames are all false; "not" inside a clause: the complement).
+  count selection ("once", "twice", "N times"; "never twice": fewer; "most", "fewest"), an
+  extreme over a kinematic quantity ("highest" / "lowest": height along the field's up vector;
+  "fastest" / "slowest": speed; "longest" / "shortest": an episode's duration) or a negation
+  ("never": the object whose frames are all false; "not" inside a clause: the complement).
 * **Subjects.** A selection over objects (ordinals over objects, count selections, extremes,
   "never", "which ...") reads its subject as a class: every object whose name's similarity to
   the identity words is within `CLASS_MARGIN` of the best ("ball" keeps every ball, "object"
@@ -273,7 +273,7 @@ def plan_text(plan: Plan) -> str:
     if plan.form == "count-select":
         if plan.quantity == "count":
             return f"{plan.direction}(count({inner})) {over}"
-        return f"count({inner}) == {plan.n} {over}"
+        return f"count({inner}) {'<' if plan.direction == 'fewer' else '=='} {plan.n} {over}"
     if plan.form == "extreme":
         return f"{plan.direction}({plan.quantity}, {inner}) {over}"
     return f"never({inner}) {over}"
@@ -595,7 +595,9 @@ def parse(text: str, field: Field, cache: TextCache, cfg) -> Plan | None:
         plan = Plan("count", subject, relation, names=names)
     elif r.count_n is not None:
         _need_atom(text, subject, "a count such as \"twice\"")
-        plan = Plan("count-select", subject, relation, r.count_n, names=names)
+        # "never twice": fewer than that many
+        plan = Plan("count-select", subject, relation, r.count_n,
+                    direction="fewer" if r.never else None, names=names)  # fmt: skip
     elif r.never:
         _need_atom(text, subject, "\"never\"")
         plan = Plan("negation", subject, relation, names=names)
@@ -766,7 +768,9 @@ def select(plan: Plan, act: np.ndarray, tl: Timeline) -> Selected:
         if plan.quantity == "count":
             key = {k: float(n[k]) if plan.direction == "max" else -float(n[k]) for k in cands}
         else:
-            key = {k: -abs(n[k] - (plan.n or 0)) for k in cands}
+            want = plan.n or 0
+            key = {k: (1.0 - n[k] / (want + 1) if n[k] < want else -float(n[k] - want + 1))
+                   if plan.direction == "fewer" else -abs(n[k] - want) for k in cands}
         order = ranked(key, reverse=True)
         return Selected(order, eps, n[order[0]], key)
     if form == "negation":

@@ -112,6 +112,7 @@ def _plan(bb, text: str) -> str:
      "count(contact with background) of green ball"),
     ("the ball that bounces only once", "count(contact with background) == 1 over {"),
     ("which ball bounces twice", "count(contact with background) == 2 over {"),
+    ("which ball never bounces twice", "count(contact with background) < 2 over {"),
     ("which ball bounces the most", "max(count(contact with background)) over {"),
     ("the blue ball while the red ball is falling",
      "while(blue ball: present while falling of {red ball})"),
@@ -190,6 +191,8 @@ def test_answers_on_a_bouncing_field(bb):
     assert name == "red ball" and spans[0][0] <= 44 <= spans[0][1]
     _, name, _ = _top(bb, "the ball that bounces twice")
     assert name == "red ball"
+    _, name, _ = _top(bb, "which ball never bounces twice")
+    assert name in ("green ball", "blue ball")  # once each (the blue ball: all along)
     _, name, spans = _top(bb, "the ball that never rises")
     assert name == "blue ball" and spans == [(0, T - 1)]
     _, name, spans = _top(bb, "the green ball after the red ball's second bounce")
