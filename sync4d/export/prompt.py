@@ -91,7 +91,7 @@ def prompt_text(doc: dict) -> str:
         margin = meta.get("thresholds", {}).get("slot_margin")
         why = f" by {margin:.2f} or more" if margin is not None else ""
         out.append("No object matches " + ", ".join(f"\"{t}\"" for t in loose) + " (no "
-                   f"object's appearance score beats the others'{why}).")  # fmt: skip
+                   f"object's appearance is nearer to it than the others'{why}).")  # fmt: skip
     out += ["", "Interactions:"]
     if not doc["events"]:
         out.append("- none detected.")
