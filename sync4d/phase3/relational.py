@@ -11,26 +11,26 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
 * **Atoms.** An object (its identity: the query's similarity to each object's name and the
   paper's Eq. 15 score, as the ``full`` scorer ranks objects) and a motion state or event (the
   motion predicates of `motion_phrases`: rising, falling, at rest, moving, turning, moving
-  left/right, approaching, moving away, and *contact*, their "touching" predicate plus the
-  scene description's contact event). The words of a clause are split between object and atom
-  by the text encoder: a phrase of the atom vocabulary that occurs literally claims its words;
-  every other content word goes to the atom side when the encoder finds it nearer an atom
-  phrase than any object name (and at least `ATOM_MATCH`), else to the object side. The atom
-  words are then matched to the nearest atom phrase by the encoder (beside a literal atom,
-  only at `ATOM_EXTRA`: "stays still" is "still"). A paraphrase of an atom
-  therefore reads as well as the encoder relates it; nothing in this module lists question
-  wordings, only the grammar's function words (`ORDINALS`, `RELATIONS`, `EXTREMES`, ...).
-* **Contact with the ground** is the union of rebounds and the gap evidence (the height
-  above the surface under the object below `contact_gap` times its radius, as "touching the
-  ground" reads today, and the object within that of its lowest height over the clip: a
-  reconstruction whose plate Gaussians cling to a ball would keep it "touching" in the air)
-  where a run of it holds no rebound (rolling, resting; around a rebound
-  it is the ball passing near the surface). A rebound is a fall followed by a rise whose
-  lowest point between them is at most max(`contact_gap` radius, a quarter of the object's
-  height range) above the object's lowest height over the clip. A rebound is an instant; it
-  is reported as the frames within ``EVENT_WINDOW`` (normalised time, at least one frame each
-  side) of the lowest point, so an interval score of an instant measures its timing rather
-  than failing on one frame. Approaching / moving away from the ground is falling / rising.
+  left/right, approaching, moving away, and *contact*, their "touching" predicate plus the scene
+  description's contact event). The words of a clause are split between object and atom by the
+  text encoder: a phrase of the atom vocabulary that occurs literally claims its words; every
+  other content word goes to the atom side when the encoder finds it nearer an atom phrase than
+  any object name (and at least `ATOM_MATCH`), else to the object side. The atom words are then
+  matched to the nearest atom phrase by the encoder (beside a literal atom, only at
+  `ATOM_EXTRA`: "stays still" is "still"). A paraphrase of an atom therefore reads as well as
+  the encoder relates it; nothing in this module lists question wordings, only the grammar's
+  function words (`ORDINALS`, `RELATIONS`, `EXTREMES`, ...).
+* **Contact with the ground** is the union of rebounds and the gap evidence (the height above
+  the surface under the object below `contact_gap` times its radius, as "touching the ground"
+  reads today, and the object within that of its lowest height over the clip: a reconstruction
+  whose plate Gaussians cling to a ball would keep it "touching" in the air) where a run of it
+  holds no rebound (rolling, resting; around a rebound it is the ball passing near the surface).
+  A rebound is a fall followed by a rise whose lowest point between them is at most
+  max(`contact_gap` radius, a quarter of the object's height range) above the object's lowest
+  height over the clip. A rebound is an instant; it is reported as the frames within
+  ``EVENT_WINDOW`` (normalised time, at least one frame each side) of the lowest point, so an
+  interval score of an instant measures its timing rather than failing on one frame. Approaching
+  / moving away from the ground is falling / rising.
 * **Operators** (`Plan`), applied in this order: an optional *relation* filters the subject's
   frames by another clause (while / during: both hold; before / until: before the other clause's
   first onset, the start of an episode that begins after the first `phrase_min_frames` frames;
@@ -54,11 +54,11 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   without an identity word; an operator on one object (its episodes, a count, a relation)
   takes the best object by the `full` scorer's identity (Eq. 15 plus the names).
 * **Extremes** of height or speed compare each candidate's peak (or trough) value, over the
-  atom's episodes when the atom is a state (for rising and falling: the height an episode
-  gains or loses, "rises highest"), else over the whole clip; the answer's interval is
-  the atom episode holding it, or the run of frames around it on the extreme side of the
-  object's mid-range (Appendix F's half-peak rule on the quantity; the whole clip when the
-  object's quantity is flat, `FLAT`). Durations need an atom.
+  atom's episodes when the atom is a state (for rising and falling: the height an episode gains
+  or loses, "rises highest"), else over the whole clip; the answer's interval is the atom
+  episode holding it, or the run of frames around it on the extreme side of the object's
+  mid-range (Appendix F's half-peak rule on the quantity; the whole clip when the object's
+  quantity is flat, `FLAT`). Durations need an atom.
 * **Unparsed.** A text without any function word is no relational question (`parse` returns
   None and `query` answers it with today's scorer); a text with one that cannot be read raises
   `RelationalError`, which says what to write, and `query` falls back to today's scorer,
