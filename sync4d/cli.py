@@ -191,7 +191,9 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
                    "score D-NeRF on black); writes RUN/eval-<colour>.json")
     p.add_argument("--queries", default=None, metavar="ANNOTATIONS",
                    help="evaluate Phase 3's temporal queries instead (Acc, vIoU, tIoU, "
-                   "Appendix F): our query JSON or 4D LangSplat's annotations folder")
+                   "Appendix F): our query JSON or 4D LangSplat's annotations folder; a relational "
+                   "question file (\"kind\": \"relational\") reports Acc, tIoU and counts per "
+                   "question form")
     p.add_argument("--scorer", nargs="+", default=None, metavar="S", choices=SCORERS,
                    help=f"with --queries: the scorers to report, of {', '.join(SCORERS)} "
                    "(default: all, in that order)")
@@ -226,7 +228,10 @@ def _query_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("run", metavar="RUN",
                    help="run folder with a Phase 3 field (fit --out RUN --phases 3)")
-    p.add_argument("texts", nargs="+", metavar="TEXT", help="one or more queries")
+    p.add_argument("texts", nargs="+", metavar="TEXT",
+                   help="one or more queries; relational ones (first, how many times, while, "
+                   "before, highest, never ...) print the plan they were read as "
+                   "(docs/phase3-queries.md)")
     scorers = "; ".join(f"{name}: {s.summary}" for name, s in SCORER_TABLE.items())
     p.add_argument("--scorer", choices=SCORERS, default=DEFAULT_SCORER,
                    help=f"{scorers} (default {DEFAULT_SCORER})")
