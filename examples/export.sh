@@ -1,7 +1,9 @@
 #!/usr/bin/env sh
 # Write a run as files other tools read (docs/export.md): the scene description (JSON + an
 # embeddings side file), a text summary for an LLM, the canonical Gaussians and the scene at
-# t = 0.5 as 3DGS PLY, an SPZ, and a 4D sequence that brush plays.
+# t = 0.5 as 3DGS PLY, an SPZ, and the scene over time: a folder of PLYs that SuperSplat
+# imports as a sequence (drop the folder; times in sequence.json beside it) and a delta-frame
+# PLY (brush 0.3 and earlier play it).
 # The scene description and the prompt need the run's language field:
 #   python3 -m sync4d fit --out "$RUN" --phases 3
 set -eu
@@ -14,4 +16,5 @@ printf 'a red ball\na blue ball\na green ball\na red object\na blue box\n' > "$O
     --vocab "$OUT/vocab.txt" --query "a ball touching the ground"
 "$PY" -m sync4d export "$RUN" --ply "$OUT/canonical.ply"
 "$PY" -m sync4d export "$RUN" --ply "$OUT/t0.5.ply" --spz "$OUT/t0.5.spz" --time 0.5
+"$PY" -m sync4d export "$RUN" --sequence "$OUT/sequence/"
 "$PY" -m sync4d export "$RUN" --sequence "$OUT/sequence.ply"

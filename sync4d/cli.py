@@ -262,9 +262,11 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--time", type=float, default=None, metavar="T",
                    help="with --ply / --spz: the scene deformed to time T in [0, 1] "
                    "(default: the canonical Gaussians)")
-    p.add_argument("--sequence", default=None, metavar="FILE.ply|FILE.zip",
-                   help="the scene over time: .ply is brush's delta-frame PLY, .zip one PLY "
-                   "per time")
+    p.add_argument("--sequence", default=None, metavar="FILE.ply|DIR/",
+                   help="the scene over time: FILE.ply is brush's delta-frame PLY (brush 0.3 "
+                   "and earlier play it); DIR/ a folder of one PLY per time, NAME_0000.ply ..., "
+                   "that SuperSplat imports as a sequence, times in DIR.json beside it; "
+                   "FILE.zip (deprecated) a zip of PLYs")
     p.add_argument("--frames", type=positive_int, default=None, metavar="N",
                    help="with --sequence: N evenly spaced times (default: the run's frames)")
     p.add_argument("--decimals", type=positive_int, default=6, metavar="D",
@@ -423,13 +425,14 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "export", ("export RUN --scene FILE.json [--prompt FILE.txt] [--vocab FILE]",
                    "export RUN --ply FILE.ply | --spz FILE.spz [--time T]",
-                   "export RUN --sequence FILE.ply|FILE.zip [--frames N]"),
+                   "export RUN --sequence FILE.ply|DIR/ [--frames N]"),
         "write a run as files other tools read: scene description, LLM prompt, PLY, SPZ",
         "Write the scene description of a run with a language field (objects, per-frame "
         "tracks, motion segments, contacts and other events, language slots; JSON valid "
         "against the schema shipped in sync4d/export, deterministic), a plain-text summary of "
         "it for an LLM, and the Gaussians as 3DGS PLY or SPZ at a time, or as a 4D sequence "
-        "(brush's delta-frame PLY, or a zip of PLYs). Each option names the file it writes.",
+        "(brush's delta-frame PLY, or a folder of PLYs for SuperSplat's timeline). Each option "
+        "names the file it writes.",
         "sync4d.commands.export", _export_arguments,
     ),
     Command(

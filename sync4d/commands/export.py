@@ -6,8 +6,10 @@ the file it writes:
 * ``--prompt FILE.txt``: a plain-text summary for an LLM, made from that JSON alone, with its
   token count;
 * ``--ply FILE.ply`` / ``--spz FILE.spz``: the Gaussians at ``--time T`` (default: canonical);
-* ``--sequence FILE.ply|FILE.zip``: the scene over time (``--frames N``, default the run's
-  stored frames), as brush's delta-frame PLY or a zip of per-time PLYs.
+* ``--sequence FILE.ply|DIR/``: the scene over time (``--frames N``, default the run's
+  stored frames), as brush's delta-frame PLY or a folder of per-time PLYs named for
+  SuperSplat's sequence import (times in ``DIR.json`` beside it); ``FILE.zip`` (deprecated)
+  a zip of per-time PLYs.
 """
 
 from __future__ import annotations
@@ -97,8 +99,14 @@ def _splats(args: argparse.Namespace, run, out: list[str]) -> None:
             out.append(f"spz: {args.spz} ({len(g.means):,} Gaussians, {when})")
     if args.sequence:
         times = sp.default_times(run, args.frames)
-        sp.write_sequence(args.sequence, run, times)
-        out.append(f"sequence: {args.sequence} ({len(times)} frames)")
+        if sp.is_sequence_folder(args.sequence):
+            folder = sp.write_sequence_folder(args.sequence, run, times)
+            out.append(f"sequence: {folder}/ ({len(times)} frames, "
+                       f"{sp.sequence_frame_name(folder, 0)} ...; times in "
+                       f"{sp.sequence_sidecar(folder)})")  # fmt: skip
+        else:
+            sp.write_sequence(args.sequence, run, times)
+            out.append(f"sequence: {args.sequence} ({len(times)} frames)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -114,7 +122,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         if not (args.scene or args.prompt or args.ply or args.spz or args.sequence):
             raise _Usage("nothing to export: give --scene FILE.json, --prompt FILE.txt, "
-                         "--ply FILE.ply, --spz FILE.spz or --sequence FILE.ply|FILE.zip")
+                         "--ply FILE.ply, --spz FILE.spz or --sequence FILE.ply|DIR/")
         if (args.vocab or args.query) and not (args.scene or args.prompt):
             raise _Usage("--vocab and --query fill the scene description: add --scene "
                          "FILE.json or --prompt FILE.txt")  # fmt: skip

@@ -22,8 +22,9 @@ _EXPORTS = {
                      "write_scene"), "scene"),
     "prompt_text": "prompt", "count_tokens": "prompt",
     **dict.fromkeys(
-        ("Splats", "default_times", "ply_properties", "read_ply", "read_sequence", "read_spz",
-         "splats_at", "write_ply", "write_sequence", "write_spz"), "splats"),
+        ("Splats", "default_times", "is_sequence_folder", "ply_properties", "read_ply",
+         "read_sequence", "read_spz", "sequence_frame_name", "sequence_sidecar", "splats_at",
+         "write_ply", "write_sequence", "write_sequence_folder", "write_spz"), "splats"),
 }  # fmt: skip
 
 __all__, __getattr__ = lazy_exports(__name__, _EXPORTS)

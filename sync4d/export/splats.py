@@ -46,8 +46,16 @@ y and z flipped relative to the PLY.
   the raw quaternion (a reader adds it to the base and normalises the quaternion; without
   ``meta_delta_min_/max_`` elements brush reads float deltas unscaled). Opacity and colours do
   not change over time. Frame times are in the comments (``frame <i> time <t>``).
-- ``.zip``: one standard PLY per time, ``frame_<i:04d>_t<time:.4f>.ply``, each byte for byte
-  what `write_ply` writes for that time.
+- a folder (``DIR/``, or a path without suffix): SuperSplat's PLY sequence. One standard PLY
+  per time, ``DIR/<NAME>_<i:04d>.ply`` (NAME: the folder's name, characters other than letters,
+  digits, ``-`` and ``_`` replaced by ``_``), each byte for byte what `write_ply` writes for that
+  time (its time in the comment), and nothing else in the folder: SuperSplat's import
+  (``src/file-handler.ts`` ``isPlySequence``) treats dropped files as a sequence only when every
+  one matches ``(.*?)(\\d+)(?:\\.compressed)?\\.ply$`` with one shared prefix, so a sidecar inside
+  would turn the drop into separate imports. The frame times are in the sidecar ``DIR.json``
+  beside the folder (`sequence_sidecar`).
+- ``.zip`` (deprecated: no viewer found to import it): one standard PLY per time,
+  ``frame_<i:04d>_t<time:.4f>.ply``, each byte for byte what `write_ply` writes for that time.
 
 Writes are atomic (`sync4d.files.write_atomic`) and deterministic: the same run and arguments
 give the same bytes (zip members carry a fixed date; SPZ's gzip header no time stamp). Every
@@ -57,6 +65,7 @@ file that cannot be read raises `ExportError` naming it, never a parser's traceb
 from __future__ import annotations
 
 import io
+import json
 import math
 import re
 import zipfile
@@ -70,7 +79,7 @@ from plyfile import PlyData, PlyElement, PlyElementParseError, PlyHeaderParseErr
 
 from sync4d import __version__
 from sync4d.export.errors import ExportError
-from sync4d.files import write_atomic
+from sync4d.files import write_atomic, write_text_atomic
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.runs.folder import Run
 
@@ -78,13 +87,17 @@ __all__ = [
     "ExportError",
     "Splats",
     "default_times",
+    "is_sequence_folder",
     "ply_properties",
     "read_ply",
     "read_sequence",
     "read_spz",
+    "sequence_frame_name",
+    "sequence_sidecar",
     "splats_at",
     "write_ply",
     "write_sequence",
+    "write_sequence_folder",
     "write_spz",
 ]
 
@@ -483,13 +496,17 @@ def write_sequence(
     labels: np.ndarray | None = None,
 ) -> Path:
     """Write the scene at each of `times` (in [0, 1]) as a 4D file, atomically; the path.
-    ``.ply``: brush's delta-frame PLY (canonical base + one delta element per frame); ``.zip``:
-    one standard PLY per frame (see the module docstring). Object ids as in `splats_at`."""
+    ``.ply``: brush's delta-frame PLY (canonical base + one delta element per frame); a folder
+    (`is_sequence_folder`): SuperSplat's PLY sequence (`write_sequence_folder`); ``.zip``
+    (deprecated): one standard PLY per frame (see the module docstring). Object ids as in
+    `splats_at`."""
+    if is_sequence_folder(path):
+        return write_sequence_folder(path, run_or_model, times, labels)
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".ply", ".zip"):
-        raise ValueError(f"{path}: a 4D file is a .ply (delta frames) or a .zip (one PLY per "
-                         "frame)")  # fmt: skip
+        raise ValueError(f"{path}: a 4D file is a .ply (delta frames), a folder DIR/ (one PLY "
+                         "per frame, SuperSplat's sequence) or a .zip")  # fmt: skip
     ts = _check_times(times)
     model, ids = _model_and_labels(run_or_model, labels)
     frames = [splats_at(model, t, ids) for t in ts]
@@ -523,6 +540,120 @@ def write_sequence(
                 *(f"frame {i} time {t!r}" for i, t in enumerate(ts))]  # fmt: skip
     data = _ply_bytes(elements, comments)
     return write_atomic(path, lambda tmp: tmp.write_bytes(data))
+
+
+#: A frame file of a PLY-sequence folder as SuperSplat's import matches it
+#: (``src/file-handler.ts`` ``isPlySequence``): any prefix, a trailing frame number, ``.ply``.
+_SEQUENCE_FILE = re.compile(r"(.*?)(\d+)(?:\.compressed)?\.ply")
+
+
+def is_sequence_folder(path: str | Path) -> bool:
+    """Whether `path` names a PLY-sequence folder: it ends with a slash, is an existing folder,
+    or has no suffix (``bb-4d``)."""
+    text = str(path)
+    p = Path(path)
+    return text.endswith(("/", "\\")) or p.is_dir() or p.suffix == ""
+
+
+def _frame_stem(folder: Path) -> str:
+    return re.sub(r"[^A-Za-z0-9_-]+", "_", folder.name).strip("_") or "frame"
+
+
+def sequence_frame_name(folder: str | Path, index: int) -> str:
+    """The file name of frame `index` in PLY-sequence folder `folder`: ``<NAME>_<index:04d>.ply``
+    (NAME from the folder's name)."""
+    return f"{_frame_stem(Path(folder))}_{index:04d}.ply"
+
+
+def sequence_sidecar(folder: str | Path) -> Path:
+    """The sidecar JSON of PLY-sequence folder `folder` (the frame files and their times):
+    ``DIR.json`` beside the folder, not in it (a file in it would break SuperSplat's
+    sequence detection)."""
+    folder = Path(folder)
+    return folder.with_name(folder.name + ".json")
+
+
+def write_sequence_folder(
+    folder: str | Path,
+    run_or_model: Run | DeformableGaussians,
+    times: Sequence[float] | np.ndarray,
+    labels: np.ndarray | None = None,
+) -> Path:
+    """Write the scene at each of `times` as a PLY-sequence folder (module docstring): one
+    standard PLY per frame, ``<NAME>_0000.ply``, ... (`sequence_frame_name`), each written
+    atomically, and the sidecar `sequence_sidecar` with each file's time; the folder. A folder
+    holding files other than an earlier export's frames is refused (ExportError): SuperSplat
+    imports every file of a dropped folder."""
+    folder = Path(folder)
+    ts = _check_times(times)
+    model, ids = _model_and_labels(run_or_model, labels)
+    frames = [splats_at(model, t, ids) for t in ts]
+    for s in frames:
+        _check_finite(folder, s)
+    mine = re.compile(re.escape(_frame_stem(folder)) + r"_\d{4,}\.ply")
+    if folder.exists() and not folder.is_dir():
+        raise ExportError(folder, "exists and is not a folder; give a new folder for the frames")
+    old = sorted(p.name for p in folder.iterdir()) if folder.is_dir() else []
+    others = [n for n in old if not mine.fullmatch(n)]
+    if others:
+        shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
+        raise ExportError(folder, f"holds other files ({shown}); SuperSplat imports every file "
+                          "of a dropped folder as one sequence only when all are its frames: "
+                          "give an empty or new folder")  # fmt: skip
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ExportError(folder, f"cannot create the folder ({e.strerror or e})") from None
+    names = [sequence_frame_name(folder, i) for i in range(len(ts))]
+    for name, s in zip(names, frames, strict=True):
+        data = _splat_ply_bytes(s)
+        write_atomic(folder / name, lambda tmp, data=data: tmp.write_bytes(data))
+    for name in set(old) - set(names):  # frames of an earlier, longer export
+        (folder / name).unlink(missing_ok=True)
+    doc = {"format": "sync4d ply sequence", "version": 1, "sync4d": __version__,
+           "folder": folder.name, "gaussians": len(frames[0]),
+           "frames": [{"file": n, "time": t} for n, t in zip(names, ts, strict=True)]}  # fmt: skip
+    write_text_atomic(sequence_sidecar(folder), json.dumps(doc, indent=1) + "\n")
+    return folder
+
+
+def _folder_frames(folder: Path) -> tuple[list[float], list[Splats]]:
+    """The frames of a PLY-sequence folder in SuperSplat's order (by trailing number), each
+    time from the PLY's comment, else from the sidecar."""
+    try:
+        files = [p for p in folder.iterdir() if p.is_file()]
+    except OSError as e:
+        raise ExportError(folder, f"cannot read the folder ({e.strerror or e})") from None
+    numbered = []
+    for p in files:
+        m = _SEQUENCE_FILE.fullmatch(p.name.lower())
+        if m is None:
+            raise ExportError(p, "not a frame of a PLY sequence (<NAME>_<number>.ply); the "
+                              "folder must hold the frames alone")  # fmt: skip
+        numbered.append((int(m[2]), p))
+    if not numbered:
+        raise ExportError(folder, "the folder holds no frames; export it again")
+    numbered.sort()
+    side: dict[str, float] = {}
+    sidecar = sequence_sidecar(folder)
+    if sidecar.is_file():
+        try:
+            doc = json.loads(sidecar.read_text(encoding="utf-8"))
+            side = {str(f["file"]): _check_time(float(f["time"])) for f in doc["frames"]}
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ExportError(sidecar, f"not a readable sequence sidecar ({e}); export it "
+                              "again") from None  # fmt: skip
+    out_t, out_s = [], []
+    for _, p in numbered:
+        s = _splats_from_bytes(_read_bytes(p), p)
+        if s.time is None:
+            if p.name not in side:
+                raise ExportError(p, f"unknown frame time: no time comment and no entry in "
+                                  f"{sidecar}")  # fmt: skip
+            s.time = side[p.name]
+        out_t.append(s.time)
+        out_s.append(s)
+    return out_t, out_s
 
 
 def _delta_frames(ply: PlyData, base: Splats, label: Path) -> tuple[list[float], list[Splats]]:
@@ -596,10 +727,13 @@ def read_sequence(path: str | Path) -> tuple[np.ndarray, list[Splats]]:
     """The frame times [T] float64 and the Gaussians of each frame of a 4D file written by
     `write_sequence` (``.ply``: base + delta per frame, quaternions as base + delta, i.e. not
     renormalised, times from the comments, evenly spaced in [0, 1] in a file without them;
+    a folder: its frames by trailing number, each time from its comment or the sidecar;
     ``.zip``: each member's PLY, its time from its comment or name). ExportError naming the
     file (a zip's member as ``ZIP:MEMBER``) for anything malformed."""
     path = Path(path)
-    if path.suffix.lower() == ".zip":
+    if path.is_dir():
+        times, frames = _folder_frames(path)
+    elif path.suffix.lower() == ".zip":
         times, frames = _zip_frames(path)
     else:
         ply = _parse_ply(_read_bytes(path), path)
