@@ -135,10 +135,12 @@ BUILTIN: tuple[Loader, ...] = (
         markers=("dataset.json", "metadata.json"),
         read="sync4d.data.hypernerf:read",
         doc=LoaderDoc(
-            frames="`camera/<id>.json` (Nerfies cameras), images `rgb/{1x,2x,...}/<id>.png`, "
-            "time from `metadata.json` (`time_id`, or `warp_id`)",
+            frames="`camera/<id>.json` (Nerfies cameras), images `rgb/{1x,2x,...}/<id>.png` "
+            "(the finest folder there is when the asked one is missing), time from "
+            "`metadata.json` (`time_id`, or `warp_id`); `scene.json` `center` and `scale` "
+            "normalise camera centres and points as HyperNeRF does; points `points.npy`",
             test_split="`val_ids` of `dataset.json`",
-            masks="none",
+            masks="`masks/<id>.png`, names in `masks/labels.json`",
         ),
     ),
     Loader(

@@ -26,7 +26,12 @@ id into the run's object names), ``gt_active`` (bool over the run's frames 0..T-
   ``int(file_name.split("_")[0])`` (Roboflow names such as ``000123_png.rf.<hash>.jpg``) and
   subtracts 1 for HyperNeRF, whose images are numbered from 1 (``000001.png``), not for Neu3D.
   Here: the first run of digits in the file name (also accepts ``frame_00123.jpg``), minus
-  `file_number_base` (default 1, HyperNeRF; pass 0 for Neu3D).
+  `file_number_base` (default 1, HyperNeRF; pass 0 for Neu3D). With `frame_of` (what
+  ``eval --queries`` passes when it has the dataset) the number is looked up by name instead:
+  the dataset image whose file name carries the same number (``000123.png``, HyperNeRF id
+  ``000123``) gives its time, and the run frame at that time is the annotation's frame, so
+  annotations of a subset of the images, or of ids that do not start at 1, land on the right
+  frames.
 * ``video_annotations.json`` maps an object, which must be a category name (its masks are the
   query's GT masks: 4D LangSplat copies the category's masks to each of its queries), to its
   time-dependent queries, each with inclusive frame ranges in the same 0-based frame index.
@@ -75,6 +80,7 @@ __all__ = [
     "VIDEO_FILE",
     "AnnotationError",
     "Query",
+    "frame_map",
     "frame_number",
     "load_queries",
     "rasterize_polygons",
@@ -389,6 +395,7 @@ def read_4dlangsplat(
     object_names: Sequence[str] | None = None,
     file_number_base: int = 1,
     split: str = "train",
+    frame_of: dict[int, int] | None = None,
 ) -> list[Query]:
     """Read 4D LangSplat's annotations (layout and rules in the module notes) for a run of
     `n_frames` frames: one Query per (object, query) of ``video_annotations.json``.
@@ -397,7 +404,9 @@ def read_4dlangsplat(
     `image_size` (width, height): the run's image size, masks are rasterised at it (default:
     the annotation's own size, which must then be the same for every image); `object_names`:
     the run's object names to check the objects against (label id = index);
-    `file_number_base`: the file number of frame 0 (1 for HyperNeRF, 0 for Neu3D).
+    `file_number_base`: the file number of frame 0 (1 for HyperNeRF, 0 for Neu3D);
+    `frame_of`: file number -> run frame, from the dataset's image names (`frame_map`): when
+    given, frames are mapped by file name and `file_number_base` is not used.
     Raises AnnotationError naming the file."""
     if n_frames <= 0:
         raise ValueError(f"n_frames must be positive, got {n_frames}")
@@ -431,12 +440,22 @@ def read_4dlangsplat(
             raise AnnotationError(coco_path, f"image {fname!r}: 'width' and 'height' must be "
                                   "positive integers", "fix the COCO export")  # fmt: skip
         try:
-            f = frame_number(fname) - file_number_base
+            number = frame_number(fname)
         except ValueError:
             raise AnnotationError(
                 coco_path, f"image {fname!r}: no digits in the file name, so no frame index",
                 "name images by frame number (e.g. 000123.png or frame_00123.jpg)",
             ) from None  # fmt: skip
+        if frame_of is not None:
+            if number not in frame_of:
+                raise AnnotationError(
+                    coco_path, f"image {fname!r}: no dataset image is numbered {number} at a "
+                    "time of the run's frames",
+                    "annotate the dataset's own images (e.g. rgb/2x/000123.png as 000123.png)",
+                )  # fmt: skip
+            f = frame_of[number]
+        else:
+            f = number - file_number_base
         if not 0 <= f < n_frames:
             raise AnnotationError(
                 coco_path, f"image {fname!r} maps to frame {f}, outside the run's frames "
@@ -521,6 +540,31 @@ def read_4dlangsplat(
             text = _query_text(q, video_path, where, seen)
             gt = _frame_ranges(ranges, n_frames, video_path, f"{where}, query {text!r}")
             out.append(Query(text, name, label, gt, evaluated, gt_masks, str(video_path)))
+    return out
+
+
+def frame_map(
+    names: Sequence[str], times: Sequence[float], frame_times: Sequence[float],
+    tolerance: float = 1e-6,
+) -> dict[int, int] | None:
+    """File number -> run frame, for mapping annotation images by name: `names` and `times` are
+    the dataset's image file names and their times, `frame_times` the run's frame times. An
+    image whose time is no run frame's (within `tolerance`), or whose name has no digits, is
+    left out. None when one number names images at different frames (ambiguous names, e.g.
+    per-camera folders numbering from 0 each)."""
+    ft = np.asarray(frame_times, dtype=np.float64)
+    out: dict[int, int] = {}
+    for name, t in zip(names, times, strict=True):
+        try:
+            number = frame_number(name)
+        except ValueError:
+            continue
+        hit = np.flatnonzero(np.abs(ft - float(t)) <= tolerance)
+        if not hit.size:
+            continue
+        f = int(hit[0])
+        if out.setdefault(number, f) != f:
+            return None
     return out
 
 

@@ -30,6 +30,7 @@ from sync4d.phase3.encoders.encoder import Encoder
 from sync4d.phase3.evaluation.annotations import (
     AnnotationError,
     Query,
+    frame_map,
     read_4dlangsplat,
     read_queries,
 )
@@ -134,14 +135,17 @@ def _read(path: Path, field: Field, run: Run, scene: Scene | None) -> list[Query
     video = path / "video_annotations.json" if path.is_dir() else None
     if (video is not None and video.exists()) or (path.is_dir() and
                                                   (path / "annotations").is_dir()):  # fmt: skip
-        size = None
+        size = frames = None
         if scene is not None and scene.train:
             size = (scene.train[0].camera.width, scene.train[0].camera.height)
-        return read_4dlangsplat(path, t, image_size=size, object_names=names)
+            every = scene.train + scene.test
+            frames = frame_map([fr.image_path.name for fr in every], [fr.time for fr in every],
+                               field.times)  # fmt: skip
+        return read_4dlangsplat(path, t, image_size=size, object_names=names, frame_of=frames)
     if path.is_file():
         return read_queries(path, t, frame_times=field.times, object_names=names)
-    raise AnnotationError(f"{path}: no such annotation file or folder (give our query JSON or "
-                          "4D LangSplat's annotations folder)")  # fmt: skip
+    raise AnnotationError(path, "no such annotation file or folder",
+                          "give our query JSON or 4D LangSplat's annotations folder")
 
 
 def evaluate_queries(
