@@ -107,6 +107,10 @@ def _splats(args: argparse.Namespace, run, out: list[str]) -> None:
         else:
             sp.write_sequence(args.sequence, run, times)
             out.append(f"sequence: {args.sequence} ({len(times)} frames)")
+            if Path(args.sequence).suffix.lower() == ".zip":
+                print("export: --sequence FILE.zip is deprecated (no viewer imports it); "
+                      "--sequence DIR/ writes the frames as a folder SuperSplat plays",
+                      file=sys.stderr)  # fmt: skip
 
 
 def main(args: argparse.Namespace) -> int:
@@ -126,6 +130,11 @@ def main(args: argparse.Namespace) -> int:
         if (args.vocab or args.query) and not (args.scene or args.prompt):
             raise _Usage("--vocab and --query fill the scene description: add --scene "
                          "FILE.json or --prompt FILE.txt")  # fmt: skip
+        for flag, ext in (("scene", "json"), ("prompt", "txt"), ("ply", "ply"), ("spz", "spz")):
+            given = getattr(args, flag)  # each names a file to write, not a folder
+            if given is not None and (Path(given).name in ("", "..") or Path(given).is_dir()):
+                raise _Usage(f"--{flag} {given[:80]!r} is a folder; give the file to write, "
+                             f"e.g. --{flag} {given.rstrip('/') or '.'}/scene.{ext}")
         if args.time is not None and not 0.0 <= args.time <= 1.0:
             raise _Usage(f"--time {args.time}: times are normalised, give one in [0, 1]")
         if args.threads:

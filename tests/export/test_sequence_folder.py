@@ -163,3 +163,7 @@ def test_export_command_writes_the_folder(tmp_path: Path, capsys) -> None:
     assert "bb-4d_0000.ply" in printed and "4 frames" in printed and "bb-4d.json" in printed
     names = sorted(p.name for p in folder.iterdir())
     assert supersplat_sequence_order(names) == [f"bb-4d_{i:04d}.ply" for i in range(4)]
+    assert main(["export", str(tmp_path / "run"), "--sequence", str(tmp_path / "s.zip"),
+                 "--frames", "2", "--threads", "1"]) == 0  # fmt: skip
+    out, err = capsys.readouterr()
+    assert "s.zip (2 frames)" in out and "deprecated" in err and "DIR/" in err
