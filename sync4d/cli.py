@@ -34,8 +34,11 @@ from sync4d.options import (
     add_threads,
     add_training_options,
     background_colour,
+    frame_count,
+    port_number,
     positive_float,
     positive_int,
+    thread_count,
 )
 
 __all__ = ["COMMANDS", "GRAMMAR", "GROUPS", "Command", "build_parser", "command_parsers", "main"]
@@ -105,7 +108,7 @@ def _add_field_encoder(p: argparse.ArgumentParser) -> None:
 
 def _add_cpu_threads(p: argparse.ArgumentParser, what: str) -> None:
     """--threads alone (no --backend: a command that composites nothing on a GPU)."""
-    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
+    p.add_argument("--threads", type=thread_count, default=None, metavar="T",
                    help=f"CPU threads for {what} (default: all cores)")
 
 
@@ -171,7 +174,7 @@ def _process_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--matcher", choices=("sequential", "exhaustive"), default="sequential",
                    help="sequential (default: each frame with its neighbours in time; "
                    "videos) or exhaustive (every pair; unordered photos, slower)")
-    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
+    p.add_argument("--threads", type=thread_count, default=None, metavar="T",
                    help="CPU threads for COLMAP (default: all cores)")
     p.add_argument("--force", action="store_true",
                    help="replace what an earlier 'process' wrote in DATA")
@@ -207,12 +210,12 @@ def _render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", metavar="RUN", help="run folder (or a checkpoint file)")
     p.add_argument("--time", nargs="+", type=float, default=None, metavar="T", dest="times",
                    help="times in [0, 1], one PNG each (default: a --sweep)")
-    p.add_argument("--sweep", type=positive_int, default=48, metavar="N", dest="frames",
+    p.add_argument("--sweep", type=frame_count, default=48, metavar="N", dest="frames",
                    help="frames of the default time sweep, evenly spaced over [0, 1] "
                    "(default 48)")
     # The spellings before sync4d-render's words: --times, --frames.
     p.add_argument("--times", nargs="+", type=float, dest="times", help=argparse.SUPPRESS)
-    p.add_argument("--frames", type=positive_int, dest="frames", help=argparse.SUPPRESS)
+    p.add_argument("--frames", type=frame_count, dest="frames", help=argparse.SUPPRESS)
     p.add_argument("--camera", default=None, metavar="CAM",
                    help="test:K / train:K (K-th frame of that split), K (a test frame) or a "
                    "frame name such as cam10_000000.jpg; default test:0")
@@ -267,7 +270,7 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
                    "and earlier play it); DIR/ a folder of one PLY per time, NAME_0000.ply ..., "
                    "that SuperSplat imports as a sequence, times in DIR.json beside it; "
                    "FILE.zip (deprecated) a zip of PLYs")
-    p.add_argument("--frames", type=positive_int, default=None, metavar="N",
+    p.add_argument("--frames", type=frame_count, default=None, metavar="N",
                    help="with --sequence: N evenly spaced times (default: the run's frames)")
     p.add_argument("--decimals", type=positive_int, default=6, metavar="D",
                    help="decimal places of the scene description's numbers (default 6)")
@@ -278,7 +281,7 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
 def _view_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", metavar="RUN", help="run folder (one still training is reloaded as "
                    "it saves)")
-    p.add_argument("--port", type=positive_int, default=8080, metavar="P",
+    p.add_argument("--port", type=port_number, default=8080, metavar="P",
                    help="the port to serve on (default 8080)")
     p.add_argument("--host", default="127.0.0.1", metavar="ADDR",
                    help="the address to listen on (default 127.0.0.1: this machine only; "
@@ -644,6 +647,7 @@ def _print_completion(parser: argparse.ArgumentParser, shell: str) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    _tolerate_undecodable_output()
     args = build_parser(_prog(), argv).parse_args(argv)
     if args.renamed is not None:
         old, new = args.renamed
@@ -665,7 +669,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise
     _bound_torch_threads(args)
     if not hasattr(args, "backend"):  # e.g. query: no rendering, no torch import
-        return int(module.main(args) or 0)
+        return _call(module, args)
     from sync4d import raster
 
     backend = getattr(args, "backend", None)
@@ -679,10 +683,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         if backend == "wgpu":
             print(f"sync4d: backend wgpu on {_core_adapter()}", file=sys.stderr)
     try:
-        result = module.main(args)
+        return _call(module, args)
     finally:
         raster.set_default_backend(previous)  # main() may be called again in-process
-    return int(result or 0)
+
+
+def _call(module, args: argparse.Namespace) -> int:  # noqa: ANN001
+    """`module.main(args)`'s exit status; an OSError that reaches here (a path of the command
+    line the system refuses: too long, a folder where a file goes, no permission) becomes one
+    line naming the path, and exit 2."""
+    try:
+        return int(module.main(args) or 0)
+    except OSError as e:
+        group = GROUPS.get(args.command)
+        words = " ".join([args.command] + ([getattr(args, group.dest)] if group else []))
+        name = str(e.filename) if e.filename is not None else ""
+        shown = f"{name[:80]}... ({len(name)} characters)" if len(name) > 100 else name
+        what = f"{e.strerror or e}: {shown!r}" if name else f"{e.strerror or e}"
+        print(f"{_prog()} {words}: {what}; check the paths on the command line (a folder "
+              "that exists and is writable, names of a sane length)", file=sys.stderr)
+        return 2
+
+
+def _tolerate_undecodable_output() -> None:
+    """Let stdout and stderr print the paths of any command line: argv's bytes that are not
+    UTF-8 arrive as surrogate escapes, which a strict stream refuses (UnicodeEncodeError);
+    stdout writes them back as the same bytes, stderr as backslash escapes (its default)."""
+    for stream, errors in ((sys.stdout, "surrogateescape"), (sys.stderr, "backslashreplace")):
+        if getattr(stream, "errors", None) == "strict" and hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors=errors)
 
 
 def _bound_torch_threads(args: argparse.Namespace) -> None:

@@ -5,6 +5,7 @@ each other."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 __all__ = [
@@ -13,8 +14,11 @@ __all__ = [
     "add_threads",
     "add_training_options",
     "background_colour",
+    "frame_count",
+    "port_number",
     "positive_float",
     "positive_int",
+    "thread_count",
     "renamed",
     "resolution",
 ]
@@ -39,25 +43,56 @@ def renamed(p: argparse.ArgumentParser, old: str, now: str, dest: str, **kw) -> 
     p.add_argument(old, action=_Renamed, now=now, dest=dest, help=argparse.SUPPRESS, **kw)
 
 
-def positive_int(text: str) -> int:
-    """An integer >= 1 (argparse type)."""
+#: The largest count `positive_int` takes: a C int, what torch, numpy and Rust take as a size.
+MAX_INT = 2**31 - 1
+#: The most CPU threads `thread_count` takes.
+MAX_THREADS = 1024
+#: The most frames `frame_count` takes (a render sweep, an exported sequence).
+MAX_FRAMES = 100_000
+
+
+def _integer(text: str, low: int, high: int, what: str) -> int:
+    """`text` as an integer in [low, high], or an argparse error saying which are taken."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text[:80]!r}") from None
+    if not low <= value <= high:
+        digits = str(value)
+        shown = digits if len(digits) <= 20 else f"{digits[:12]}... ({len(digits)} digits)"
+        raise argparse.ArgumentTypeError(f"expected {what} from {low} to {high}, got {shown}")
     return value
 
 
+def positive_int(text: str) -> int:
+    """An integer >= 1 (and at most `MAX_INT`) (argparse type)."""
+    return _integer(text, 1, MAX_INT, "a positive integer")
+
+
+def thread_count(text: str) -> int:
+    """A CPU thread count: an integer in 1..`MAX_THREADS` (argparse type)."""
+    return _integer(text, 1, MAX_THREADS, "a thread count")
+
+
+def port_number(text: str) -> int:
+    """A TCP port: an integer in 1..65535 (argparse type)."""
+    return _integer(text, 1, 65535, "a port number")
+
+
+def frame_count(text: str) -> int:
+    """A number of frames: an integer in 1..`MAX_FRAMES` (argparse type)."""
+    return _integer(text, 1, MAX_FRAMES, "a frame count")
+
+
 def positive_float(text: str) -> float:
-    """A number > 0 (argparse type)."""
+    """A finite number > 0 (argparse type)."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text[:80]!r}"
+                                         ) from None  # fmt: skip
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a finite positive number, got {value}")
     return value
 
 
@@ -75,7 +110,7 @@ def background_colour(text: str) -> tuple[float, float, float]:
         rgb = ()
     if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
         raise argparse.ArgumentTypeError(
-            f"expected white, black or R,G,B with channels in [0, 1], got {text!r}"
+            f"expected white, black or R,G,B with channels in [0, 1], got {text[:80]!r}"
         )
     return rgb  # type: ignore[return-value]
 
@@ -87,10 +122,11 @@ def resolution(text: str) -> tuple[int, int]:
         width, height = (int(p) for p in parts)
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"expected WIDTHxHEIGHT such as 800x800, got {text!r}"
+            f"expected WIDTHxHEIGHT such as 800x800, got {text[:80]!r}"
         ) from None
     if not (1 <= width <= 16384 and 1 <= height <= 16384):
-        raise argparse.ArgumentTypeError(f"width and height must lie in 1..16384, got {text!r}")
+        raise argparse.ArgumentTypeError(f"width and height must lie in 1..16384, got "
+                                         f"{text[:80]!r}")
     return width, height
 
 
@@ -98,7 +134,7 @@ def add_threads(p: argparse.ArgumentParser) -> None:
     """--threads and --backend: every command that renders or trains."""
     p.add_argument(
         "--threads",
-        type=positive_int,
+        type=thread_count,
         default=None,
         metavar="T",
         help="CPU threads for torch and the rasterizer (default: all cores)",
@@ -159,14 +195,14 @@ def add_bench_raster_options(p: argparse.ArgumentParser) -> None:
         "--thread-counts",
         dest="threads",
         nargs="+",
-        type=positive_int,
+        type=thread_count,
         metavar="T",
         default=None,
         help="thread counts to time (rayon on the op, torch.set_num_threads for torch), "
         "e.g. --thread-counts 1 2 (default: 1 2)",
     )
     p.add_argument(  # the spelling before --thread-counts
-        "--threads", dest="threads", nargs="+", type=positive_int, help=argparse.SUPPRESS
+        "--threads", dest="threads", nargs="+", type=thread_count, help=argparse.SUPPRESS
     )
     p.add_argument(
         "--repeats",

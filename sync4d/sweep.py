@@ -94,6 +94,9 @@ def read_manifest(path: str | Path) -> dict:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ManifestError(f"{path}: no such manifest") from None
+    except OSError as e:  # a folder, a name too long, no permission
+        raise ManifestError(f"{str(path)[:200]}: cannot read the manifest ({e.strerror or e}); "
+                            "give the path of a MANIFEST.toml file") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ManifestError(f"{path}: not valid TOML ({e})") from None
     extra = sorted(set(doc) - {"defaults", "job", "grid"})

@@ -34,6 +34,9 @@ def port_problem(host: str, port: int) -> str | None:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         try:
             s.bind((host, port))
+        except (UnicodeError, TypeError, ValueError, OverflowError):  # not a host name at all
+            return (f"cannot listen on {host[:80]!r}:{port}: not an address or host name; "
+                    "check --host (e.g. 127.0.0.1) and --port (1-65535)")  # fmt: skip
         except OSError as e:
             if e.errno == errno.EADDRINUSE:
                 return (f"port {port} on {host} is in use (another viewer or server); pick "
