@@ -1,0 +1,64 @@
+"""Add the derived values a results page prints to the records they come from (issue 53,
+docs/bench/README.md): each is computed here from the record's own raw values and written under
+the record's "derived" key with the rule that made it, so a ratio in a table has a record too.
+
+    python scripts/record_derived.py    # rewrites the "derived" key of the records below
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "docs" / "bench"
+
+# bench fit records whose tables print a speed-up against the first variant.
+FIT_SPEEDUP = [
+    "bench-fit-bouncingballs-skips.json",
+    "bench-fit-bouncingballs-static-sparsity.json",
+    "bench-fit-bouncingballs-sparse.json",
+    "bench-fit-hook-sparse.json",
+]
+
+
+def fit_speedups(record: dict) -> dict:
+    results = record["results"]
+    base = results[0]["train_seconds"]
+    return {
+        "rule": "speed_up[i] = results[0].train_seconds / results[i].train_seconds",
+        "script": "scripts/record_derived.py",
+        "speed_up": [base / r["train_seconds"] for r in results],
+    }
+
+
+def raster_run_pairs(record: dict) -> dict:
+    default = [r for r in record["results"] if r.get("variant", "default") == "default"]
+    evaluated = sum(r["counters"]["evaluated"] for r in default)
+    blended = sum(r["counters"]["blended"] for r in default)
+    return {
+        "rule": "evaluated_per_blended = sum of counters.evaluated / sum of counters.blended "
+        "over the default variant's frames",
+        "script": "scripts/record_derived.py",
+        "evaluated_per_blended": evaluated / blended,
+    }
+
+
+def write(path: Path, derive) -> None:
+    record = json.loads(path.read_text())
+    record["derived"] = derive(record)
+    path.write_text(json.dumps(record, indent=2) + "\n")
+    print(f"{path.relative_to(ROOT)}: {record['derived']}")
+
+
+def main() -> int:
+    for name in FIT_SPEEDUP:
+        write(BENCH / name, fit_speedups)
+    for path in sorted((BENCH / "raster-run").glob("*.json")):
+        write(path, raster_run_pairs)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
