@@ -430,6 +430,7 @@ def _tabulate_runs(args: argparse.Namespace) -> int:
         "benchmark": "fit",
         "runs": [r["run"] for r in rows],
         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "command": [sys.executable, *sys.argv],
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
         "results": rows,
     }
@@ -512,6 +513,7 @@ def main(args: argparse.Namespace) -> int:
         "benchmark": "fit",
         "data": str(resolved[0][0]) if not several else [str(d) for d, _ in resolved],
         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "command": [sys.executable, *sys.argv],
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
         "threads": args.threads,
         "config": dataclasses.asdict(base),

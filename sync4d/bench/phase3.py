@@ -88,6 +88,7 @@ def main(args: argparse.Namespace) -> int:
             return 2
     out = Path(args.out or "bench-phase3.json")
     doc = {"date": _dt.datetime.now().isoformat(timespec="seconds"),
+           "command": [sys.executable, *sys.argv],
            "machine": {"platform": platform.platform(), "threads": args.threads},
            "results": rows}  # fmt: skip
     out.write_text(json.dumps(doc, indent=1) + "\n")

@@ -44,7 +44,6 @@ PENDING: dict[str, str] = {
     "docs/results/hellwarrior.md": "no record named",
     "docs/results/offline-encoder.md": "no record named",
     "docs/results/skips.md": "several rows have no record (issue 53)",
-    "docs/results/nodes.md": "tables name records; a few derived percentages not yet listed",
     "docs/results/phase3.md": "tables name records; checked values not yet audited",
     "docs/results/run-contract.md": "no record named",
     "docs/gpu.md": "tuning log tables: most runs were not kept as records",
@@ -57,12 +56,32 @@ PENDING: dict[str, str] = {
 # Generated from the code by scripts/gen_docs.py: option and config defaults, not measurements.
 GENERATED = {"docs/cli.md", "docs/configs.md"}
 
+OLD_BENCH = "written before `bench fit` / `bench phase3` recorded their command: it is in the page"
+
 # Records named by checked pages that lack a field of the date / command / machine triple,
 # with where the missing field is given instead.
 RECORD_METADATA_GAPS: dict[str, str] = {
     "docs/bench/sweep-dnerf-1thread-x2.json": "the sweep's table; date, command: docs/sweep.md",
     "docs/bench/sweep-dnerf-2threads-x1.json": "the sweep's table; date, command: docs/sweep.md",
     "docs/bench/relational-queries.json": "a test's record; date and command in the page",
+    "docs/bench/bench-fit-bouncingballs-retuned.json": OLD_BENCH,
+    "docs/bench/bench-fit-bouncingballs-skips.json": OLD_BENCH,
+    "docs/bench/bench-fit-bouncingballs-sparse.json": OLD_BENCH,
+    "docs/bench/bench-fit-bouncingballs-static-sparsity.json": OLD_BENCH,
+    "docs/bench/bench-fit-bouncingballs-static.json": OLD_BENCH,
+    "docs/bench/bench-fit-bouncingballs.json": OLD_BENCH,
+    "docs/bench/bench-fit-hook-retuned.json": OLD_BENCH,
+    "docs/bench/bench-fit-hook-sparse.json": OLD_BENCH,
+    "docs/bench/bench-fit-lego-retuned.json": OLD_BENCH,
+    "docs/bench/bench-fit-nodes-bouncingballs-118.json": OLD_BENCH,
+    "docs/bench/bench-fit-nodes-bouncingballs.json": OLD_BENCH,
+    "docs/bench/bench-fit-nodes-hook-hellwarrior.json": OLD_BENCH,
+    "docs/bench/bench-fit-nodes-lego-117.json": OLD_BENCH,
+    "docs/bench/bench-fit-nodes.json": OLD_BENCH,
+    "docs/bench/bench-fit-scenes.json": OLD_BENCH,
+    "docs/bench/bench-fit-synthetic.json": OLD_BENCH,
+    "docs/bench/bench-phase3.json": OLD_BENCH,
+    "docs/bench/eval-black-nodes-full.json": OLD_BENCH,
 }
 
 # README headlines not yet tied to records, with what is missing.
