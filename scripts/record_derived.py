@@ -27,9 +27,11 @@ def fit_speedups(record: dict) -> dict:
     results = record["results"]
     base = results[0]["train_seconds"]
     return {
-        "rule": "speed_up[i] = results[0].train_seconds / results[i].train_seconds",
+        "rule": "speed_up[i] = results[0].train_seconds / results[i].train_seconds; "
+        "psnr_change_db[i] = results[i].psnr - results[0].psnr",
         "script": "scripts/record_derived.py",
         "speed_up": [base / r["train_seconds"] for r in results],
+        "psnr_change_db": [r["psnr"] - results[0]["psnr"] for r in results],
     }
 
 
@@ -45,6 +47,50 @@ def raster_run_pairs(record: dict) -> dict:
     }
 
 
+def raster_run_before_after() -> dict:
+    """Mean over 3 test frames x 2 rounds of the median forward and forward+backward times of
+    each build, and the change after/before, per scene (skips.md's masked-stores table)."""
+    folder = BENCH / "raster-run"
+    values: dict = {}
+    sources = []
+    machine = None
+    for scene in ("bb", "hook"):
+        means = {}
+        for phase in ("before", "after"):
+            fwd, fb = [], []
+            for k in (1, 2):
+                path = folder / f"{scene}-{phase}-{k}.json"
+                record = json.loads(path.read_text())
+                machine = machine or record["machine"]
+                sources.append(path.name)
+                for r in record["results"]:
+                    if r.get("variant", "default") == "default":
+                        fwd.append(r["forward"]["median_ms"])
+                        fb.append(r["forward_backward"]["median_ms"])
+            means[phase] = (sum(fwd) / len(fwd), sum(fb) / len(fb))
+        (bf, bfb), (af, afb) = means["before"], means["after"]
+        values[scene] = {
+            "forward_ms": {"before": bf, "after": af, "change_percent": 100 * (af / bf - 1)},
+            "forward_backward_ms": {"before": bfb, "after": afb,
+                                    "change_percent": 100 * (afb / bfb - 1)},
+        }  # fmt: skip
+    return {
+        "date": _date(),
+        "command": "python scripts/record_derived.py",
+        "machine": machine,
+        "sources": sources,
+        "rule": "mean over the default variant's frames of both rounds of each build of "
+        "forward.median_ms and forward_backward.median_ms; change = after / before - 1",
+        "derived": values,
+    }
+
+
+def _date() -> str:
+    import datetime
+
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+
+
 def write(path: Path, derive) -> None:
     record = json.loads(path.read_text())
     record["derived"] = derive(record)
@@ -55,8 +101,11 @@ def write(path: Path, derive) -> None:
 def main() -> int:
     for name in FIT_SPEEDUP:
         write(BENCH / name, fit_speedups)
-    for path in sorted((BENCH / "raster-run").glob("*.json")):
+    for path in sorted((BENCH / "raster-run").glob("*-[12].json")):
         write(path, raster_run_pairs)
+    out = BENCH / "raster-run" / "derived.json"
+    out.write_text(json.dumps(raster_run_before_after(), indent=2) + "\n")
+    print(f"{out.relative_to(ROOT)} written")
     return 0
 
 
