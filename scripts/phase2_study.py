@@ -2,7 +2,7 @@
 torch CPU kernels, each object's recovered motion against the known trajectories.
 
     python scripts/phase2_study.py --seeds 1 2 3 4 5 --kernels default avx2 \\
-        --jobs 2 --json docs/results/phase2-study.json
+        --jobs 2 --json docs/bench/phase2-study.json
 
 With `--phase1-cache DIR` each setting's Phase 1 is fitted once (`fit --phases 1`) and kept
 there, and each study run fits Phase 2 on a copy (`fit --phases 2`): the same two halves that
@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import subprocess
 import sys
 import tempfile
@@ -164,7 +165,12 @@ def main() -> int:
             )  # fmt: skip
             if args.json:  # after every run, so a stopped study keeps what it measured
                 args.json.parent.mkdir(parents=True, exist_ok=True)
-                record = {"frames": args.frames, "threads": args.threads, "results": results}
+                record = {
+                    "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                    "command": [sys.executable, *sys.argv],
+                    "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+                    "frames": args.frames, "threads": args.threads, "results": results,
+                }  # fmt: skip
                 args.json.write_text(json.dumps(record, indent=2) + "\n")
     print(table(results))
     return 0 if all(r["within_bounds"] for r in results) else 1

@@ -39,8 +39,8 @@ BENCH = DOCS / "bench"
 PENDING: dict[str, str] = {
     "docs/results/phase1.md": "older tables (synthetic scene, D-NeRF budgets) predate the records",
     "docs/results/phase1-articulated.md": "per-scene tables partly from runs not kept",
-    "docs/results/phase2.md": "Phase 2 study tables: phase2-study.json sits outside docs/bench",
-    "docs/results/phase2-robustness.md": "seed/kernel-set tables: runs not kept as records",
+    "docs/results/phase2.md": "bouncingballs and study tables from runs not kept as records",
+    "docs/results/phase2-robustness.md": "sections 1-5: studies overwritten by section 6's record",
     "docs/results/hellwarrior.md": "no record named",
     "docs/results/offline-encoder.md": "no record named",
     "docs/results/phase3.md": "tables name records; checked values not yet audited",
@@ -86,7 +86,6 @@ RECORD_METADATA_GAPS: dict[str, str] = {
 # README headlines not yet tied to records, with what is missing.
 PENDING_HEADLINES: dict[str, str] = {
     "Phase 1": "phase1.md / nodes.md records: not yet named in the README paragraph",
-    "Phase 2": "phase2-robustness.md: no record",
 }
 
 TABLE_LINE = re.compile(r"^\s*\|")
