@@ -37,16 +37,17 @@ BENCH = DOCS / "bench"
 # Pages whose tables and headlines are not yet tied to records (issue 53, deliverable 2).
 # Each is checked only for the records it names existing; remove an entry once its page passes.
 PENDING: dict[str, str] = {
-    "docs/results/phase1.md": "older tables (synthetic scene, D-NeRF budgets) predate the records",
+    "docs/results/phase1.md": "the 8000/9000-iteration and synthetic rows: runs not kept",
     "docs/results/phase1-articulated.md": "per-scene tables partly from runs not kept",
     "docs/results/phase2.md": "bouncingballs and study tables from runs not kept as records",
     "docs/results/phase2-robustness.md": "sections 1-5: studies overwritten by section 6's record",
-    "docs/results/hellwarrior.md": "no record named",
-    "docs/results/offline-encoder.md": "no record named",
-    "docs/results/phase3.md": "tables name records; checked values not yet audited",
-    "docs/results/run-contract.md": "no record named",
+    "docs/results/hellwarrior.md": "no record named (compositing and training tables)",
+    "docs/results/offline-encoder.md": "no record named (accuracy, cost, settings tables)",
+    "docs/results/phase3.md": "runs, queries and slots tables: outputs in /tmp/w52 not committed; "
+    "the 2026-12-02 values beside them have no record",
+    "docs/results/run-contract.md": "no record named (2026-12-02 measurements)",
     "docs/gpu.md": "tuning log tables: most runs were not kept as records",
-    "docs/metrics.md": "worked examples not yet tied to records",
+    "docs/metrics.md": "the SSIM border table: measured by a test, no record",
     "docs/export.md": "bouncingballs measurements: no record (another engineer edits the page)",
     "docs/datasets.md": "the camera errors of `process` on the test video: asserted by "
     "tests/data/test_process.py, no record",
