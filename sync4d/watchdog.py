@@ -2,17 +2,25 @@
 Phase 3's solve check their numbers each step and stop at the first NaN or inf, naming the
 tensor, the iteration and the Gaussians or objects involved, and saying what to try.
 
-Cheap enough to stay on: a step checks its loss, then one float64 sum per watched gradient
-(before the optimizer moves anything) and per parameter (after), all in a single `isfinite`
-over the stacked sums; a non-finite element makes its tensor's sum non-finite (and float64 sums
-of float32 values cannot overflow), and only then are the offending rows looked up.
+A step checks what the rasteriser and the losses receive (`check_inputs`: the deformed means,
+normalised rotations, activated scales and opacities, SH coefficients and colours, the node
+motion), its loss, every watched gradient (before the optimizer moves anything) and every
+parameter (after; a log-scale whose exponential overflows float32 counts as non-finite). Cheap
+enough to stay on: one fused `aminmax` per tensor (a NaN propagates to both ends, an inf is
+one), a single `isfinite` over all of them, and only on a failure are the offending rows
+looked up.
 
-A failure before the optimizer step leaves the model as the previous iteration left it
-(`NonFinite.clean`): the loop saves that state as the run's checkpoint. A failure after it does
-not save: the checkpoint on disk is the last good one. Never a poisoned checkpoint.
+A failure of the loss or the gradients leaves the model as the previous iteration left it
+(`NonFinite.clean`): the loop saves that state as the run's checkpoint. A failure of the
+parameters after the optimizer step, or of the inputs (which the previous step's parameters
+produced), does not save: the checkpoint on disk is the last good one. Never a poisoned
+checkpoint.
 
-Tests inject a NaN with `injected(phase, iteration, target)`: target ``"loss"``, ``"grad:NAME"``
-or ``"param:NAME"`` (a watched tensor's name) at that iteration of that phase.
+Each message names the settings that move the tensor (`SETTINGS`; every one a real key of
+`RunConfig`, which `tests/pipeline/test_watchdog.py` checks).
+
+Tests inject a NaN with `injected(phase, iteration, target)`: target ``"loss"``, ``"grad:NAME"``,
+``"param:NAME"`` or ``"input:NAME"`` (a watched tensor's name) at that iteration of that phase.
 """
 
 from __future__ import annotations
@@ -24,14 +32,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["HINTS", "NonFinite", "check_array", "check_grads", "check_loss", "check_params",
-           "injected"]  # fmt: skip
+__all__ = ["HINTS", "INPUTS", "SETTINGS", "NonFinite", "check_array", "check_grads",
+           "check_inputs", "check_loss", "check_params", "injected", "settings_for"]  # fmt: skip
 
 #: What to try, per phase.
 HINTS = {
-    "Phase 1": "lower the learning rates (--set phase1.lr_position=..., phase1.lr_deform=...), "
-               "train at a smaller --resolution-scale, or check the dataset's images and "
-               "poses for NaN",
+    "Phase 1": "lower the learning rates (--set phase1.lr_means=..., phase1.lr_scales=..., "
+               "phase1.lr_deform=...), train at a smaller --resolution-scale, or check the "
+               "dataset's images and poses for NaN",
     "Phase 2": "lower M_phi's learning rate (--set phase2.motion.lr=...) or the regulariser "
                "weights, or redo Phase 2 from the Phase 1 checkpoint (fit --out RUN --phases 2)",
     "Phase 2 refinement": "lower the refinement's step (--set phase2.motion.refine_lr=...) or "
@@ -40,7 +48,62 @@ HINTS = {
                "in too few frames may need phase3.min_visible lowered",
 }  # fmt: skip
 
+#: The settings whose learning rates move each watched tensor: a parameter's name, a prefix
+#: ending in "." (D_theta's, M_phi's), or ``input:NAME`` for what the rasteriser receives.
+#: Phase 2 trains Phase 1's parameters with Phase 1's rates.
+SETTINGS: dict[str, tuple[str, ...]] = {
+    "means": ("phase1.lr_means",),
+    "quats": ("phase1.lr_quats",),
+    "log_scales": ("phase1.lr_scales",),
+    "opacity_logits": ("phase1.lr_opacity",),
+    "sh_dc": ("phase1.lr_sh",),
+    "sh_rest": ("phase1.lr_sh",),
+    "embeddings": ("phase1.lr_embed",),
+    "deform.": ("phase1.lr_deform",),
+    "nodes.positions": ("phase1.nodes.lr_position",),
+    "nodes.log_radii": ("phase1.nodes.lr_radius",),
+    "nodes.embeddings": ("phase1.lr_embed",),
+    "motion.": ("phase2.motion.lr",),
+    "rotation": ("phase2.motion.refine_lr",),
+    "shift": ("phase2.motion.refine_lr",),
+    "input:means": ("phase1.lr_means", "phase1.lr_deform", "phase1.lr_embed"),
+    "input:quats": ("phase1.lr_quats", "phase1.lr_deform"),
+    "input:scales": ("phase1.lr_scales", "phase1.lr_deform"),
+    "input:opacities": ("phase1.lr_opacity",),
+    "input:sh": ("phase1.lr_sh",),
+    "input:colors": ("phase1.lr_sh",),
+    "input:node_rotations": ("phase1.lr_deform", "phase1.lr_embed"),
+    "input:node_shifts": ("phase1.lr_deform", "phase1.lr_embed"),
+    "input:node_log_scales": ("phase1.lr_deform", "phase1.lr_embed"),
+}
+
+#: What each of the rasteriser's inputs is (``check_inputs``' names).
+INPUTS = {
+    "means": "the deformed means",
+    "quats": "the normalised rotations",
+    "scales": "the activated scales (exp of the deformed log-scales)",
+    "opacities": "the opacities (sigmoid of the logits)",
+    "sh": "the SH coefficients",
+    "colors": "the SH colours",
+    "node_rotations": "the node motion's rotations",
+    "node_shifts": "the node motion's translations",
+    "node_log_scales": "the node motion's log-scale offsets",
+}
+
+#: exp(x) overflows float32 above this.
+_EXP_MAX = 88.72
+
 _INJECT: dict[tuple[str, int], str] = {}
+
+
+def settings_for(name: str) -> tuple[str, ...]:
+    """The settings `SETTINGS` names for watched tensor `name` (exact, else the longest
+    matching prefix); () when none."""
+    if name in SETTINGS:
+        return SETTINGS[name]
+    best = max((k for k in SETTINGS if k.endswith(".") and name.startswith(k)), key=len,
+               default=None)  # fmt: skip
+    return SETTINGS[best] if best else ()
 
 
 class NonFinite(FloatingPointError):
@@ -49,22 +112,27 @@ class NonFinite(FloatingPointError):
     previous iteration's good state (`clean`). The message says all of it and what to try."""
 
     def __init__(self, phase: str, iteration: int | None, name: str, rows: list[int],
-                 count: int, unit: str, clean: bool) -> None:  # fmt: skip
+                 count: int, unit: str, clean: bool,
+                 settings: tuple[str, ...] = ()) -> None:  # fmt: skip
         self.phase, self.iteration, self.name = phase, iteration, name
         self.rows, self.count, self.unit, self.clean = rows, count, unit, clean
+        self.settings = settings
         shown = ", ".join(str(r) for r in rows) + (", ..." if count > len(rows) else "")
         where = f" in {count} {unit} ({shown})" if rows else ""
+        hint = HINTS.get(phase, "lower the learning rates")
+        if settings:
+            named = ", ".join(f"--set {s}=..." for s in settings)
+            hint = f"lower the learning rates that move it ({named}); more generally, {hint}"
         super().__init__(
             f"{phase} stopped{'' if iteration is None else f' at iteration {iteration}'}: "
-            f"{name} is NaN or inf{where}. "
-            f"Try: {HINTS.get(phase, 'lower the learning rates')}"
+            f"{name} is NaN or inf{where}. Try: {hint}"
         )
 
 
 @contextlib.contextmanager
 def injected(phase: str, iteration: int, target: str) -> Iterator[None]:
     """A test hook: within the block, `phase`'s check at `iteration` finds a NaN in `target`
-    ("loss", "grad:NAME", "param:NAME"), written into the real tensor first."""
+    ("loss", "grad:NAME", "param:NAME", "input:NAME"), written into the real tensor first."""
     _INJECT[(phase, iteration)] = target
     try:
         yield
@@ -91,19 +159,36 @@ def _bad_rows(t: Tensor) -> tuple[list[int], int]:
     return [int(i) for i in idx[:8]], int(idx.numel())
 
 
+def _ends(present: Mapping[str, Tensor]) -> Tensor:
+    """[T, 2]: each tensor's (min, max), one fused pass each (NaN propagates to both)."""
+    return torch.stack([torch.stack(torch.aminmax(v.detach())) for v in present.values()])
+
+
 def _check(phase: str, iteration: int, tensors: Mapping[str, Tensor | None], what: str,
-           units: Mapping[str, str], clean: bool) -> None:  # fmt: skip
+           units: Mapping[str, str], clean: bool, kind: str = "") -> None:  # fmt: skip
     present = {k: v for k, v in tensors.items() if v is not None and v.numel()}
     if not present:
         return
-    sums = torch.stack([v.detach().double().sum() for v in present.values()])
-    if bool(torch.isfinite(sums).all()):
+    ends = _ends(present)
+    ok = torch.isfinite(ends).all(1)
+    log_scales = "log_scales" in present and kind == "param"
+    if log_scales:  # exp(log-scale) is what the rasteriser gets: it must not overflow
+        i = list(present).index("log_scales")
+        ok[i] &= ends[i, 1] < _EXP_MAX
+    if bool(ok.all()):
         return
-    # float64 sums of float32 values cannot overflow: a non-finite sum has a non-finite element
-    name = next(k for k, v in present.items() if not bool(torch.isfinite(v.detach()).all()))
-    rows, count = _bad_rows(present[name])
-    raise NonFinite(phase, iteration, f"the {what} of '{name}'", rows, count,
-                    units.get(name, "elements"), clean)  # fmt: skip
+    name = list(present)[int((~ok).nonzero()[0])]
+    t = present[name]
+    if bool(torch.isfinite(t.detach()).all()):  # finite log-scales whose exponential overflows
+        rows, count = _bad_rows(torch.where(t.detach() < _EXP_MAX, 0.0, float("inf")))
+        label = f"the activated value (exp) of '{name}'"
+    else:
+        rows, count = _bad_rows(t)
+        label = f"{INPUTS[name]} ('{name}')" if what == "input" and name in INPUTS \
+            else f"the {what} of '{name}'"  # fmt: skip
+    key = f"input:{name}" if what == "input" else name
+    raise NonFinite(phase, iteration, label, rows, count, units.get(name, "elements"), clean,
+                    settings_for(key))  # fmt: skip
 
 
 def check_loss(phase: str, iteration: int, loss: Tensor) -> Tensor:
@@ -128,7 +213,18 @@ def check_params(phase: str, iteration: int, params: Mapping[str, Tensor],
     """NonFinite (not clean: the optimizer already wrote them) unless every parameter is
     finite."""
     _inject(phase, iteration, "param", params)
-    _check(phase, iteration, dict(params), "value", units or {}, clean=False)
+    _check(phase, iteration, dict(params), "value", units or {}, clean=False, kind="param")
+
+
+def check_inputs(phase: str, iteration: int, inputs: Mapping[str, Tensor | None],
+                 units: Mapping[str, str] | None = None) -> None:  # fmt: skip
+    """NonFinite (not clean: the previous step's parameters produced them) unless every
+    tensor the rasteriser or a loss is about to receive is finite (`INPUTS` names them:
+    ``means``, ``quats``, ``scales``, ``opacities``, ``sh``, ``colors``, ``node_*``); rows
+    are Gaussians unless `units` says otherwise."""
+    _inject(phase, iteration, "input", inputs)  # type: ignore[arg-type]
+    names = {k: "nodes" if k.startswith("node_") else "Gaussians" for k in inputs}
+    _check(phase, iteration, inputs, "input", {**names, **(units or {})}, clean=False)
 
 
 def check_array(phase: str, name: str, a: np.ndarray, unit: str = "objects") -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -220,23 +221,41 @@ class DeformableGaussians(nn.Module):
         deform: bool = True,
         deformed: tuple[Tensor, Tensor, Tensor] | None = None,
         sh_dc: Tensor | None = None,
+        check: Callable[[dict[str, Tensor]], None] | None = None,
         **raster_kw,
     ) -> raster.RasterOutput:
         """Render the scene deformed to time `t` from `camera` (RGB features from SH of degree
         `sh_degree`, default the model's; the canonical scene when `deform` is False).
         `deformed` passes `at_time(t)`'s result when the caller already computed it; `sh_dc`
-        [N, 1, 3] replaces the model's base colours."""
+        [N, 1, 3] replaces the model's base colours. `check` (the watchdog's) sees what the
+        rasteriser is about to receive, by name (``means``, ``quats``, ``scales``,
+        ``opacities``, ``sh``, the node motion's ``node_*``; then ``colors``), before it does."""
         means, quats, scales = deformed if deformed is not None else self.at_time(t, deform)
         viewmat = torch.as_tensor(camera.viewmat, dtype=torch.float32)
         coeffs = torch.cat([self.sh_dc if sh_dc is None else sh_dc, self.sh_rest], dim=1)
         degree = self.sh_degree if sh_degree is None else sh_degree
+        opacities = torch.sigmoid(self.opacity_logits)
+        if check is not None:
+            check({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
+                   "sh": coeffs, **self.node_motion()})  # fmt: skip
         # The colours on the rasterizer's threads too: without them SH ran on all cores
         # (rayon's default pool) in a `fit --threads 1` (issue 51).
         threads = raster_kw.get("threads")
         colors = raster.sh_features(means, coeffs, viewmat, degree, threads=threads)
+        if check is not None:
+            check({"colors": colors})
         K = torch.as_tensor(camera.K, dtype=torch.float32)
         raster_kw.setdefault("near", self.near)
         return raster.rasterize(
-            means, quats, scales, torch.sigmoid(self.opacity_logits), colors, viewmat, K,
+            means, quats, scales, opacities, colors, viewmat, K,
             camera.width, camera.height, background=background, **raster_kw,
         )  # fmt: skip
+
+    def node_motion(self) -> dict[str, Tensor]:
+        """The last node motion (`NodeMotion.last_motion`: rotations, translations, log-scale
+        offsets of the nodes) by the watchdog's names; {} without nodes."""
+        motion = None if self.nodes is None else self.nodes.last_motion
+        if motion is None:
+            return {}
+        return dict(zip(("node_rotations", "node_shifts", "node_log_scales"), motion,
+                        strict=True))  # fmt: skip

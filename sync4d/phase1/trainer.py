@@ -403,7 +403,7 @@ class Phase1Trainer:
         deformed = self.model.at_time(frame.time, deform=self.deform_active())
         out = self.model.render(
             camera, frame.time, sh_degree=degree, background=self._background,
-            deformed=deformed, threads=self.threads,
+            deformed=deformed, threads=self.threads, check=self.check_inputs,
         )  # fmt: skip
         out.means2d.retain_grad()
         loss = photometric_loss(
@@ -449,6 +449,11 @@ class Phase1Trainer:
 
     #: The name the watchdog gives this trainer's failures.
     phase_name = "Phase 1"
+
+    def check_inputs(self, inputs: dict[str, torch.Tensor]) -> None:
+        """The watchdog's check of what this iteration's render receives (`render`'s
+        `check`): NonFinite, naming the input, unless it is all finite."""
+        watchdog.check_inputs(self.phase_name, self.iteration, inputs)
 
     def watched(self) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
         """The parameters the watchdog checks each step (name -> tensor) and the unit of their

@@ -10,6 +10,7 @@ unchanged; only the SE(3) table's entries of the moving objects are rewritten.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -292,7 +293,9 @@ def _track_frame(
             index = views[drawn % len(views)]
             drawn += 1
             pose = template.pose(w_j, d_j, deformed)
-            loss = _template_loss(trainer, index, t, pose, template.sh_dc)
+            loss = _template_loss(trainer, index, t, pose, template.sh_dc,
+                                  lambda inputs: watchdog.check_inputs("Phase 2 refinement",
+                                                                       j, inputs))  # fmt: skip
             loss = watchdog.check_loss("Phase 2 refinement", j, loss)
             loss.backward()
             loss_value += float(loss.detach()) / per_step
@@ -346,13 +349,15 @@ def _template_loss(
     t: float,
     deformed: tuple[Tensor, Tensor, Tensor],
     sh_dc: Tensor,
+    check: Callable[[dict[str, Tensor]], None] | None = None,
 ) -> Tensor:
     """Photometric loss of training frame `index` rendered at time `t` with `deformed`
-    means, quaternions and scales and base colours `sh_dc` [N, 1, 3]."""
+    means, quaternions and scales and base colours `sh_dc` [N, 1, 3] (`check`: the
+    watchdog's, on what the rasteriser receives)."""
     frame = trainer.scene.train[index]
     out = trainer.model.render(
         frame.camera, t, sh_degree=trainer.model.sh_degree, background=trainer.background,
-        deformed=deformed, sh_dc=sh_dc, threads=trainer.threads,
+        deformed=deformed, sh_dc=sh_dc, threads=trainer.threads, check=check,
     )  # fmt: skip
     return photometric_loss(
         out.features, trainer.image(index, frame), trainer.config.lambda_l1,

@@ -39,6 +39,7 @@ from sync4d.runs.checkpoint import (
     read_checkpoint,
     save_checkpoint,
     state_errors,
+    write_checkpoint,
 )
 from sync4d.runs.names import (
     CHECKPOINT_NAME,
@@ -115,10 +116,20 @@ class TrainingDiverged(RuntimeError):
     folder keeps and what to try."""
 
 
-def _stopped(e: watchdog.NonFinite, trainer: Phase1Trainer, save, ckpt: Path) -> TrainingDiverged:
+def _snapshot(trainer: Phase1Trainer) -> tuple[dict[str, torch.Tensor], dict]:
+    """A copy of `trainer.state()`: the state a loop started from, saved should the loop
+    diverge before it wrote a checkpoint."""
+    tensors, meta = trainer.state()
+    return {k: v.detach().clone() for k, v in tensors.items()}, json.loads(json.dumps(meta))
+
+
+def _stopped(e: watchdog.NonFinite, trainer: Phase1Trainer, save, ckpt: Path,
+             initial: tuple[dict[str, torch.Tensor], dict] | None = None,
+             extra: dict | None = None) -> TrainingDiverged:  # fmt: skip
     """The error for `e`, after saving the trainer's state when it is still the previous
     iteration's (`e.clean`: the optimizer moved nothing), so the run keeps its last good state;
-    a state the optimizer already wrote is never saved."""
+    a state the optimizer already wrote is never saved. Without a checkpoint on disk, the
+    state the loop started from (`initial`, finite) is saved instead."""
     if e.clean:
         trainer.iteration -= 1  # the failed iteration did not happen
         trainer.optimizer.zero_grad(set_to_none=True)
@@ -127,6 +138,11 @@ def _stopped(e: watchdog.NonFinite, trainer: Phase1Trainer, save, ckpt: Path) ->
     elif ckpt.exists():
         last = read_checkpoint(ckpt)[1].get("iteration")
         kept = f"{ckpt} keeps the last good checkpoint (iteration {last})"
+    elif initial is not None and all(bool(torch.isfinite(t).all()) for t in
+                                     initial[0].values() if t.is_floating_point()):
+        write_checkpoint(ckpt, *initial, {**(extra or {}), "train_seconds": 0.0})
+        kept = (f"no checkpoint had been written yet: the state training started from "
+                f"(iteration {initial[1].get('iteration')}) is saved in {ckpt}")
     else:
         kept = "no checkpoint was written"
     run = ckpt.parent
@@ -159,6 +175,8 @@ def _train_loop(
 
     def save() -> None:
         save_checkpoint(trainer, ckpt, {**extra, "train_seconds": train_seconds})
+
+    initial = None if ckpt.exists() else _snapshot(trainer)
 
     with stop.deferred():
         try:
@@ -204,7 +222,7 @@ def _train_loop(
             stop.requested = stop.requested or int(signal.SIGINT)
         except watchdog.NonFinite as e:
             emit(Finished(desc))
-            raise _stopped(e, trainer, save, ckpt) from None
+            raise _stopped(e, trainer, save, ckpt, initial, extra) from None
         finally:
             emit(Finished(desc))
         save()

@@ -5,6 +5,7 @@ parameter finite, or with the watchdog's clear error (and then with nothing pois
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
 from pathlib import Path
@@ -17,7 +18,9 @@ from PIL import Image
 
 from support.cameras import look_at_w2c
 from sync4d.data.scene import Camera, Frame, Scene
+from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.nodes import NodeConfig
 from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
 from sync4d.watchdog import NonFinite
 
@@ -68,5 +71,67 @@ def test_a_training_step_ends_finite_or_with_the_watchdog(
             assert "Phase 1 stopped at iteration" in str(e) and "Try:" in str(e)
             if not e.clean:
                 return  # the loop does not save this state (tests/pipeline/test_watchdog.py)
+        for name, p in model.named_parameters():
+            assert torch.isfinite(p).all(), name
+
+
+#: Every learning rate of Phase 1 (the node ones with `motion = "nodes"`).
+LEARNING_RATES = ["lr_means", "lr_quats", "lr_scales", "lr_opacity", "lr_sh", "lr_deform",
+                  "lr_embed", "nodes.lr_position", "nodes.lr_radius"]  # fmt: skip
+#: What an initial value sets: each parameter filled with it (log-scales with its log).
+INITIAL = ["means", "scales", "quats", "opacity_logits", "sh", "embeddings", "deform"]
+
+
+def _with(config: Phase1Config, name: str, value: float) -> Phase1Config:
+    if name.startswith("nodes."):
+        nodes = dataclasses.replace(config.nodes, **{name.split(".", 1)[1]: value})
+        return dataclasses.replace(config, nodes=nodes)
+    return dataclasses.replace(config, **{name: value})
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    lr=st.sampled_from(LEARNING_RATES),
+    lr_exp=st.integers(-8, 12),
+    init=st.sampled_from(INITIAL),
+    init_exp=st.integers(-8, 12),
+    sign=st.sampled_from([1.0, -1.0]),
+    nodes=st.booleans(),
+)
+def test_steps_with_any_learning_rate_and_initial_value_end_finite_or_with_the_watchdog(
+    lr, lr_exp, init, init_exp, sign, nodes
+):
+    """Learning rates and initial values from 1e-8 to 1e12 (issue 53): each whole step ends
+    with every parameter finite or with the watchdog's NonFinite, never another exception (a
+    finite log-scale whose exponential overflows once stopped in the rasteriser's
+    ValueError)."""
+    value = sign * 10.0**init_exp
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = _scene(Path(tmp), 1.0, 20.0, "noise")
+        g = torch.Generator().manual_seed(0)
+        model = DeformableGaussians((torch.rand(24, 3, generator=g) - 0.5) * 0.5,
+                                    torch.rand(24, 3, generator=g), sh_degree=1,
+                                    generator=g)  # fmt: skip
+        with torch.no_grad():
+            if init == "scales":
+                model.log_scales.fill_(math.log(abs(value)))
+            elif init == "sh":
+                model.sh_dc.fill_(value)
+                model.sh_rest.fill_(value)
+            elif init == "deform":
+                for p in model.deform.parameters():
+                    p.mul_(abs(value))
+            else:
+                getattr(model, init).mul_(0).add_(value)
+        config = Phase1Config(motion="nodes" if nodes else "gaussians", densify=DensifyConfig(
+            start=2, interval=2, stop=6), nodes=NodeConfig(count=8, init_after=1))
+        trainer = Phase1Trainer(model, scene, _with(config, lr, 10.0**lr_exp),
+                                total_iterations=6, threads=1)  # fmt: skip
+        try:
+            for _ in range(4):
+                trainer.step()
+        except NonFinite as e:
+            assert "stopped at iteration" in str(e) and "Try:" in str(e)
+            return
         for name, p in model.named_parameters():
             assert torch.isfinite(p).all(), name

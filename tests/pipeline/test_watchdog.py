@@ -4,6 +4,8 @@ naming the tensor, the iteration and the rows, and the run keeps a loadable, fin
 
 from __future__ import annotations
 
+import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,10 @@ from support.datasets import write_blender
 from support.scenes import small_synthetic
 from sync4d import watchdog
 from sync4d.cli import main
+from sync4d.config import RunConfig
 from sync4d.data import synthetic as syn
+from sync4d.phase1.nodes import NodeConfig
+from sync4d.phase1.trainer import Phase1Config
 from sync4d.runs import CHECKPOINT_NAME, read_checkpoint
 
 SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=300", "--set",
@@ -108,3 +113,90 @@ def test_the_checks_name_the_rows():
         watchdog.check_params("Phase 2", 2, huge)
     with pytest.raises(watchdog.NonFinite, match=r"Phase 3 stopped: W is NaN or inf in 1 objects"):
         watchdog.check_array("Phase 3", "W", np.array([[0.0, 1.0], [np.nan, 2.0]]))
+
+
+def _setting_exists(key: str) -> bool:
+    node: object = RunConfig()
+    for part in key.split("."):
+        if not dataclasses.is_dataclass(node) or part not in {f.name for f in
+                                                              dataclasses.fields(node)}:
+            return False
+        node = getattr(node, part)
+    return True
+
+
+def test_every_setting_the_watchdog_names_exists():
+    """Each setting a message suggests (`SETTINGS`, and every ``phaseN.key`` in `HINTS`) is a
+    real key of the config classes (the Phase 1 hint once named `phase1.lr_position`)."""
+    named = {s for settings in watchdog.SETTINGS.values() for s in settings}
+    for hint in watchdog.HINTS.values():
+        named |= set(re.findall(r"\b(phase[123](?:\.\w+)+)", hint))
+    assert "phase1.lr_means" in named and "phase2.motion.refine_lr" in named
+    missing = sorted(s for s in named if not _setting_exists(s))
+    assert not missing, missing
+    # every parameter of a Phase 1 / Phase 2 model has its settings
+    for name in ("means", "log_scales", "deform.trunk.0.weight", "nodes.log_radii",
+                 "motion.rotation", "input:scales", "input:node_shifts"):  # fmt: skip
+        assert watchdog.settings_for(name), name
+
+
+def test_a_nan_in_what_the_rasteriser_receives_keeps_the_last_good_checkpoint(data, tmp_path,
+                                                                              capsys):
+    run = tmp_path / "run"
+    with watchdog.injected("Phase 1", 5, "input:scales"):
+        assert main(["fit", str(data), "--out", str(run), *SETTINGS, "--phases", "1"]) == 3
+    err = capsys.readouterr().err
+    assert "Phase 1 stopped at iteration 5: the activated scales (exp of the deformed " \
+           "log-scales) ('scales') is NaN or inf in 1 Gaussians (0)" in err, err
+    assert "--set phase1.lr_scales=..." in err and "Traceback" not in err
+    assert "keeps the last good checkpoint (iteration 3)" in err
+    assert _iteration(run) == 3
+
+
+def test_an_overflowing_log_scale_stops_before_the_rasteriser():
+    """A finite log-scale whose exponential overflows float32 is the parameter check's
+    failure, not the rasteriser's ValueError at the next render."""
+    params = {"log_scales": torch.zeros(4, 3)}
+    watchdog.check_params("Phase 1", 2, params)
+    params["log_scales"][2, 1] = 100.0
+    with pytest.raises(watchdog.NonFinite, match=r"activated value \(exp\) of 'log_scales' is "
+                       r"NaN or inf in 1 elements \(2\).*--set phase1.lr_scales="):
+        watchdog.check_params("Phase 1", 2, params)
+
+
+#: Every learning rate of the config classes (not the schedules' final values and warm-ups),
+#: with what a run needs to use it.
+LEARNING_RATES = {
+    **{f"phase1.{f.name}": [] for f in dataclasses.fields(Phase1Config)
+       if f.name.startswith("lr_") and not f.name.endswith(("_final", "_warmup"))},
+    **{f"phase1.nodes.{f.name}": ["--set", "phase1.motion=nodes", "--set",
+                                  "phase1.nodes.init_after=2", "--set", "phase1.nodes.count=32"]
+       for f in dataclasses.fields(NodeConfig) if f.name.startswith("lr_")},
+    "phase2.motion.lr": ["--phases", "1,2"],
+    "phase2.motion.refine_lr": ["--phases", "1,2", "--set", "phase2.motion.init=fit",
+                                "--set", "phase2.motion.refine_steps=2"],
+}  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("key", sorted(LEARNING_RATES))
+def test_a_learning_rate_of_1e9_ends_cleanly(moving, tmp_path, capsys, key):
+    """Issue 53's acceptance: `fit --set KEY=1e9` on the embedded scene ends with the
+    watchdog's message and exit status 3 and a loadable, finite checkpoint, or, where the
+    rate cannot make a value non-finite (Adam's steps are bounded by the rate, and rotations
+    are normalised, opacities squashed), trains on to exit 0; never a traceback. The scales'
+    rate, the one that overflowed in the rasteriser, stops."""
+    run = tmp_path / "run"
+    args = ["fit", str(moving), "--out", str(run), *SETTINGS, *OBJECTS, "--set", f"{key}=1e9",
+            *LEARNING_RATES[key]]  # fmt: skip
+    if "--phases" not in args:
+        args += ["--phases", "1"]
+    code = main(args)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and code in (0, 3), (code, err)
+    if code == 3:
+        assert "stopped at iteration" in err and "Try: " in err, err
+        assert "Nothing poisoned was saved" in err or "last good checkpoint" in err, err
+    if key == "phase1.lr_scales":
+        assert code == 3 and "--set phase1.lr_scales=..." in err, err
+    _iteration(run)  # loadable, every tensor finite
