@@ -699,9 +699,12 @@ def _call(module, args: argparse.Namespace) -> int:  # noqa: ANN001
         words = " ".join([args.command] + ([getattr(args, group.dest)] if group else []))
         name = str(e.filename) if e.filename is not None else ""
         shown = f"{name[:80]}... ({len(name)} characters)" if len(name) > 100 else name
-        what = f"{e.strerror or e}: {shown!r}" if name else f"{e.strerror or e}"
-        print(f"{_prog()} {words}: {what}; check the paths on the command line (a folder "
-              "that exists and is writable, names of a sane length)", file=sys.stderr)
+        if not name:  # not a path: a connection, a device
+            print(f"{_prog()} {words}: {e}", file=sys.stderr)
+            return 2
+        print(f"{_prog()} {words}: {e.strerror or e}: {shown!r}; check the paths on the command "
+              "line (a folder that exists and is writable, names of a sane length)",
+              file=sys.stderr)  # fmt: skip
         return 2
 
 

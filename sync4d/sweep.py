@@ -24,6 +24,7 @@ import itertools
 import json
 import os
 import platform
+import signal
 import subprocess
 import sys
 import time
@@ -42,6 +43,8 @@ JOB_KEYS = ("name", "data", "config", "set", "seeds", "phases", "iters", "thread
             "queries", "resolution_scale")  # fmt: skip
 #: Lines of a failed job's log shown with its error.
 LOG_TAIL = 12
+#: Seconds an interrupted job's fit has to save its checkpoint before it is killed.
+STOP_GRACE = 120.0
 
 
 class ManifestError(ValueError):
@@ -166,8 +169,17 @@ def _call(args: list[str], log, threads: int) -> int:
            "RAYON_NUM_THREADS": str(threads), "PYTHONUNBUFFERED": "1"}  # fmt: skip
     log.write(f"$ sync4d {' '.join(args)}\n")
     log.flush()
-    return subprocess.call([sys.executable, "-m", "sync4d", *args], stdout=log,
-                           stderr=subprocess.STDOUT, env=env)  # fmt: skip
+    with subprocess.Popen([sys.executable, "-m", "sync4d", *args], stdout=log,
+                          stderr=subprocess.STDOUT, env=env) as proc:  # fmt: skip
+        try:
+            return proc.wait()
+        except KeyboardInterrupt:  # Ctrl-C, or a cancelled task: fit saves, then stops
+            proc.send_signal(signal.SIGINT)  # fit ignores a second one while it stops
+            try:
+                proc.wait(timeout=STOP_GRACE)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            raise
 
 
 def run_job(job: Job, out: Path) -> dict:
@@ -284,8 +296,9 @@ def run_sweep(jobs: list[Job], out: Path, address: str | None = None,
     import ray
 
     out.mkdir(parents=True, exist_ok=True)
-    ray.init(address=address, num_cpus=None if address else cpus, include_dashboard=False,
-             log_to_driver=False, configure_logging=False)  # fmt: skip
+    # no --address: a Ray of its own ("local"), never a cluster that happens to run here
+    ray.init(address=address or "local", num_cpus=None if address else cpus,
+             include_dashboard=False, log_to_driver=False, configure_logging=False)  # fmt: skip
     try:
         remote = ray.remote(run_job)
         pending = {remote.options(num_cpus=j.threads).remote(j, out): i
@@ -332,7 +345,12 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "jobs.json", json.dumps([asdict(j) for j in jobs], indent=1) + "\n")
-    results = run_sweep(jobs, out, args.address, args.cpus)
+    try:
+        results = run_sweep(jobs, out, args.address, args.cpus)
+    except ConnectionError as e:  # --address names no cluster Ray can join
+        print(f"sweep: cannot join the Ray cluster at {args.address}: {e}; check --address "
+              "(HOST:PORT of a head started with `ray start --head`, or auto)", file=sys.stderr)
+        return 2
     rows = [_row(j, out, r) for j, r in zip(jobs, results, strict=True)]
     print(_write_table(rows, out))
     print(f"sweep: results in {out / 'results.csv'}, {out / 'results.json'} and "
