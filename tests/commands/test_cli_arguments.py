@@ -235,6 +235,7 @@ def test_every_command_has_a_base_command_line(world):
     assert set(_bases(world)) >= {c.name for c in COMMANDS}
 
 
+@pytest.mark.slow  # a process each (torch's import): about 10 s apiece on 2 busy cores
 @pytest.mark.parametrize("argv", [
     ["query", "{run}", os.fsencode(BAD_BYTES), "--no-plot"],
     ["render", "{run}", "--sweep", "2", "--out", b"{tmp}/out-\xff\xfe"],

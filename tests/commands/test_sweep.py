@@ -188,6 +188,7 @@ def test_manifest_errors_are_named(tmp_path, capsys):
 CUT_ITERS = 160
 
 
+@pytest.mark.slow
 def test_an_interrupted_job_continues_from_its_checkpoint(folder, tmp_path, ray_sandbox):
     """A sweep job interrupted in the middle of training (Ctrl-C on its process group, as a
     terminal sends it, once its fit has logged progress): fit saves the iteration it reached,
