@@ -4,11 +4,11 @@ tensor, the iteration and the Gaussians or objects involved, and saying what to 
 
 A step checks what the rasteriser and the losses receive (`check_inputs`: the deformed means,
 normalised rotations, activated scales and opacities, SH coefficients and colours, the node
-motion), its loss, every watched gradient (before the optimizer moves anything) and every
-parameter (after; a log-scale whose exponential overflows float32 counts as non-finite). Cheap
-enough to stay on: one fused `aminmax` per tensor (a NaN propagates to both ends, an inf is
-one), a single `isfinite` over all of them, and only on a failure are the offending rows
-looked up.
+motion; evaluation renders too, as phase "Evaluation"), its loss, every watched gradient
+(before the optimizer moves anything) and every parameter (after; a log-scale whose
+exponential overflows float32 counts as non-finite). Cheap enough to stay on: one fused
+`aminmax` per tensor (a NaN propagates to both ends, an inf is one), a single `isfinite` over
+all of them, and only on a failure are the offending rows looked up.
 
 A failure of the loss or the gradients leaves the model as the previous iteration left it
 (`NonFinite.clean`): the loop saves that state as the run's checkpoint. A failure of the
@@ -93,7 +93,7 @@ INPUTS = {
 #: exp(x) overflows float32 above this.
 _EXP_MAX = 88.72
 
-_INJECT: dict[tuple[str, int], str] = {}
+_INJECT: dict[tuple[str, int | None], str] = {}
 
 
 def settings_for(name: str) -> tuple[str, ...]:
@@ -130,7 +130,7 @@ class NonFinite(FloatingPointError):
 
 
 @contextlib.contextmanager
-def injected(phase: str, iteration: int, target: str) -> Iterator[None]:
+def injected(phase: str, iteration: int | None, target: str) -> Iterator[None]:
     """A test hook: within the block, `phase`'s check at `iteration` finds a NaN in `target`
     ("loss", "grad:NAME", "param:NAME", "input:NAME"), written into the real tensor first."""
     _INJECT[(phase, iteration)] = target
@@ -140,7 +140,7 @@ def injected(phase: str, iteration: int, target: str) -> Iterator[None]:
         _INJECT.pop((phase, iteration), None)
 
 
-def _inject(phase: str, iteration: int, kind: str, tensors: Mapping[str, Tensor]) -> None:
+def _inject(phase: str, iteration: int | None, kind: str, tensors: Mapping[str, Tensor]) -> None:
     target = _INJECT.get((phase, iteration))
     if target is None or not target.startswith(kind + ":"):
         return
@@ -164,7 +164,7 @@ def _ends(present: Mapping[str, Tensor]) -> Tensor:
     return torch.stack([torch.stack(torch.aminmax(v.detach())) for v in present.values()])
 
 
-def _check(phase: str, iteration: int, tensors: Mapping[str, Tensor | None], what: str,
+def _check(phase: str, iteration: int | None, tensors: Mapping[str, Tensor | None], what: str,
            units: Mapping[str, str], clean: bool, kind: str = "") -> None:  # fmt: skip
     present = {k: v for k, v in tensors.items() if v is not None and v.numel()}
     if not present:
@@ -216,13 +216,13 @@ def check_params(phase: str, iteration: int, params: Mapping[str, Tensor],
     _check(phase, iteration, dict(params), "value", units or {}, clean=False, kind="param")
 
 
-def check_inputs(phase: str, iteration: int, inputs: Mapping[str, Tensor | None],
+def check_inputs(phase: str, iteration: int | None, inputs: Mapping[str, Tensor | None],
                  units: Mapping[str, str] | None = None) -> None:  # fmt: skip
     """NonFinite (not clean: the previous step's parameters produced them) unless every
     tensor the rasteriser or a loss is about to receive is finite (`INPUTS` names them:
     ``means``, ``quats``, ``scales``, ``opacities``, ``sh``, ``colors``, ``node_*``); rows
     are Gaussians unless `units` says otherwise."""
-    _inject(phase, iteration, "input", inputs)  # type: ignore[arg-type]
+    _inject(phase, iteration, "input", inputs)
     names = {k: "nodes" if k.startswith("node_") else "Gaussians" for k in inputs}
     _check(phase, iteration, inputs, "input", {**names, **(units or {})}, clean=False)
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sync4d import watchdog
 from sync4d.data.scene import Frame, Scene
 from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
 from sync4d.files import write_text_atomic
@@ -70,6 +71,10 @@ class FrameMetrics:
     lpips: float | None = None
 
 
+def _check_inputs(inputs: dict[str, torch.Tensor]) -> None:
+    watchdog.check_inputs("Evaluation", None, inputs)
+
+
 @torch.no_grad()
 def render_frame(
     model: DeformableGaussians,
@@ -77,9 +82,12 @@ def render_frame(
     background: Sequence[float] = (1.0, 1.0, 1.0),
     threads: int | None = None,
 ) -> torch.Tensor:
-    """The model's RGB render [H, W, 3] in [0, 1] of `frame`'s camera at its time."""
+    """The model's RGB render [H, W, 3] in [0, 1] of `frame`'s camera at its time; the
+    watchdog's NonFinite (phase "Evaluation") when what the rasteriser would receive is not
+    finite (D_theta at a time training did not visit)."""
     bg = torch.tensor(list(background), dtype=torch.float32)
-    out = model.render(frame.camera, frame.time, background=bg, threads=threads)
+    out = model.render(frame.camera, frame.time, background=bg, threads=threads,
+                       check=_check_inputs)  # fmt: skip
     return out.features.clamp(0.0, 1.0)
 
 

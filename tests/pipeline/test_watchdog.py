@@ -200,3 +200,16 @@ def test_a_learning_rate_of_1e9_ends_cleanly(moving, tmp_path, capsys, key):
     if key == "phase1.lr_scales":
         assert code == 3 and "--set phase1.lr_scales=..." in err, err
     _iteration(run)  # loadable, every tensor finite
+
+
+def test_a_nan_in_an_evaluation_render_is_the_watchdogs_message(data, tmp_path, capsys):
+    """The final evaluation renders D_theta at test times training did not visit: a NaN there
+    is the watchdog's message and exit 3, not the rasteriser's ValueError."""
+    run = tmp_path / "run"
+    with watchdog.injected("Evaluation", None, "input:means"):
+        assert main(["fit", str(data), "--out", str(run), *SETTINGS, "--phases", "1"]) == 3
+    err = capsys.readouterr().err
+    assert "Evaluation stopped: the deformed means ('means') is NaN or inf in 1 Gaussians (0)" \
+        in err, err
+    assert "--set phase1.lr_deform=..." in err and "Traceback" not in err
+    _iteration(run)
