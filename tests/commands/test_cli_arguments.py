@@ -207,9 +207,12 @@ def test_every_argument_takes_any_value(words, world, monkeypatch, tmp_path):
     non-zero exit; never a traceback."""
     monkeypatch.chdir(tmp_path)  # relative paths ("", ".") write here
     monkeypatch.setenv("SYNC4D_ENCODER", "")
-    for target in STOPS.get(words, ()):
-        module, name = target.rsplit(".", 1)
-        monkeypatch.setattr(importlib.import_module(module), name, _stop)
+    # Import every module first: a module imported while another is patched would bind the
+    # stand-in (`from ... import name`), and undoing the patch would restore the stand-in.
+    targets = [(importlib.import_module(t.rsplit(".", 1)[0]), t.rsplit(".", 1)[1])
+               for t in STOPS.get(words, ())]  # fmt: skip
+    for module, name in targets:
+        monkeypatch.setattr(module, name, _stop)
     if words == "render":
         from sync4d.commands import render
 
