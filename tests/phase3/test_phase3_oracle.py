@@ -20,6 +20,7 @@ from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.build import FieldError, build_field, load_field
 from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.encoders.encoder import EncoderError
+from sync4d.phase3.evaluation.annotations import frame_number
 from sync4d.phase3.evaluation.evaluate import evaluate_queries, state_queries
 from sync4d.phase3.evaluation.metrics import temporal_iou
 from sync4d.phase3.query import QueryError, TextCache, answer
@@ -189,7 +190,8 @@ def test_states_are_intervals_and_smoothing_keeps_the_mean():
 def test_eval_reads_4d_langsplat_annotations(oracle_run, monkeypatch, tmp_path):
     """A 4D LangSplat-style annotation folder (COCO polygons + video_annotations.json) for the
     red ball's hop: the polygons are the bounding boxes of its instance mask in each frame's
-    first view, so vIoU compares the rendered label mask with them."""
+    first view, so vIoU compares the rendered label mask with them. Each image is named by
+    that view's own file number (frames are mapped by name when the dataset is known)."""
     run, field, enc, root = oracle_run
     scene = load_scene(root)
     ann = tmp_path / "annotations"
@@ -199,7 +201,8 @@ def test_eval_reads_4d_langsplat_annotations(oracle_run, monkeypatch, tmp_path):
         view = next(fr for fr in scene.train if abs(fr.time - t) < 1e-6)
         ys, xs = np.nonzero(view.load_mask() == 1)
         x0, y0, x1, y1 = int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1
-        images.append({"id": f, "file_name": f"{f + 1:06d}.png", "width": 48, "height": 48})
+        number = frame_number(view.image_path.name)
+        images.append({"id": f, "file_name": f"{number:06d}.png", "width": 48, "height": 48})
         annotations.append({"id": f, "image_id": f, "category_id": 1, "bbox": [0, 0, 1, 1],
                             "segmentation": [[x0, y0, x1, y0, x1, y1, x0, y1]]})
     (ann / "train" / "_annotations.coco.json").write_text(json.dumps({
