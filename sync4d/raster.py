@@ -140,7 +140,8 @@ def _check_finite(name: str, t: Tensor) -> None:
         raise ValueError(f"{name}: contains NaN or inf")
 
 
-def _threads(threads: int | None) -> int:
+def thread_count(threads: int | None) -> int:
+    """A kernel's `threads` argument checked: a positive int, or None (0: rayon's default)."""
     if threads is None:
         return 0
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
@@ -177,7 +178,8 @@ def _np(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
-def _grad_or_zeros(g: Tensor | None, like: Tensor) -> np.ndarray:
+def grad_or_zeros(g: Tensor | None, like: Tensor) -> np.ndarray:
+    """An output's gradient as NumPy in `like`'s dtype; zeros when autograd passed None."""
     return _np(torch.zeros_like(like) if g is None else g.to(like.dtype))
 
 
@@ -232,8 +234,8 @@ class _ProjectFn(torch.autograd.Function):
         gm, gq, gs, go = fn(
             _np(means), _np(quats), _np(scales), _np(opacities),
             cam.viewmat, cam.intrinsics, cam.width, cam.height, ctx.settings,
-            (_grad_or_zeros(v_m2, like2), _grad_or_zeros(v_co, like3),
-             _grad_or_zeros(v_de, like1), _grad_or_zeros(v_op, like1)),
+            (grad_or_zeros(v_m2, like2), grad_or_zeros(v_co, like3),
+             grad_or_zeros(v_de, like1), grad_or_zeros(v_op, like1)),
             ctx.threads,
         )  # fmt: skip
         return (
@@ -278,7 +280,7 @@ def project_gaussians(
     _check_gaussians(means, quats, scales, opacities)
     cam = _camera(viewmat, K, width, height)
     settings = (float(near), float(far), float(eps2d), bool(antialiased))
-    out = _ProjectFn.apply(means, quats, scales, opacities, cam, settings, _threads(threads))
+    out = _ProjectFn.apply(means, quats, scales, opacities, cam, settings, thread_count(threads))
     return Projection(*out)
 
 
@@ -355,9 +357,9 @@ class _RasterizeFn(torch.autograd.Function):
         like_f = features.new_empty(height, width, ch)
         like_1 = features.new_empty(height, width, 1)
         grads = (
-            _grad_or_zeros(v_f, like_f),
-            _grad_or_zeros(v_a, like_1),
-            _grad_or_zeros(v_d, like_1),
+            grad_or_zeros(v_f, like_f),
+            grad_or_zeros(v_a, like_1),
+            grad_or_zeros(v_d, like_1),
         )
         g2, gc, gd, go, gf = ctx.lease.context.backward(
             splats, ch, _np(background), width, height, alpha_max, grads, threads
@@ -422,7 +424,7 @@ def rasterize_to_pixels(
             "backend 'wgpu' composites float32 only; use backend='cpu' for float64 "
             "(gradient checks)"
         )
-    opts = (w, h, am, _threads(threads), be)
+    opts = (w, h, am, thread_count(threads), be)
     return _RasterizeFn.apply(
         means2d, conics, depths, opacities, features, radii, background, opts, info
     )
@@ -525,7 +527,7 @@ def spherical_harmonics(
             f"coeffs: degree {degree} needs >= {(degree + 1) ** 2} coefficients per channel, "
             f"got shape {list(coeffs.shape)}"
         )
-    return _ShFn.apply(degree, dirs, coeffs, _threads(threads))
+    return _ShFn.apply(degree, dirs, coeffs, thread_count(threads))
 
 
 def sh_features(

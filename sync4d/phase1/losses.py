@@ -12,7 +12,7 @@ from torch import Tensor
 
 from sync4d import _core
 from sync4d.metrics.image import check_image_pair, dssim
-from sync4d.raster import _threads
+from sync4d.raster import thread_count
 
 __all__ = ["photometric_loss", "photometric_loss_reference"]
 
@@ -65,4 +65,4 @@ def photometric_loss(
     )
     if not fused:
         return photometric_loss_reference(pred, target, lambda_l1, lambda_dssim)
-    return _FusedLoss.apply(pred, target, lambda_l1, lambda_dssim, _threads(threads))
+    return _FusedLoss.apply(pred, target, lambda_l1, lambda_dssim, thread_count(threads))

@@ -32,6 +32,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from sync4d import _core
+from sync4d.raster import grad_or_zeros, thread_count
 
 __all__ = ["linear_epilogue", "node_weighted_sum"]
 
@@ -85,14 +86,6 @@ class _NodeWeightedSum(torch.autograd.Function):
         return (*(g if need[a] else None for a, g in enumerate(grads)), None, None)
 
 
-def _threads(threads: int | None) -> int:
-    if threads is None:
-        return 0
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ValueError(f"threads: expected a positive int or None, got {threads!r}")
-    return threads
-
-
 def node_weighted_sum(
     x0: Tensor, positions: Tensor, inv_r2: Tensor, table: Tensor, index: Tensor,
     *, threads: int | None = None,
@@ -116,7 +109,7 @@ def node_weighted_sum(
     for name, t, want in wants:
         if tuple(t.shape) != want:
             raise ValueError(f"{name}: expected shape {list(want)}, got {list(t.shape)}")
-    return _NodeWeightedSum.apply(x0, positions, inv_r2, table, index, _threads(threads))
+    return _NodeWeightedSum.apply(x0, positions, inv_r2, table, index, thread_count(threads))
 
 
 class _LinearEpilogue(torch.autograd.Function):
@@ -135,8 +128,7 @@ class _LinearEpilogue(torch.autograd.Function):
     def backward(ctx, gm, gq, gs):  # type: ignore[override]
         blended, x0, q0, log_s0 = ctx.saved_tensors
         arrays = tuple(_np(t) for t in (blended, x0, q0, log_s0))
-        grads = tuple(_np(torch.zeros_like(t) if g is None else g.to(x0.dtype))
-                      for g, t in ((gm, x0), (gq, q0), (gs, log_s0)))  # fmt: skip
+        grads = tuple(grad_or_zeros(g, t) for g, t in ((gm, x0), (gq, q0), (gs, log_s0)))
         out = _core.linear_epilogue_backward(*arrays, *grads, ctx.threads)
         shapes = (blended.shape, x0.shape, q0.shape, log_s0.shape)
         need = ctx.needs_input_grad
@@ -159,4 +151,4 @@ def linear_epilogue(
                           ("log_s0", log_s0, (n, 3))):  # fmt: skip
         if tuple(t.shape) != want:
             raise ValueError(f"{name}: expected shape {list(want)}, got {list(t.shape)}")
-    return _LinearEpilogue.apply(blended, x0, q0, log_s0, _threads(threads))
+    return _LinearEpilogue.apply(blended, x0, q0, log_s0, thread_count(threads))
