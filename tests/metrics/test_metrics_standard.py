@@ -5,7 +5,10 @@ package is in test_lpips.py."""
 
 from __future__ import annotations
 
+import datetime
 import json
+import os
+import platform
 from pathlib import Path
 
 import numpy as np
@@ -150,6 +153,51 @@ def test_border_difference_on_a_dnerf_image() -> None:
     inner = full[:, 5:-5, 5:-5]
     border_mean = (full.sum() - inner.sum()) / (full.numel() - inner.numel())
     assert zero_padded - standard == pytest.approx(ring * float(border_mean - standard), rel=1e-9)
+    record = os.environ.get("SYNC4D_SSIM_BORDER_RECORD")
+    if record:
+        _write_border_record(record)
+
+
+# The degraded copies of docs/metrics.md's border table: (label, blur sigma, noise sigma).
+BORDER_COPIES = (("blur sigma 1 px", 1.0, 0.0), ("blur sigma 1 px + noise sigma 0.02", 1.0, 0.02),
+                 ("noise sigma 0.05", 0.0, 0.05))  # fmt: skip
+
+
+def _write_border_record(path: str) -> None:
+    """docs/bench/ssim-border.json: the standard, the 3DGS zero-padded and the 3x3 box SSIM of
+    each D-NeRF scene's first test view (400x400 on white) against the copies above (noise from
+    a generator seeded 0, as the test's)."""
+    rows = []
+    for scene in ("lego", "bouncingballs", "hellwarrior", "hook"):
+        frame = load_scene(DNERF / scene, 0.5, "test").test[0]
+        target = torch.from_numpy(frame.load_image((1.0, 1.0, 1.0))).double()
+        for label, blur, noise_sigma in BORDER_COPIES:
+            g = torch.Generator().manual_seed(0)
+            noise = noise_sigma * torch.randn(target.shape, generator=g, dtype=torch.float64)
+            pred = ((gaussian_blur(target, blur) if blur else target) + noise).clamp(0, 1)
+            standard = float(ssim_gaussian(pred, target))
+            zero_padded = float(_ssim_map_zero_padded(pred, target).mean())
+            rows.append({"scene": scene, "view": frame.name, "size": list(target.shape[:2]),
+                         "copy": label, "standard": standard, "zero_padded_3dgs": zero_padded,
+                         "box3": float(ssim(pred, target)),
+                         "skimage": _skimage_ssim(pred, target)})  # fmt: skip
+    with open("/proc/cpuinfo") as fh:
+        cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
+    doc = {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": f"SYNC4D_SSIM_BORDER_RECORD={path} OMP_NUM_THREADS=1 python -m pytest -q "
+        "tests/metrics/test_metrics_standard.py -k border_difference -p no:cacheprovider",
+        "machine": {"platform": platform.platform(), "cpu": cpu, "cpus": os.cpu_count()},
+        "rows": rows,
+        "derived": {
+            "rule": "difference = zero_padded_3dgs - standard, per row",
+            "script": "tests/metrics/test_metrics_standard.py::_write_border_record",
+            "difference": [r["zero_padded_3dgs"] - r["standard"] for r in rows],
+        },
+    }
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(doc, fh, indent=1)
+        fh.write("\n")
 
 
 def _box_ssim_by_avg_pool(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
