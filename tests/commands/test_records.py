@@ -39,7 +39,6 @@ BENCH = DOCS / "bench"
 PENDING: dict[str, str] = {
     "docs/results/phase1.md": "the 8000/9000-iteration and synthetic rows: runs not kept",
     "docs/results/phase1-articulated.md": "per-scene tables partly from runs not kept",
-    "docs/results/phase2.md": "bouncingballs and study tables from runs not kept as records",
     "docs/results/hellwarrior.md": "no record named (compositing and training tables)",
     "docs/results/offline-encoder.md": "no record named (accuracy, cost, settings tables)",
     "docs/results/phase3.md": "runs, queries and slots tables: outputs in /tmp/w52 not committed; "
