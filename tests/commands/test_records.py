@@ -37,9 +37,7 @@ BENCH = DOCS / "bench"
 # Pages whose tables and headlines are not yet tied to records (issue 53, deliverable 2).
 # Each is checked only for the records it names existing; remove an entry once its page passes.
 PENDING: dict[str, str] = {
-    "docs/results/phase1.md": "the 8000/9000-iteration and synthetic rows: runs not kept",
     "docs/results/phase1-articulated.md": "per-scene tables partly from runs not kept",
-    "docs/results/hellwarrior.md": "no record named (compositing and training tables)",
     "docs/results/offline-encoder.md": "no record named (accuracy, cost, settings tables)",
     "docs/results/phase3.md": "runs, queries and slots tables: outputs in /tmp/w52 not committed; "
     "the 2026-12-02 values beside them have no record",
