@@ -42,7 +42,6 @@ PENDING: dict[str, str] = {
     "docs/results/phase3.md": "runs, queries and slots tables: outputs in /tmp/w52 not committed; "
     "the 2026-12-02 values beside them have no record",
     "docs/results/run-contract.md": "no record named (2026-12-02 measurements)",
-    "docs/gpu.md": "tuning log tables: most runs were not kept as records",
     "docs/export.md": "bouncingballs measurements: no record (another engineer edits the page)",
     "docs/datasets.md": "the camera errors of `process` on the test video: asserted by "
     "tests/data/test_process.py, no record",
