@@ -39,8 +39,6 @@ BENCH = DOCS / "bench"
 PENDING: dict[str, str] = {
     "docs/results/phase1-articulated.md": "per-scene tables partly from runs not kept",
     "docs/results/offline-encoder.md": "no record named (accuracy, cost, settings tables)",
-    "docs/results/phase3.md": "runs, queries and slots tables: outputs in /tmp/w52 not committed; "
-    "the 2026-12-02 values beside them have no record",
     "docs/results/run-contract.md": "no record named (2026-12-02 measurements)",
     "docs/export.md": "bouncingballs measurements: no record (another engineer edits the page)",
     "docs/datasets.md": "the camera errors of `process` on the test video: asserted by "
