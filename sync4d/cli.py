@@ -689,11 +689,17 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _call(module, args: argparse.Namespace) -> int:  # noqa: ANN001
-    """`module.main(args)`'s exit status; an OSError that reaches here (a path of the command
-    line the system refuses: too long, a folder where a file goes, no permission) becomes one
-    line naming the path, and exit 2."""
+    """`module.main(args)`'s exit status. The watchdog's stop (a NaN or a diverged value in
+    what a command renders or solves) becomes its one message and exit 3; an OSError that
+    reaches here (a path of the command line the system refuses: too long, a folder where a
+    file goes, no permission) becomes one line naming the path, and exit 2."""
     try:
         return int(module.main(args) or 0)
+    except FloatingPointError as e:  # the watchdog's NonFinite (no torch import here)
+        if type(e).__name__ != "NonFinite":
+            raise
+        print(f"{_prog()} {args.command}: {e}", file=sys.stderr)
+        return 3
     except OSError as e:
         group = GROUPS.get(args.command)
         words = " ".join([args.command] + ([getattr(args, group.dest)] if group else []))

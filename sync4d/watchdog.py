@@ -1,14 +1,28 @@
 """The watchdog: every training loop (Phase 1, Phase 2 and its photometric refinement) and
-Phase 3's solve check their numbers each step and stop at the first NaN or inf, naming the
-tensor, the iteration and the Gaussians or objects involved, and saying what to try.
+Phase 3's solve check their numbers each step and stop at the first NaN or inf, or the first
+value that has diverged while staying finite, naming the tensor, the iteration and the
+Gaussians or objects involved, and saying what to try.
+
+Diverged but finite (`limits`): a learning rate of 1e9 moves every Adam-trained value by about
+1e9 per step, which float32 holds; the model is then garbage (opacities saturated to exactly 0
+or 1 with zero gradient, colours 1e8 times white, a rotation re-drawn each step) though
+nothing is inf. Such a value is out of range: beyond ``DIVERGED`` (1e4) in the tensor's own
+unit, or ``DIVERGED_WORLD`` (1e6) times the scene's scale for positions and sizes (a float32
+position there resolves no better than 1/16 of the scene). Trained runs stay far inside: the
+largest value of 16 trained checkpoints (D-NeRF lego, bouncingballs, hook, hellwarrior and the
+embedded scene; `docs/bench/watchdog-ranges.json`, `scripts/watchdog_ranges.py`) is 18.2, an
+opacity logit, and their positions lie within 1.4 units of scenes whose cameras sit 4 units
+out; and Adam moves a value by about its rate per step, so the paper's rates (at most 0.05)
+cannot reach 1e4 in 30k iterations.
 
 A step checks what the rasteriser and the losses receive (`check_inputs`: the deformed means,
 normalised rotations, activated scales and opacities, SH coefficients and colours, the node
 motion; evaluation renders too, as phase "Evaluation"), its loss, every watched gradient
 (before the optimizer moves anything) and every parameter (after; a log-scale whose
-exponential overflows float32 counts as non-finite). Cheap enough to stay on: one fused
-`aminmax` per tensor (a NaN propagates to both ends, an inf is one), a single `isfinite` over
-all of them, and only on a failure are the offending rows looked up.
+exponential overflows float32 counts as non-finite, and values and inputs are held to
+`limits`). Cheap enough to stay on: one fused `aminmax` per tensor (a NaN propagates to both
+ends, an inf is one), one comparison with the bounds over all of them, and only on a failure
+are the offending rows looked up.
 
 A failure of the loss or the gradients leaves the model as the previous iteration left it
 (`NonFinite.clean`): the loop saves that state as the run's checkpoint. A failure of the
@@ -32,8 +46,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["HINTS", "INPUTS", "SETTINGS", "NonFinite", "check_array", "check_grads",
-           "check_inputs", "check_loss", "check_params", "injected", "settings_for"]  # fmt: skip
+__all__ = ["DIVERGED", "DIVERGED_WORLD", "HINTS", "INPUTS", "SETTINGS", "NonFinite",
+           "check_array", "check_grads", "check_inputs", "check_loss", "check_params",
+           "injected", "limits", "settings_for"]  # fmt: skip
 
 #: What to try, per phase.
 HINTS = {
@@ -44,6 +59,10 @@ HINTS = {
                "weights, or redo Phase 2 from the Phase 1 checkpoint (fit --out RUN --phases 2)",
     "Phase 2 refinement": "lower the refinement's step (--set phase2.motion.refine_lr=...) or "
                           "turn it off (--set phase2.motion.refine_steps=0)",
+    "Phase 3 observation": "the checkpoint's motion is not finite at this time: train Phases 1 "
+                           "and 2 again with lower learning rates (fit --out RUN --force)",
+    "Rendering": "the checkpoint's motion is not finite at this time: train again with lower "
+                 "learning rates (fit --out RUN --force)",
     "Phase 3": "raise the ridge's regularisation (--set phase3.ridge_lambda=...); an object seen "
                "in too few frames may need phase3.min_visible lowered",
 }  # fmt: skip
@@ -93,6 +112,16 @@ INPUTS = {
 #: exp(x) overflows float32 above this.
 _EXP_MAX = 88.72
 
+#: A watched value whose magnitude passes this (in its own unit) has diverged.
+DIVERGED = 1e4
+#: Positions and sizes (`WORLD`) have diverged past this many times the scene's scale.
+DIVERGED_WORLD = 1e6
+#: The watched tensors in world units (parameters, and ``input:`` what the rasteriser gets).
+WORLD = frozenset({"means", "nodes.positions", "motion.translations", "motion.offsets", "shift",
+                   "input:means", "input:scales", "input:node_shifts"})  # fmt: skip
+#: Log-values the rasteriser receives exponentiated: above `_EXP_MAX` their exp is inf.
+EXPONENTIATED = frozenset({"log_scales", "nodes.log_radii", "input:node_log_scales"})
+
 _INJECT: dict[tuple[str, int | None], str] = {}
 
 
@@ -107,13 +136,14 @@ def settings_for(name: str) -> tuple[str, ...]:
 
 
 class NonFinite(FloatingPointError):
-    """A NaN or inf in training: `phase`, `iteration`, the tensor's `name`, the offending `rows`
-    (Gaussians, objects or elements, the first few), and whether the model still holds the
-    previous iteration's good state (`clean`). The message says all of it and what to try."""
+    """A NaN or inf in training, or a value that diverged (`limits`): `phase`, `iteration`,
+    the tensor's `name`, the offending `rows` (Gaussians, objects or elements, the first few),
+    and whether the model still holds the previous iteration's good state (`clean`). The
+    message says all of it and what to try."""
 
     def __init__(self, phase: str, iteration: int | None, name: str, rows: list[int],
-                 count: int, unit: str, clean: bool,
-                 settings: tuple[str, ...] = ()) -> None:  # fmt: skip
+                 count: int, unit: str, clean: bool, settings: tuple[str, ...] = (),
+                 problem: str = "is NaN or inf") -> None:  # fmt: skip
         self.phase, self.iteration, self.name = phase, iteration, name
         self.rows, self.count, self.unit, self.clean = rows, count, unit, clean
         self.settings = settings
@@ -125,7 +155,7 @@ class NonFinite(FloatingPointError):
             hint = f"lower the learning rates that move it ({named}); more generally, {hint}"
         super().__init__(
             f"{phase} stopped{'' if iteration is None else f' at iteration {iteration}'}: "
-            f"{name} is NaN or inf{where}. Try: {hint}"
+            f"{name} {problem}{where}. Try: {hint}"
         )
 
 
@@ -164,31 +194,55 @@ def _ends(present: Mapping[str, Tensor]) -> Tensor:
     return torch.stack([torch.stack(torch.aminmax(v.detach())) for v in present.values()])
 
 
+def limits(names: list[str], kind: str, scale: float | None) -> Tensor:
+    """[T, 2]: the (low, high) range each watched tensor of `kind` ("param" or "input"; others
+    unbounded) must stay in: +-`DIVERGED`, +-`DIVERGED_WORLD` * `scale` for `WORLD` tensors
+    (unbounded without a scale), and an `EXPONENTIATED` one below `_EXP_MAX`."""
+    inf = float("inf")
+    if kind not in ("param", "input"):
+        return torch.tensor([[-inf, inf]] * len(names))
+    rows = []
+    for name in names:
+        key = f"input:{name}" if kind == "input" else name
+        bound = DIVERGED
+        if key in WORLD:
+            bound = DIVERGED_WORLD * scale if scale else inf
+        rows.append((-bound, _EXP_MAX if key in EXPONENTIATED else bound))
+    return torch.tensor(rows)
+
+
 def _check(phase: str, iteration: int | None, tensors: Mapping[str, Tensor | None], what: str,
-           units: Mapping[str, str], clean: bool, kind: str = "") -> None:  # fmt: skip
+           units: Mapping[str, str], clean: bool, kind: str = "",
+           scale: float | None = None) -> None:  # fmt: skip
     present = {k: v for k, v in tensors.items() if v is not None and v.numel()}
     if not present:
         return
     ends = _ends(present)
-    ok = torch.isfinite(ends).all(1)
-    log_scales = "log_scales" in present and kind == "param"
-    if log_scales:  # exp(log-scale) is what the rasteriser gets: it must not overflow
-        i = list(present).index("log_scales")
-        ok[i] &= ends[i, 1] < _EXP_MAX
+    bounds = limits(list(present), kind, scale)
+    ok = (ends[:, 0] >= bounds[:, 0]) & (ends[:, 1] <= bounds[:, 1])  # False for NaN
+    ok &= torch.isfinite(ends).all(1)
     if bool(ok.all()):
         return
-    name = list(present)[int((~ok).nonzero()[0])]
-    t = present[name]
-    if bool(torch.isfinite(t.detach()).all()):  # finite log-scales whose exponential overflows
-        rows, count = _bad_rows(torch.where(t.detach() < _EXP_MAX, 0.0, float("inf")))
+    i = int((~ok).nonzero()[0])
+    name = list(present)[i]
+    t = present[name].detach()
+    key = f"input:{name}" if what == "input" else name
+    label = f"{INPUTS[name]} ('{name}')" if what == "input" and name in INPUTS \
+        else f"the {what} of '{name}'"  # fmt: skip
+    problem = "is NaN or inf"
+    lo, hi = float(bounds[i, 0]), float(bounds[i, 1])
+    if not bool(torch.isfinite(t).all()):
+        rows, count = _bad_rows(t)
+    elif key in EXPONENTIATED and bool((t >= _EXP_MAX).any()):  # finite, but its exp is inf
+        rows, count = _bad_rows(torch.where(t < _EXP_MAX, 0.0, float("inf")))
         label = f"the activated value (exp) of '{name}'"
     else:
-        rows, count = _bad_rows(t)
-        label = f"{INPUTS[name]} ('{name}')" if what == "input" and name in INPUTS \
-            else f"the {what} of '{name}'"  # fmt: skip
-    key = f"input:{name}" if what == "input" else name
+        rows, count = _bad_rows(torch.where((t >= lo) & (t <= hi), 0.0, float("inf")))
+        bound = (f"{DIVERGED_WORLD:.0e} times the scene's scale ({scale:.3g})" if key in WORLD
+                 else f"{DIVERGED:.0e}")  # fmt: skip
+        problem = f"diverged (finite, but beyond +-{bound}, where no trained scene goes)"
     raise NonFinite(phase, iteration, label, rows, count, units.get(name, "elements"), clean,
-                    settings_for(key))  # fmt: skip
+                    settings_for(key), problem)  # fmt: skip
 
 
 def check_loss(phase: str, iteration: int, loss: Tensor) -> Tensor:
@@ -209,22 +263,27 @@ def check_grads(phase: str, iteration: int, params: Mapping[str, Tensor],
 
 
 def check_params(phase: str, iteration: int, params: Mapping[str, Tensor],
-                 units: Mapping[str, str] | None = None) -> None:  # fmt: skip
+                 units: Mapping[str, str] | None = None,
+                 scale: float | None = None) -> None:  # fmt: skip
     """NonFinite (not clean: the optimizer already wrote them) unless every parameter is
-    finite."""
+    finite and within `limits` (world-unit ones only given the scene's `scale`)."""
     _inject(phase, iteration, "param", params)
-    _check(phase, iteration, dict(params), "value", units or {}, clean=False, kind="param")
+    _check(phase, iteration, dict(params), "value", units or {}, clean=False, kind="param",
+           scale=scale)  # fmt: skip
 
 
 def check_inputs(phase: str, iteration: int | None, inputs: Mapping[str, Tensor | None],
-                 units: Mapping[str, str] | None = None) -> None:  # fmt: skip
+                 units: Mapping[str, str] | None = None,
+                 scale: float | None = None) -> None:  # fmt: skip
     """NonFinite (not clean: the previous step's parameters produced them) unless every
-    tensor the rasteriser or a loss is about to receive is finite (`INPUTS` names them:
-    ``means``, ``quats``, ``scales``, ``opacities``, ``sh``, ``colors``, ``node_*``); rows
+    tensor the rasteriser or a loss is about to receive is finite and within `limits`
+    (`INPUTS` names them: ``means``, ``quats``, ``scales``, ``opacities``, ``sh``,
+    ``colors``, ``node_*``; world-unit ones bounded only given the scene's `scale`); rows
     are Gaussians unless `units` says otherwise."""
     _inject(phase, iteration, "input", inputs)
     names = {k: "nodes" if k.startswith("node_") else "Gaussians" for k in inputs}
-    _check(phase, iteration, inputs, "input", {**names, **(units or {})}, clean=False)
+    _check(phase, iteration, inputs, "input", {**names, **(units or {})}, clean=False,
+           kind="input", scale=scale)  # fmt: skip
 
 
 def check_array(phase: str, name: str, a: np.ndarray, unit: str = "objects") -> None:

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from sync4d import raster
+from sync4d import raster, watchdog
 from sync4d.data.scene import Camera
 from sync4d.phase1.deform import DeformationMLP, DeformConfig, deform_gaussians
 from sync4d.phase1.nodes import NodeConfig, NodeMotion
@@ -229,7 +229,11 @@ class DeformableGaussians(nn.Module):
         `deformed` passes `at_time(t)`'s result when the caller already computed it; `sh_dc`
         [N, 1, 3] replaces the model's base colours. `check` (the watchdog's) sees what the
         rasteriser is about to receive, by name (``means``, ``quats``, ``scales``,
-        ``opacities``, ``sh``, the node motion's ``node_*``; then ``colors``), before it does."""
+        ``opacities``, ``sh``, the node motion's ``node_*``; then ``colors``), before it does;
+        without one the watchdog checks them as phase "Rendering" (a NaN is its message, not
+        the rasteriser's ValueError)."""
+        if check is None:
+            check = _rendering_check
         means, quats, scales = deformed if deformed is not None else self.at_time(t, deform)
         viewmat = torch.as_tensor(camera.viewmat, dtype=torch.float32)
         coeffs = torch.cat([self.sh_dc if sh_dc is None else sh_dc, self.sh_rest], dim=1)
@@ -259,3 +263,8 @@ class DeformableGaussians(nn.Module):
             return {}
         return dict(zip(("node_rotations", "node_shifts", "node_log_scales"), motion,
                         strict=True))  # fmt: skip
+
+
+def _rendering_check(inputs: dict[str, Tensor]) -> None:
+    """The watchdog's check of a render outside training (`render` without `check`)."""
+    watchdog.check_inputs("Rendering", None, inputs)

@@ -23,6 +23,14 @@ def scene_extent(scene: Scene) -> float:
     return float(1.1 * np.linalg.norm(centres - centres.mean(0), axis=1).max() + 1e-6)
 
 
+def scene_scale(scene: Scene) -> float:
+    """The scene's size in world units for the watchdog's divergence bounds: the larger of
+    `scene_extent` and the farthest training camera's distance from the origin (a single
+    camera has no extent)."""
+    centres = np.stack([f.camera.center for f in scene.train])
+    return max(scene_extent(scene), float(np.linalg.norm(centres, axis=1).max()))
+
+
 def scene_focus(scene: Scene) -> tuple[np.ndarray, float]:
     """Point [3] closest (least squares) to every training camera's optical axis, and the mean
     camera distance to it: where an object-centric capture looks, and from how far."""

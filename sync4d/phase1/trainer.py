@@ -32,7 +32,7 @@ from sync4d.metrics import psnr
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.densify import Densifier, DensifyConfig
 from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
-from sync4d.phase1.init import scene_extent
+from sync4d.phase1.init import scene_extent, scene_scale
 from sync4d.phase1.losses import photometric_loss
 from sync4d.phase1.nodes import NodeConfig, NodeMotion, arap_loss, densify_nodes
 from sync4d.phase1.static import (
@@ -220,6 +220,8 @@ class Phase1Trainer:
         self.total = max(1, total)
         self.threads = threads
         self.extent = scene_extent(scene)
+        #: The watchdog's world scale: positions beyond 1e6 times it have diverged.
+        self.watch_scale = scene_scale(scene)
         self.iteration = 0
         self.schedule: Phase1Schedule | FinishedSchedule = schedule or Phase1Schedule(self.config)
         self.densifier = Densifier(densify or self.config.densify, seed=self.config.seed)
@@ -428,7 +430,7 @@ class Phase1Trainer:
             self.densifier.accumulate(out.means2d.grad, out.radii, camera.width, camera.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        watchdog.check_params(self.phase_name, self.iteration, params, units)
+        watchdog.check_params(self.phase_name, self.iteration, params, units, self.watch_scale)
         self.nodes_step()
         changed = self.densifier.step(self.model, self.optimizer, self.iteration, self.extent)
         if any(changed.values()):
@@ -453,7 +455,7 @@ class Phase1Trainer:
     def check_inputs(self, inputs: dict[str, torch.Tensor]) -> None:
         """The watchdog's check of what this iteration's render receives (`render`'s
         `check`): NonFinite, naming the input, unless it is all finite."""
-        watchdog.check_inputs(self.phase_name, self.iteration, inputs)
+        watchdog.check_inputs(self.phase_name, self.iteration, inputs, scale=self.watch_scale)
 
     def watched(self) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
         """The parameters the watchdog checks each step (name -> tensor) and the unit of their

@@ -294,14 +294,17 @@ def _track_frame(
             drawn += 1
             pose = template.pose(w_j, d_j, deformed)
             loss = _template_loss(trainer, index, t, pose, template.sh_dc,
-                                  lambda inputs: watchdog.check_inputs("Phase 2 refinement",
-                                                                       j, inputs))  # fmt: skip
+                                  lambda inputs: watchdog.check_inputs(
+                                      "Phase 2 refinement", j, inputs,
+                                      scale=trainer.watch_scale))  # fmt: skip
             loss = watchdog.check_loss("Phase 2 refinement", j, loss)
             loss.backward()
             loss_value += float(loss.detach()) / per_step
-        watchdog.check_grads("Phase 2 refinement", j, {"rotation": w_j, "shift": d_j},
-                             {"rotation": "objects", "shift": "objects"})  # fmt: skip
+        pose_params = {"rotation": w_j, "shift": d_j}
+        units = {"rotation": "objects", "shift": "objects"}
+        watchdog.check_grads("Phase 2 refinement", j, pose_params, units)
         opt.step()
+        watchdog.check_params("Phase 2 refinement", j, pose_params, units, trainer.watch_scale)
     return (w_j.detach().clone(), d_j.detach().clone()), loss_value
 
 

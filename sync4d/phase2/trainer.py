@@ -518,7 +518,7 @@ class Phase2Trainer(Phase1Trainer):
             self.motion_updates += len(frozen) - held
             self.motion_updates_skipped += held
         self.motion_optimizer.zero_grad(set_to_none=True)
-        watchdog.check_params(self.phase_name, self.iteration, motion, units)
+        watchdog.check_params(self.phase_name, self.iteration, motion, units, self.watch_scale)
         return stats
 
     def watched(self) -> tuple[dict[str, Tensor], dict[str, str]]:

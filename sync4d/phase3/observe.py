@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from sync4d import raster
+from sync4d import raster, watchdog
 from sync4d.data import Scene
 from sync4d.events import Advanced, Finished, Started, emit
 from sync4d.phase2.diagnostics import rigid_share
@@ -196,6 +196,8 @@ def observe(
     emit(Started("phase3 observe", t, log_every=max(1, t // 10)))
     for f, tf in enumerate(times):
         means, quats, scales = model.at_time(float(tf))
+        watchdog.check_inputs("Phase 3 observation", None, {"means": means, "quats": quats,
+                                                              "scales": scales})  # fmt: skip
         r = means - motion(x0, labels, float(tf))
         rn = r.norm(dim=-1).double().numpy()
         rho = rigid_share(x0, means - r, r, share_eps).double().numpy()
