@@ -113,8 +113,8 @@ def _add_cpu_threads(p: argparse.ArgumentParser, what: str) -> None:
 
 
 def _add_rule(p: argparse.ArgumentParser, prefix: str) -> None:
-    """--rule: the activation rules of `sync4d.phase3.evaluation.metrics.RULES`."""
-    from sync4d.phase3.evaluation.metrics import RULES
+    """--rule: the activation rules of `sync4d.phase3.activation.RULES`."""
+    from sync4d.phase3.activation import RULES
 
     rules = "; ".join(f"{name}: {rule.summary}" for name, rule in RULES.items())
     p.add_argument("--rule", choices=tuple(RULES), default=None,
@@ -409,7 +409,7 @@ COMMANDS: tuple[Command, ...] = (
         "Evaluate a run's checkpoint on its dataset's test split (writes RUN/eval.json), or "
         "with --queries its Phase 3 field on annotated temporal queries (writes "
         "RUN/phase3/eval-NAME*.csv/json).",
-        "sync4d.commands.evaluate", _eval_arguments,
+        "sync4d.commands.eval", _eval_arguments,
     ),
     Command(
         "render", ("render RUN [--time T... | --sweep N] [--out DIR]",),

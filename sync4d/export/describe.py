@@ -50,7 +50,7 @@ from sync4d import __version__
 from sync4d.export.schema import SceneError
 from sync4d.files import file_sha256
 from sync4d.phase3 import motion_phrases as mp
-from sync4d.phase3.evaluation.metrics import intervals
+from sync4d.phase3.activation import intervals
 from sync4d.phase3.kinematics import FEATURE_NAMES
 from sync4d.phase3.query import TextCache, answer, field_settings
 from sync4d.phase3.store import Field

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from sync4d.phase3.activation import DEFAULT_RULE, RULES
 from sync4d.phase3.encoders.encoder import describe_specs, encoder_problem
-from sync4d.phase3.evaluation.metrics import DEFAULT_RULE, RULES
 from sync4d.settings import choice, ranged
 
 __all__ = ["Phase3Config"]
@@ -58,7 +58,7 @@ class Phase3Config:
     w_static: float = ranged(0.35, 0.0)
     #: ... and w_t of the peak temporal similarity.
     w_temporal: float = ranged(0.65, 0.0)
-    #: Temporal activation rule, a name of `sync4d.phase3.evaluation.metrics.RULES`: by default
+    #: Temporal activation rule, a name of `sync4d.phase3.activation.RULES`: by default
     #: the paper's "half-peak" (Appendix F: above 0.5 of the peak).
     activation: str = choice(DEFAULT_RULE, tuple(RULES))
     #: Static-only ablation: e_sync = e_static at every frame in every scorer (Table 5's

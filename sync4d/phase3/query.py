@@ -24,8 +24,8 @@ import numpy as np
 
 from sync4d.files import write_text_atomic
 from sync4d.phase3 import motion_phrases as mp
+from sync4d.phase3.activation import activate, intervals
 from sync4d.phase3.encoders.encoder import Encoder, EncoderError, load_encoder
-from sync4d.phase3.evaluation.metrics import activate, intervals
 from sync4d.phase3.field import query_scores
 from sync4d.phase3.store import Field, FieldError, load_field
 from sync4d.runs.names import FIELD_DIR, TEXT_CACHE

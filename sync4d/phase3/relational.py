@@ -78,7 +78,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sync4d.phase3 import motion_phrases as mp
-from sync4d.phase3.evaluation.metrics import intervals
+from sync4d.phase3.activation import intervals
 
 if TYPE_CHECKING:
     from sync4d.phase3.query import TextCache

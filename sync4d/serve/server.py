@@ -34,7 +34,7 @@ from mcp_types import ImageContent, TextContent, ToolAnnotations
 from pydantic import BaseModel, ConfigDict, Field
 
 from sync4d import __version__
-from sync4d.phase3.evaluation.metrics import RULES
+from sync4d.phase3.activation import RULES
 from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS
 from sync4d.serve.tools import PROMPT_URI, SCENE_URI, RunTools, ToolProblem
 

@@ -80,7 +80,7 @@ STOPS = {
             "sync4d.commands.fit.restart_phase2"),
     "process": ("sync4d.data.process.process_capture",
                 "sync4d.commands.process.process_capture"),
-    "eval": ("sync4d.commands.evaluate.evaluate_run",),
+    "eval": ("sync4d.commands.eval.evaluate_run",),
     "view": ("sync4d.viewer.state.ViewerState",),
     "serve": ("sync4d.serve.server.serve",),
     "sweep": ("sync4d.sweep.run_sweep",),

@@ -16,9 +16,9 @@ import pytest
 from support import ROOT
 from sync4d import cli
 from sync4d.cli import COMMANDS, GRAMMAR, build_parser, command_parsers, main
+from sync4d.phase3.activation import DEFAULT_RULE, RULES, activate
 from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.encoders.encoder import ENCODERS, describe_specs
-from sync4d.phase3.evaluation.metrics import DEFAULT_RULE, RULES, activate
 from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS
 from sync4d.runs.names import RUN_FILE
 from sync4d.settings import allowed

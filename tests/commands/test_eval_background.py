@@ -12,7 +12,7 @@ import torch
 
 from support.datasets import write_blender
 from sync4d.cli import main
-from sync4d.commands.evaluate import background_tag
+from sync4d.commands.eval import background_tag
 from sync4d.metrics import psnr
 from sync4d.options import background_colour
 from sync4d.pipeline.evaluate import render_frame

@@ -22,7 +22,7 @@ from sync4d.export.scene import SceneError, embeddings_path, load, write_scene
 from sync4d.export.schema import schema
 from sync4d.phase3.build import build_field
 from sync4d.phase3.config import Phase3Config
-from sync4d.phase3.evaluation.metrics import temporal_iou
+from sync4d.phase3.evaluation.query_metrics import temporal_iou
 from sync4d.phase3.query import TextCache
 
 #: The objects' colours, then a colour no object has (the colour encoder puts every object at

@@ -35,7 +35,7 @@ from sync4d.phase3 import build as build_module
 from sync4d.phase3.build import build_field
 from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.encoders.encoder import load_encoder
-from sync4d.phase3.evaluation.metrics import temporal_iou
+from sync4d.phase3.evaluation.query_metrics import temporal_iou
 from sync4d.phase3.query import TextCache, answer
 
 SCENE = dataclasses.replace(PHASE3_SCENE, frames=41, sliding_colour="yellow")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sync4d.phase3.activation import activate, from_intervals, intervals
 from sync4d.phase3.evaluation.annotations import (
     AnnotationError,
     Query,
@@ -22,13 +23,10 @@ from sync4d.phase3.evaluation.annotations import (
     read_4dlangsplat,
     read_queries,
 )
-from sync4d.phase3.evaluation.metrics import (
+from sync4d.phase3.evaluation.query_metrics import (
     QueryResult,
-    activate,
     evaluate_query,
     frame_accuracy,
-    from_intervals,
-    intervals,
     mask_iou,
     mean_row,
     temporal_iou,

@@ -21,8 +21,8 @@ from sync4d.phase3.build import FieldError, build_field, load_field
 from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.evaluation.annotations import frame_number
-from sync4d.phase3.evaluation.evaluate import evaluate_queries, state_queries
-from sync4d.phase3.evaluation.metrics import temporal_iou
+from sync4d.phase3.evaluation.query_eval import evaluate_queries, state_queries
+from sync4d.phase3.evaluation.query_metrics import temporal_iou
 from sync4d.phase3.query import QueryError, TextCache, answer
 
 
@@ -151,7 +151,7 @@ def test_eval_on_the_ground_truth_and_a_saved_field(oracle_run, monkeypatch):
     loaded = load_field(run.path)
     np.testing.assert_array_equal(loaded.sync, field.sync)
     assert loaded.names == field.names and loaded.encoder == field.encoder
-    monkeypatch.setattr("sync4d.phase3.evaluation.evaluate.load_run", lambda _: run)
+    monkeypatch.setattr("sync4d.phase3.evaluation.query_eval.load_run", lambda _: run)
     summary = evaluate_queries(run.path, root / "ground_truth.json", scorers=("full", "static"),
                                encoder=enc)  # fmt: skip
     assert summary["full"]["tiou"] >= 0.85 and summary["full"]["object_accuracy"] == 1.0
@@ -211,7 +211,7 @@ def test_eval_reads_4d_langsplat_annotations(oracle_run, monkeypatch, tmp_path):
     hop = [int(np.argmax(field.times >= syn.HOP[0])), int(np.argmax(field.times >= syn.HOP[2]))]
     (ann / "video_annotations.json").write_text(json.dumps(
         {"red ball": {"the red ball in the air": [hop]}}))  # fmt: skip
-    monkeypatch.setattr("sync4d.phase3.evaluation.evaluate.load_run", lambda _: run)
+    monkeypatch.setattr("sync4d.phase3.evaluation.query_eval.load_run", lambda _: run)
     summary = evaluate_queries(run.path, ann, scorers=("paper",), encoder=enc)
     row = json.loads((run.path / "phase3" / "eval-annotations-paper.json").read_text())
     q = row["queries"][0]

@@ -22,8 +22,8 @@ from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.build import build_field
 from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.encoders.encoder import load_encoder
-from sync4d.phase3.evaluation.evaluate import state_queries
-from sync4d.phase3.evaluation.metrics import temporal_iou
+from sync4d.phase3.evaluation.query_eval import state_queries
+from sync4d.phase3.evaluation.query_metrics import temporal_iou
 from sync4d.phase3.query import TextCache, answer
 
 #: Two paraphrases of each ground-truth state ("<object> <state>"), none holding a phrase of

@@ -73,7 +73,7 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from sync4d.phase3.evaluation.metrics import from_intervals
+from sync4d.phase3.activation import from_intervals
 
 __all__ = [
     "COCO_FILE",

@@ -31,7 +31,7 @@ import numpy as np
 
 from sync4d.files import write_text_atomic
 from sync4d.phase3.evaluation.annotations import AnnotationError
-from sync4d.phase3.evaluation.metrics import temporal_iou
+from sync4d.phase3.evaluation.query_metrics import temporal_iou
 from sync4d.phase3.query import TextCache, answer
 from sync4d.phase3.relational import FORMS
 from sync4d.phase3.store import load_field

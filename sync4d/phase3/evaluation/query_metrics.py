@@ -1,15 +1,12 @@
-"""Temporal-query evaluation maths of Phase 3 (Appendix F): activation rules, Acc, tIoU, vIoU.
+"""Temporal-query evaluation maths of Phase 3 (Appendix F): Acc, tIoU, vIoU of a query's
+activation (`sync4d.phase3.activation`) against its ground truth.
 
 Design notes
 ------------
 * Pure functions over numpy arrays; no torch, no file access except `write_rows`.
 * A query is answered with one object k and its per-frame similarities s(f) over the frames
   that are scored (f = 0..T-1, or the query's `evaluated` subset); `activate` turns them into a
-  bool activation with a rule of `RULES`, the one registry of activation rules (the config's
-  `phase3.activation` and the command line's ``--rule`` take their names from it): the paper's
-  ("half-peak": s > 0.5 * max s) or 4D LangSplat's ("mean": s >= mean s, `eval/eval.py:
-  evaluate_video_feature` with `video_thresh` / `clip_thresh` = the mean similarity over the
-  evaluated frames).
+  bool activation with a rule of `sync4d.phase3.activation.RULES`.
 * Acc = mean_f [active(f) == gt(f)]; tIoU = |P & G| / |P | G| over frame index sets.
 * vIoU mirrors 4D LangSplat's `evaluate_video_feature`: over the frames in P | G, a frame where
   both sides are active scores the spatial mask IoU of that frame, a frame where only one side is
@@ -21,8 +18,6 @@ Design notes
   (`empty_union`), while tIoU of two empty sets is 1.0 (both say "never").
 * A query answered with another object than its GT object scores every predicted-active frame
   as wrong (see `evaluate_query`), so "which object" and "when" are both judged.
-* `intervals` / `from_intervals` convert between bool [T] and inclusive (start, end) ranges,
-  the form 4D LangSplat's `video_annotations.json` and our query files use.
 * `write_rows` writes one row per query plus a mean row as CSV and JSON, each atomically (a
   unique temporary in the target folder, fsync, rename, fsync of the folder: the contract of
   `sync4d.files.write_atomic`, re-implemented here because importing `sync4d.runs` loads
@@ -35,7 +30,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -43,21 +38,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sync4d.files import write_text_atomic
+from sync4d.phase3.activation import DEFAULT_RULE, Interval, Rule, activate, bool_vector, intervals
 
 if TYPE_CHECKING:
     from sync4d.phase3.evaluation.annotations import Query
 
 __all__ = [
-    "DEFAULT_RULE",
-    "RULES",
-    "ActivationRule",
     "QueryResult",
-    "Rule",
-    "activate",
     "evaluate_query",
     "frame_accuracy",
-    "from_intervals",
-    "intervals",
     "mask_iou",
     "mean_row",
     "temporal_iou",
@@ -65,96 +54,11 @@ __all__ = [
     "write_rows",
 ]
 
-#: An activation rule's name: a key of `RULES`.
-Rule = str
-
-Interval = tuple[int, int]
-
-
-def _bool_vector(x: np.ndarray | Sequence[bool], name: str) -> np.ndarray:
-    a = np.asarray(x)
-    if a.ndim != 1:
-        raise ValueError(f"{name} must be a 1-D array over frames, got shape {list(a.shape)}")
-    if a.dtype != bool:
-        if not np.isin(a, (0, 1)).all():
-            raise ValueError(f"{name} must be bool (or 0/1), got dtype {a.dtype}")
-        a = a.astype(bool)
-    return a
-
-
 def _pair(pred: np.ndarray | Sequence[bool], gt: np.ndarray | Sequence[bool]):
-    p, g = _bool_vector(pred, "pred"), _bool_vector(gt, "gt")
+    p, g = bool_vector(pred, "pred"), bool_vector(gt, "gt")
     if p.shape != g.shape:
         raise ValueError(f"pred and gt differ in length: {p.size} and {g.size} frames")
     return p, g
-
-
-@dataclass(frozen=True)
-class ActivationRule:
-    """A temporal activation rule: its `name` (``--rule NAME``, ``phase3.activation``), a
-    one-line `summary` (the command line's help) and `active(s)`: the bool [T] activation of
-    finite, non-constant scores s [T] (`activate` handles the rest)."""
-
-    name: str
-    summary: str
-    active: Callable[[np.ndarray], np.ndarray]
-
-
-def _half_peak(s: np.ndarray) -> np.ndarray:
-    """The paper's rule (Appendix F): s(f) > 0.5 * max s; with a peak <= 0, above the midpoint
-    of the score range (see `activate`)."""
-    lo, hi = float(s.min()), float(s.max())
-    if hi > 0.0:
-        return s > 0.5 * hi
-    return (s - lo) > 0.5 * (hi - lo)
-
-
-def _mean(s: np.ndarray) -> np.ndarray:
-    """4D LangSplat's rule (`evaluate_video_feature`): s(f) >= mean s."""
-    return s >= s.mean()
-
-
-#: The activation rules by name, the default first.
-RULES: dict[str, ActivationRule] = {r.name: r for r in (
-    ActivationRule("half-peak", "above half the peak (Appendix F)", _half_peak),
-    ActivationRule("mean", "at least the mean (4D LangSplat)", _mean),
-)}  # fmt: skip
-DEFAULT_RULE: Rule = next(iter(RULES))
-
-
-def activate(scores: np.ndarray | Sequence[float], rule: Rule = DEFAULT_RULE) -> np.ndarray:
-    """Per-frame activation, bool [T], of one object's query similarities `scores` [T] by
-    `rule`, a name in `RULES`.
-
-    ``"half-peak"`` (the paper, Appendix F): active(f) = s(f) > 0.5 * max_f' s(f').
-    ``"mean"`` (4D LangSplat's `evaluate_video_feature`): active(f) = s(f) >= mean_f' s(f').
-
-    Decisions:
-
-    * Peak <= 0 under "half-peak": the literal rule would activate nothing (0.5 * peak >= peak
-      when peak <= 0), although cosine similarities are often all negative and their shape over
-      time still says when the query holds. Then the rule is applied to the scores shifted by
-      their minimum: active(f) = s(f) - min s > 0.5 * (max s - min s), i.e. above the midpoint
-      of the score range. With a positive peak the literal rule is kept (so results match the
-      paper wherever the paper's rule is meaningful); the two branches meet discontinuously at
-      peak = 0, which is the price of keeping the literal rule.
-    * Constant scores (max == min, exactly): every frame is active under every rule. Nothing
-      tells the frames apart and the object was chosen as the answer, so it is answered for the
-      whole run; this is what the mean rule (s >= mean) and the literal half-peak rule with a
-      positive constant give anyway, and it makes the negative constant agree with them.
-
-    Raises ValueError for an empty or non-1-D array, NaN / inf, or an unknown rule.
-    """
-    if rule not in RULES:
-        raise ValueError(f"unknown activation rule {rule!r}; use one of {list(RULES)}")
-    s = np.asarray(scores, dtype=np.float64)
-    if s.ndim != 1 or s.size == 0:
-        raise ValueError(f"scores must be a non-empty 1-D array, got shape {list(s.shape)}")
-    if not np.isfinite(s).all():
-        raise ValueError("scores contain NaN or inf")
-    if float(s.max()) == float(s.min()):
-        return np.ones(s.size, dtype=bool)
-    return RULES[rule].active(s)
 
 
 def frame_accuracy(pred: np.ndarray | Sequence[bool], gt: np.ndarray | Sequence[bool]) -> float:
@@ -227,33 +131,6 @@ def video_iou(
     if not scores:
         return float(empty_union)
     return float(np.mean(scores))
-
-
-def intervals(active: np.ndarray | Sequence[bool]) -> list[Interval]:
-    """The maximal runs of True in `active` [T] as inclusive (start, end) frame indices."""
-    a = _bool_vector(active, "active")
-    edges = np.diff(np.concatenate([[0], a.astype(np.int8), [0]]))
-    starts = np.flatnonzero(edges == 1)
-    ends = np.flatnonzero(edges == -1) - 1
-    return [(int(s), int(e)) for s, e in zip(starts, ends, strict=True)]
-
-
-def from_intervals(ranges: Sequence[Sequence[int]], n_frames: int) -> np.ndarray:
-    """bool [n_frames], True on every frame of the inclusive (start, end) `ranges` (overlaps
-    allowed). Raises ValueError for a reversed range or one outside 0..n_frames-1."""
-    if n_frames < 0:
-        raise ValueError(f"n_frames must be >= 0, got {n_frames}")
-    out = np.zeros(n_frames, dtype=bool)
-    for r in ranges:
-        if len(r) != 2:
-            raise ValueError(f"a frame range is [start, end], got {list(r)}")
-        s, e = int(r[0]), int(r[1])
-        if s > e:
-            raise ValueError(f"frame range [{s}, {e}] is reversed")
-        if s < 0 or e >= n_frames:
-            raise ValueError(f"frame range [{s}, {e}] lies outside frames 0..{n_frames - 1}")
-        out[s : e + 1] = True
-    return out
 
 
 @dataclass(frozen=True)
@@ -333,7 +210,7 @@ def evaluate_query(
     if active is None:
         active = activate(s[ev], rule)
     else:  # a scorer that decides the frames itself (the motion phrases)
-        active = _bool_vector(active, "active")
+        active = bool_vector(active, "active")
         if active.shape != (n,):
             raise ValueError(f"active must cover the run's {n} frames, got {list(active.shape)}")
         active = active[ev]

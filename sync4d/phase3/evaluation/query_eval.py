@@ -3,14 +3,14 @@ scorer, from 4D LangSplat's annotations or our own query file (`annotations`).
 
 Each query is answered by each scorer (`query.SCORERS`, in their order; one that needs named
 objects only when they are named); the top-ranked object's activation is scored against the
-ground truth (`metrics.evaluate_query`: a wrong object counts as no overlap). Predicted masks
+ground truth (`query_metrics.evaluate_query`: a wrong object counts as no overlap). Predicted masks
 for vIoU are the chosen object's pixels in an occlusion-aware render of every Gaussian's object
 label (the pixel's dominant label), from the frame's training view.
 Ground-truth masks come from 4D LangSplat's polygons or, for our format, from the dataset's
 instance masks when it has them and the query names a label.
 
-Rows go to ``RUN/phase3/eval-<name>-<scorer>.csv`` and ``.json`` (`metrics.write_rows`), with
-a summary over scorers in ``RUN/phase3/eval-<name>.json``.
+Rows go to ``RUN/phase3/eval-<name>-<scorer>.csv`` and ``.json``
+(`query_metrics.write_rows`), with a summary over scorers in ``RUN/phase3/eval-<name>.json``.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from sync4d.phase3.evaluation.annotations import (
     read_4dlangsplat,
     read_queries,
 )
-from sync4d.phase3.evaluation.metrics import evaluate_query, write_rows
+from sync4d.phase3.evaluation.query_metrics import evaluate_query, write_rows
 from sync4d.phase3.query import SCORER_TABLE, SCORERS, TextCache, answer
 from sync4d.phase3.store import Field, load_field
 from sync4d.runs import Run, load_run

@@ -28,7 +28,7 @@ def _queries(args: argparse.Namespace) -> int:
     """`eval RUN --queries ANNOTATIONS`: Acc / vIoU / tIoU per scorer, printed as a table."""
     from sync4d.phase3.encoders.encoder import EncoderError
     from sync4d.phase3.evaluation.annotations import AnnotationError
-    from sync4d.phase3.evaluation.evaluate import evaluate_queries
+    from sync4d.phase3.evaluation.query_eval import evaluate_queries
     from sync4d.phase3.evaluation.relational_eval import is_relational
     from sync4d.phase3.query import SCORERS, QueryError
     from sync4d.phase3.store import FieldError
