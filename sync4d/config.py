@@ -14,7 +14,7 @@ from sync4d.data.loaders import offered_splits
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2.trainer import Phase2Config
 from sync4d.phase3.config import Phase3Config
-from sync4d.settings import allowed, budget_floor, choice, ranged
+from sync4d.settings import ConfigError, allowed, budget_floor, choice, ranged
 
 __all__ = [
     "ConfigError",
@@ -46,10 +46,6 @@ def config_path(name: str | Path) -> Path:
         return path
     shipped = repo_configs() / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
     return shipped if shipped.exists() else path
-
-
-class ConfigError(ValueError):
-    """A bad config file or override; the message names the key and what to do."""
 
 
 _PHASES_TEXT = '"1", "2", "3", "1,2", "2,3" or "1,2,3"'

@@ -17,7 +17,12 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
-__all__ = ["Allowed", "allowed", "budget_floor", "choice", "ranged"]
+__all__ = ["Allowed", "ConfigError", "allowed", "budget_floor", "choice", "ranged"]
+
+class ConfigError(ValueError):
+    """A bad config file or override; the message names the key and what to do (here, below
+    every config class, so the phases raise it too; `sync4d.config` re-exports it)."""
+
 
 #: The metadata key of a field's `Allowed`.
 KEY = "sync4d.allowed"

@@ -6,15 +6,39 @@ extent, the cameras' focus point).
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Protocol
+
 import numpy as np
 import torch
 
+from sync4d.data import DatasetError
 from sync4d.data.scene import Scene
-from sync4d.data.triangulate import views_at_one_instant
+from sync4d.data.triangulate import (
+    TriangulationConfig,
+    is_multiview,
+    triangulate_scene,
+    views_at_one_instant,
+)
+from sync4d.events import note
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.settings import ConfigError
 
-__all__ = ["camera_sphere", "dome_points", "initial_model", "scene_extent", "scene_focus"]
+__all__ = ["INIT_SOURCES", "camera_sphere", "dome_points", "initial_model", "scene_extent",
+           "scene_focus", "scene_scale", "with_dome_points", "with_initial_points"]  # fmt: skip
+
+#: Where the initial points come from (`Phase1Config.init_from`).
+INIT_SOURCES = ("auto", "points", "triangulate", "random")
+
+
+class Phase1Settings(Protocol):
+    """The initialisation settings of `sync4d.phase1.trainer.Phase1Config` these read."""
+
+    init_from: str
+    init_dome_points: int
+    init_dome_radius: float
+    seed: int
 
 
 def scene_extent(scene: Scene) -> float:
@@ -153,3 +177,63 @@ def initial_model(
         num_random, lo, hi, generator=g, sh_degree=sh_degree, config=deform, near=near,
         init_scale=init_scale,
     )  # fmt: skip
+
+
+def with_initial_points(scene: Scene, p1: Phase1Settings, threads: int = 1) -> Scene:
+    """`scene` with the point cloud `p1.init_from` asks for: its own points, points
+    triangulated (on `threads` threads) from one instant of a multi-view capture, or none
+    (random initialisation)."""
+    source = p1.init_from
+    if source not in INIT_SOURCES:
+        raise ConfigError(f"init_from: expected one of {', '.join(INIT_SOURCES)}, got {source!r}")
+    has_points = scene.points is not None and len(scene.points) > 0
+    if source == "auto":
+        source = "points" if has_points else "triangulate" if is_multiview(scene) else "random"
+    if source == "points":
+        if not has_points:
+            raise ConfigError(
+                f"init_from=points: the dataset '{scene.name}' has no point cloud; "
+                "use init_from=triangulate (multi-view) or init_from=random"
+            )
+        return with_dome_points(scene, p1)
+    if source == "random":
+        if p1.init_dome_points > 0:
+            raise ConfigError(
+                "init_dome_points adds to a point cloud; use init_from=points or triangulate "
+                "with it, or set init_dome_points = 0"
+            )
+        return dataclasses.replace(scene, points=None, point_colors=None)
+    note("fit: triangulating initial points (pycolmap, fixed poses)...", detail=True)
+    tri = triangulate_scene(scene, TriangulationConfig(threads=threads))
+    if len(tri.points) == 0:
+        raise DatasetError(
+            scene.train[0].image_path.parent,
+            "triangulation found no points (too little texture?); use init_from=random",
+        )
+    how = "cached" if tri.cached else f"{tri.seconds:.0f} s"
+    note(f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "
+         f"({how})", detail=True)  # fmt: skip
+    return with_dome_points(
+        dataclasses.replace(scene, points=tri.points, point_colors=tri.colors), p1
+    )
+
+
+def with_dome_points(scene: Scene, p1: Phase1Settings) -> Scene:
+    """`scene` with `p1.init_dome_points` points on its capture dome's wall added to its point
+    cloud (unchanged when that is 0); ConfigError when the cameras are not on a sphere."""
+    if p1.init_dome_points <= 0:
+        return scene
+    try:
+        pts, cols = dome_points(scene, p1.init_dome_points, p1.init_dome_radius, p1.seed)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    note(f"fit: {len(pts)} initial points on the dome's wall", detail=True)
+    base = np.zeros((0, 3)) if scene.points is None else np.asarray(scene.points, np.float64)
+    base_cols = scene.point_colors
+    if base_cols is None:
+        base_cols = np.full((len(base), 3), 0.5, np.float32)
+    return dataclasses.replace(
+        scene,
+        points=np.concatenate([base, pts]),
+        point_colors=np.concatenate([np.asarray(base_cols, np.float32), cols]),
+    )

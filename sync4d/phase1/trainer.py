@@ -32,7 +32,7 @@ from sync4d.metrics import psnr
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.densify import Densifier, DensifyConfig
 from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
-from sync4d.phase1.init import scene_extent, scene_scale
+from sync4d.phase1.init import INIT_SOURCES, scene_extent, scene_scale
 from sync4d.phase1.losses import photometric_loss
 from sync4d.phase1.nodes import NodeConfig, NodeMotion, arap_loss, densify_nodes
 from sync4d.phase1.static import (
@@ -78,7 +78,7 @@ class Phase1Config:
     #: triangulated with the dataset's poses; multi-view captures), "random" (`init_points`
     #: uniform in a cube), or "auto": points if the dataset has them, else triangulate when
     #: several cameras see one instant, else random.
-    init_from: str = choice("auto", ("auto", "points", "triangulate", "random"))
+    init_from: str = choice("auto", INIT_SOURCES)
     #: Random initial Gaussians when the dataset has no point cloud (3DGS uses 100k on a GPU).
     init_points: int = ranged(20_000, 1)
     #: Points added to the initial ones on the wall of a capture dome (`init_from` points or

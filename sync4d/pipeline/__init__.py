@@ -4,7 +4,8 @@ Above the phases, the config and the run folder; below the command line, which o
 calls these and prints. `fit` runs Phase 1 then Phase 2 (checkpoints, resume, Ctrl-C),
 `phase3` builds the language field of a run, `record` holds the run record (dataset
 fingerprint, stored config) and the checks that decide whether a run may continue,
-`evaluate` the image metrics of a run, `stop` the signals that end a loop between iterations.
+`evaluate` the image metrics of a run, `stop` the signals that end a loop between iterations,
+`request` what `sync4d fit` asks of a run folder and the resume policy that answers it.
 """
 
 from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
@@ -16,19 +17,20 @@ from sync4d.pipeline.fit import (
     resume_trainer,
     run_fit,
     set_threads,
-    with_initial_points,
 )
+from sync4d.pipeline.request import FitRequest, fit_request
 
 __all__ = [
     "FitInterrupted",
+    "FitRequest",
     "TrainingDiverged",
     "evaluate_frames",
     "evaluate_run",
+    "fit_request",
     "resolve_data",
     "restart_phase2",
     "resume_trainer",
     "run_fit",
     "set_threads",
     "summarize",
-    "with_initial_points",
 ]

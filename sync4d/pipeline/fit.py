@@ -15,15 +15,14 @@ import signal
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from sync4d import watchdog
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
-from sync4d.data import DatasetError, Scene
+from sync4d.data import Scene
 from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
 from sync4d.files import RunLock, write_atomic, write_text_atomic
-from sync4d.phase1.init import initial_model, scene_extent
+from sync4d.phase1.init import initial_model, scene_extent, with_initial_points
 from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.diagnostics import format_diagnostics
 from sync4d.phase2.trainer import Phase2Trainer
@@ -54,14 +53,12 @@ from sync4d.runs.names import (
 __all__ = [
     "FitInterrupted",
     "TrainingDiverged",
-    "INIT_SOURCES",
     "length_advice",
     "resolve_data",
     "restart_phase2",
     "resume_trainer",
     "run_fit",
     "set_threads",
-    "with_initial_points",
 ]
 
 
@@ -264,74 +261,6 @@ def resume_trainer(
         return Phase1Trainer.from_state(tensors, meta, scene, **kw)
 
 
-INIT_SOURCES = ("auto", "points", "triangulate", "random")
-
-
-def with_initial_points(scene: Scene, cfg: RunConfig) -> Scene:
-    """`scene` with the point cloud `cfg.phase1.init_from` asks for: its own points, points
-    triangulated from one instant of a multi-view capture, or none (random initialisation)."""
-    from sync4d.data.triangulate import TriangulationConfig, is_multiview, triangulate_scene
-
-    source = cfg.phase1.init_from
-    if source not in INIT_SOURCES:
-        raise ConfigError(f"init_from: expected one of {', '.join(INIT_SOURCES)}, got {source!r}")
-    has_points = scene.points is not None and len(scene.points) > 0
-    if source == "auto":
-        source = "points" if has_points else "triangulate" if is_multiview(scene) else "random"
-    if source == "points":
-        if not has_points:
-            raise ConfigError(
-                f"init_from=points: the dataset '{scene.name}' has no point cloud; "
-                "use init_from=triangulate (multi-view) or init_from=random"
-            )
-        return with_dome_points(scene, cfg)
-    if source == "random":
-        if cfg.phase1.init_dome_points > 0:
-            raise ConfigError(
-                "init_dome_points adds to a point cloud; use init_from=points or triangulate "
-                "with it, or set init_dome_points = 0"
-            )
-        return dataclasses.replace(scene, points=None, point_colors=None)
-    note("fit: triangulating initial points (pycolmap, fixed poses)...", detail=True)
-    tri = triangulate_scene(scene, TriangulationConfig(threads=torch.get_num_threads()))
-    if len(tri.points) == 0:
-        raise DatasetError(
-            scene.train[0].image_path.parent,
-            "triangulation found no points (too little texture?); use init_from=random",
-        )
-    how = "cached" if tri.cached else f"{tri.seconds:.0f} s"
-    note(f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "
-         f"({how})", detail=True)  # fmt: skip
-    return with_dome_points(
-        dataclasses.replace(scene, points=tri.points, point_colors=tri.colors), cfg
-    )
-
-
-def with_dome_points(scene: Scene, cfg: RunConfig) -> Scene:
-    """`scene` with `cfg.phase1.init_dome_points` points on its capture dome's wall added to
-    its point cloud (unchanged when that is 0); ConfigError when the cameras are not on a
-    sphere."""
-    from sync4d.phase1.init import dome_points
-
-    p1 = cfg.phase1
-    if p1.init_dome_points <= 0:
-        return scene
-    try:
-        pts, cols = dome_points(scene, p1.init_dome_points, p1.init_dome_radius, p1.seed)
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
-    note(f"fit: {len(pts)} initial points on the dome's wall", detail=True)
-    base = np.zeros((0, 3)) if scene.points is None else np.asarray(scene.points, np.float64)
-    base_cols = scene.point_colors
-    if base_cols is None:
-        base_cols = np.full((len(base), 3), 0.5, np.float32)
-    return dataclasses.replace(
-        scene,
-        points=np.concatenate([base, pts]),
-        point_colors=np.concatenate([np.asarray(base_cols, np.float32), cols]),
-    )
-
-
 def run_fit(
     scene: Scene,
     cfg: RunConfig,
@@ -404,7 +333,7 @@ def _run_fit(
         trainer = resume_trainer(ckpt, scene, p1, n_threads, total, cfg.phase2, near=p1.near)
         note(f"fit: resumed {ckpt} at iteration {trainer.iteration}")
     elif 1 in phases:
-        scene = with_initial_points(scene, cfg)
+        scene = with_initial_points(scene, p1, threads=torch.get_num_threads())
         model = initial_model(
             scene, p1.init_points, p1.sh_degree, p1.deform, p1.init_box_fraction, p1.seed,
             near=p1.near, init_scale=p1.init_scale,

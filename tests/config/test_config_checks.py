@@ -197,9 +197,9 @@ def test_every_numeric_field_declares_a_range_and_every_string_its_choices() -> 
 
 
 def test_choices_match_the_values_the_code_acts_on() -> None:
+    from sync4d.phase1.init import INIT_SOURCES
     from sync4d.phase2.assign import ASSIGN_SOURCES
     from sync4d.phase2.motion import MOTION_KINDS
-    from sync4d.pipeline.fit import INIT_SOURCES
     from sync4d.settings import allowed
 
     rules = {key: allowed(f) for key, f, _ in _leaves(RunConfig)}

@@ -1,6 +1,7 @@
 """Initial points triangulated from one instant of a multi-view capture (pycolmap, fixed poses):
 the points lie on the true surfaces of the synthetic scene, results are cached, monocular
-scenes are refused with a clear error, and `fit` picks the source `init_from` asks for."""
+scenes are refused with a clear error. Which source `init_from` picks is Phase 1's:
+tests/phase1/test_initial_points.py."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ import numpy as np
 import pytest
 
 from support.datasets import write_blender
-from sync4d.config import ConfigError, RunConfig, load_config
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.data.scene import DatasetError
@@ -20,7 +20,6 @@ from sync4d.data.triangulate import (
     triangulate_scene,
     views_at_one_instant,
 )
-from sync4d.pipeline import with_initial_points
 
 SCENE = syn.SyntheticConfig(size=256, frames=2, train_cameras=24, test_cameras=1, test_every=2,
                             supersample=1)  # fmt: skip
@@ -85,25 +84,3 @@ def test_monocular_scene_is_refused(tmp_path) -> None:
     assert not is_multiview(scene)
     with pytest.raises(DatasetError, match="at least two training cameras"):
         triangulate_scene(scene, ONE_THREAD, use_cache=False)
-
-
-def test_init_from_chooses_the_source(synthetic, tmp_path, monkeypatch) -> None:
-    monkeypatch.setenv("SYNC4D_CACHE", str(tmp_path / "cache"))
-    multi = load_scene(synthetic)
-    root = tmp_path / "mono"
-    write_blender(root, n=4, size=24)
-    mono = load_scene(root)
-    cfg = RunConfig()
-    assert cfg.init_from == "auto"
-    got = with_initial_points(multi, cfg)
-    assert got.points is not None and len(got.points) >= 100  # auto: multi-view -> triangulate
-    assert with_initial_points(mono, cfg).points is None  # auto: mono -> random
-    random = load_config(None, ["init_from=random"])
-    assert with_initial_points(got, random).points is None
-    assert with_initial_points(got, load_config(None, ["init_from=points"])) is got
-    with pytest.raises(ConfigError, match="has no point cloud"):
-        with_initial_points(mono, load_config(None, ["init_from=points"]))
-    with pytest.raises(ConfigError, match="init_from: expected one of"):
-        with_initial_points(mono, load_config(None, ["init_from=sfm"]))
-    with pytest.raises(DatasetError, match="at least two training cameras"):
-        with_initial_points(mono, load_config(None, ["init_from=triangulate"]))

@@ -1,5 +1,7 @@
-"""Initial points on a capture dome's wall (`init_dome_points`): the sphere through the
-cameras, colours from the first instant's images, and the refusals."""
+"""Phase 1's initial points (`sync4d.phase1.init`): the source `init_from` picks (the dataset's
+points, triangulated from a multi-view instant, or none), and points on a capture dome's wall
+(`init_dome_points`): the sphere through the cameras, colours from the first instant's images,
+and the refusals."""
 
 from __future__ import annotations
 
@@ -10,11 +12,16 @@ import pytest
 from PIL import Image
 
 from support.cameras import look_at_w2c
-from sync4d.config import ConfigError, load_config
-from sync4d.data.scene import Camera, Frame, Scene
-from sync4d.phase1.init import camera_sphere, dome_points
-from sync4d.pipeline.fit import with_dome_points
+from support.datasets import write_blender
+from sync4d.config import ConfigError, RunConfig, load_config
+from sync4d.data import synthetic as syn
+from sync4d.data.detect import load_scene
+from sync4d.data.scene import Camera, DatasetError, Frame, Scene
+from sync4d.phase1.init import camera_sphere, dome_points, with_dome_points, with_initial_points
 
+#: A multi-view capture: 24 cameras at each of two instants.
+MULTIVIEW = syn.SyntheticConfig(size=256, frames=2, train_cameras=24, test_cameras=1,
+                                test_every=2, supersample=1)  # fmt: skip
 CENTRE = np.array([0.5, -1.0, 0.2])
 RADIUS = 2.0
 COLOUR = (51, 102, 153)
@@ -64,15 +71,13 @@ def test_fit_adds_them_to_the_point_cloud_and_refuses_random_init(tmp_path) -> N
         _scene(tmp_path, _dome_eyes()), points=base, point_colors=np.ones((3, 3), np.float32)
     )
     cfg = load_config(None, ["phase1.init_dome_points=200", "phase1.init_from=points"])
-    out = with_dome_points(scene, cfg)
+    out = with_dome_points(scene, cfg.phase1)
     assert len(out.points) > 3 and np.array_equal(out.points[:3], base)
     assert len(out.point_colors) == len(out.points)
-    assert with_dome_points(scene, load_config(None, [])) is scene
-    from sync4d.pipeline.fit import with_initial_points
-
+    assert with_dome_points(scene, load_config(None, []).phase1) is scene
     bad = load_config(None, ["phase1.init_dome_points=200", "phase1.init_from=random"])
     with pytest.raises(ConfigError, match="init_dome_points"):
-        with_initial_points(scene, bad)
+        with_initial_points(scene, bad.phase1)
 
 
 def test_a_sphere_no_image_sees_gives_no_points(tmp_path) -> None:
@@ -83,3 +88,25 @@ def test_a_sphere_no_image_sees_gives_no_points(tmp_path) -> None:
         f.camera = dataclasses.replace(f.camera, viewmat=away)
     pts, cols = dome_points(scene, 200, radius_factor=0.5)
     assert pts.shape == (0, 3) and cols.shape == (0, 3)
+
+
+def test_init_from_chooses_the_source(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("SYNC4D_CACHE", str(tmp_path / "cache"))
+    multi = load_scene(syn.write_synthetic_scene(tmp_path / "multi", MULTIVIEW))
+    root = tmp_path / "mono"
+    write_blender(root, n=4, size=24)
+    mono = load_scene(root)
+    cfg = RunConfig()
+    assert cfg.init_from == "auto"
+    got = with_initial_points(multi, cfg.phase1)
+    assert got.points is not None and len(got.points) >= 100  # auto: multi-view -> triangulate
+    assert with_initial_points(mono, cfg.phase1).points is None  # auto: mono -> random
+    random = load_config(None, ["init_from=random"])
+    assert with_initial_points(got, random.phase1).points is None
+    assert with_initial_points(got, load_config(None, ["init_from=points"]).phase1) is got
+    with pytest.raises(ConfigError, match="has no point cloud"):
+        with_initial_points(mono, load_config(None, ["init_from=points"]).phase1)
+    with pytest.raises(ConfigError, match="init_from: expected one of"):
+        with_initial_points(mono, load_config(None, ["init_from=sfm"]).phase1)
+    with pytest.raises(DatasetError, match="at least two training cameras"):
+        with_initial_points(mono, load_config(None, ["init_from=triangulate"]).phase1)

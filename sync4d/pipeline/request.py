@@ -1,0 +1,331 @@
+"""What `sync4d fit` asks of a run folder, and the resume policy that answers it.
+
+A `FitRequest` is the command line's words as data (the dataset, the run folder, the config
+file, the overrides, the phases, --resume / --force). `fit_request` decides what the request
+means for the run folder and does it:
+
+- a new run (or `--force`): the request's config (`fresh_config`) on its dataset, or the
+  embedded scene;
+- `--resume`: the run's recorded config and dataset, with only the phases' lengths and the
+  cadence keys free to change (`continued_config`, `continued_data`); a dataset that is not
+  the recorded one is refused (`pipeline.record.dataset_differences`);
+- `--phases 2`: Phase 2 again from the run's Phase 1 checkpoint, Phase 2's settings free;
+- `--phases 3` alone: the language field of a finished Phase 2 run (`fit_phase3_only`).
+
+The dataset travels with its scene (`FitData`). The command parses and prints; everything
+here reports through `sync4d.events`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from sync4d.config import (
+    ConfigError,
+    RunConfig,
+    apply_overrides,
+    load_config,
+    parse_phases,
+    phase2_budget,
+    repo_configs,
+    with_budget,
+)
+from sync4d.data import Scene, load_scene
+from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
+from sync4d.events import note
+from sync4d.pipeline.fit import restart_phase2, run_fit
+from sync4d.pipeline.phase3 import Phase3Build, build_phase3, phase3_config
+from sync4d.pipeline.record import (
+    CADENCE_KEYS,
+    config_differences,
+    dataset_differences,
+    read_record,
+    recorded_config,
+)
+from sync4d.progress import format_duration
+from sync4d.runs import (
+    CHECKPOINT_NAME,
+    EVAL_FILE,
+    FIELD_DIR,
+    METRICS_FILE,
+    PHASE1_CHECKPOINT_NAME,
+    PHASE2_FILE,
+    RENDERS_DIR,
+    RUN_FILE,
+    TRAJECTORY_PLOT,
+    RunError,
+    checkpoint_kind,
+)
+
+__all__ = ["FitData", "FitOutcome", "FitRequest", "clear_run", "continued_config",
+           "continued_data", "fit_request", "fresh_config", "is_run"]  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FitRequest:
+    """`sync4d fit`'s command line as data: the dataset folder (None: the embedded scene, or
+    the run's recorded one), the run folder, a config file or shipped config's name, the
+    ``--set`` overrides, ``--iters``, ``--resolution-scale``, ``--phases``, ``--encoder``,
+    ``--resume``, ``--force`` and the CPU threads."""
+
+    run_dir: Path
+    data: Path | None = None
+    config: str | None = None
+    settings: tuple[str, ...] = ()
+    iters: int | None = None
+    resolution_scale: float | None = None
+    phases: str | None = None
+    encoder: str | None = None
+    resume: bool = False
+    force: bool = False
+    threads: int | None = None
+
+    def overrides(self) -> list[str]:
+        """The request's settings as `key=value` overrides, in the order they apply."""
+        overrides = list(self.settings)
+        if self.resolution_scale is not None:
+            overrides.append(f"resolution_scale={self.resolution_scale}")
+        if self.phases is not None:
+            overrides.append(f"phases={self.phases}")
+        if self.encoder is not None:
+            overrides.append(f"phase3.encoder={self.encoder}")
+        return overrides
+
+    def invocation(self) -> dict:
+        """The request as the run record keeps it (`command.invocations`)."""
+        return {"data": None if self.data is None else str(self.data), "config": self.config,
+                "set": list(self.settings), "iters": self.iters,
+                "resolution_scale": self.resolution_scale, "phases": self.phases,
+                "resume": self.resume, "force": self.force}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FitData:
+    """A run's dataset: its folder, the scene loaded from it, and whether it is the embedded
+    synthetic scene."""
+
+    path: Path
+    scene: Scene
+    embedded: bool
+
+
+@dataclass(frozen=True)
+class FitOutcome:
+    """What `fit_request` did: the training summary (`run_fit`'s; None for `--phases 3`
+    alone) and the language field it built (None without Phase 3)."""
+
+    run_dir: Path
+    summary: dict | None = None
+    phase3: Phase3Build | None = None
+
+
+def fresh_config(req: FitRequest) -> RunConfig:
+    """The config of a new run: `req.config` (default: the shipped synthetic config without a
+    dataset, the paper's values with one), scaled by `req.iters`, then the overrides."""
+    default = None if req.data else repo_configs() / "synthetic.toml"
+    cfg = load_config(req.config or default)
+    if req.iters is not None:  # scale the file's schedule; explicit overrides still win
+        cfg = with_budget(cfg, req.iters)
+    return apply_overrides(cfg, req.overrides())
+
+
+def continued_config(req: FitRequest, stored: RunConfig, kind: str | None, restart: bool,
+                     source: Path) -> RunConfig:  # fmt: skip
+    """The run's stored config with the request's settings applied. On --resume only the
+    phases' lengths (`iters` continues the checkpoint's phase to N) and the cadence keys may
+    change; `--phases 2` (`restart`) may also change Phase 2's settings. Anything else the
+    request changes is refused, naming each difference."""
+    cfg = load_config(req.config) if req.config else stored
+    if req.iters is not None:
+        if restart:
+            cfg = dataclasses.replace(cfg, phase2=phase2_budget(cfg.phase2, req.iters))
+        elif req.config:
+            cfg = with_budget(cfg, req.iters)
+        elif kind == "sync4d.phase2":
+            cfg = dataclasses.replace(
+                cfg, phase2=dataclasses.replace(cfg.phase2, iterations=req.iters)
+            )
+        else:
+            cfg = dataclasses.replace(
+                cfg, phase1=dataclasses.replace(cfg.phase1, iterations=req.iters)
+            )
+    cfg = apply_overrides(cfg, req.overrides())
+    free = {*CADENCE_KEYS, "phase1.iterations", "phase2.iterations"}
+
+    def allowed(key: str) -> bool:  # Phase 3 rebuilds its field: its settings are free
+        return (key in free or key.startswith("phase3.")
+                or (restart and (key == "phases" or key.startswith("phase2."))))  # fmt: skip
+
+    diffs = config_differences(stored, cfg)
+    bad = {k: v for k, v in diffs.items() if not allowed(k)}
+    if bad:
+        listed = "; ".join(f"{k}: the run has {a!r}, this command gives {b!r}"
+                           for k, (a, b) in list(bad.items())[:6])  # fmt: skip
+        more = f" and {len(bad) - 6} more" if len(bad) > 6 else ""
+        what = "--phases 2 keeps" if restart else "--resume continues"
+        raise ConfigError(
+            f"{source}: {what} the run with its recorded settings, and this command contradicts "
+            f"them: {listed}{more}. Drop those settings, or start a new run (--force, or "
+            "another --out)"
+        )
+    for k, (a, b) in diffs.items():
+        if k in free:
+            note(f"fit: {k}: {a} -> {b}")
+    return cfg
+
+
+def continued_data(req: FitRequest, record: dict, run_dir: Path) -> tuple[Path, bool]:
+    """The dataset of a continued run (the request's if given, else the recorded one) and
+    whether it is the embedded synthetic scene."""
+    recorded = record.get("data")
+    embedded = bool(record.get("embedded", recorded == str(default_scene_dir().resolve())))
+    if req.data is not None:
+        return req.data, embedded and req.data.resolve() == Path(recorded).resolve()
+    if embedded:
+        return ensure_default_scene(), True
+    if recorded is None or not Path(recorded).exists():
+        raise RunError(
+            f"{run_dir}: the run's dataset ({recorded}) is not there any more; pass its new "
+            "path as DATA"
+        )
+    return Path(recorded), False
+
+
+def clear_run(run_dir: Path) -> None:
+    """Remove a run's results (--force)."""
+    for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE,
+                 TRAJECTORY_PLOT, EVAL_FILE, RUN_FILE):  # fmt: skip
+        (run_dir / name).unlink(missing_ok=True)
+    for extra in run_dir.glob("eval-*.json"):
+        extra.unlink()
+    shutil.rmtree(run_dir / RENDERS_DIR, ignore_errors=True)
+    shutil.rmtree(run_dir / FIELD_DIR, ignore_errors=True)
+
+
+def is_run(path: Path) -> bool:
+    """Whether `path` is a run folder (it holds a run record or a checkpoint)."""
+    return (path / RUN_FILE).is_file() or (path / CHECKPOINT_NAME).is_file()
+
+
+def _continued(req: FitRequest, kind: str, restart: bool) -> tuple[RunConfig, FitData, list]:
+    """The config, dataset and earlier invocations of the recorded run `req` continues."""
+    run_dir = req.run_dir
+    record = read_record(run_dir)
+    path, embedded = continued_data(req, record, run_dir)
+    cfg = continued_config(req, recorded_config(record, run_dir), kind, restart,
+                           run_dir / RUN_FILE)  # fmt: skip
+    scene = load_scene(path, cfg.resolution_scale, cfg.test_split)
+    differs = dataset_differences(record.get("dataset", {}), scene)
+    if differs:
+        raise RunError(
+            f"{path} is not the dataset of the run in {run_dir} "
+            f"({record.get('data')}): {'; '.join(differs)}. Pass the run's dataset, or "
+            "start a new run (--force, or another --out)"
+        )
+    return cfg, FitData(path, scene, embedded), list(record.get("command", {}).get(
+        "invocations", []))  # fmt: skip
+
+
+def fit_request(req: FitRequest, fresh: RunConfig | None = None) -> FitOutcome:
+    """Do what `req` asks of its run folder (see the module's note): train or continue the
+    phases, then build the language field when Phase 3 is among them. `fresh`: the config of
+    a new run, when the caller already resolved it (`fresh_config(req)`)."""
+    run_dir = req.run_dir
+    fresh = fresh_config(req) if fresh is None else fresh
+    ckpt = run_dir / CHECKPOINT_NAME
+    kind = checkpoint_kind(ckpt)
+    if req.resume and kind is None:
+        raise RunError(f"{ckpt}: no checkpoint to resume from")
+    phases = parse_phases(fresh.phases)
+    if phases == (3,):
+        return fit_phase3_only(req, kind)
+    restart = phases[0] == 2 and not req.resume
+    if kind is not None and not (req.resume or req.force or restart):
+        raise RunError(
+            f"{run_dir} already holds a run; pass --resume to continue it, --force to start "
+            "over or --phases 2 to redo Phase 2 from its Phase 1 checkpoint"
+        )
+    if kind is not None and not req.force:  # continue the recorded run
+        cfg, data, history = _continued(req, kind, restart)
+        if restart:
+            restart_phase2(run_dir)
+    else:
+        if req.force:
+            clear_run(run_dir)
+        cfg = fresh
+        if req.data is None:
+            note("fit: no dataset given; using the embedded synthetic scene")
+        path = req.data if req.data is not None else ensure_default_scene()
+        data = FitData(path, load_scene(path, cfg.resolution_scale, cfg.test_split),
+                       req.data is None)  # fmt: skip
+        history = []
+    command = {"embedded": data.embedded, "invocations": [*history, req.invocation()]}
+    scene = data.scene
+    note(f"fit: {scene.name}: {len(scene.train)} train / {len(scene.test)} test frames at "
+         f"{scene.train[0].camera.width}x{scene.train[0].camera.height}, "
+         f"{cfg.phase1.iterations} iterations -> {run_dir}")  # fmt: skip
+    summary = run_fit(scene, cfg, run_dir, data.path, req.resume, req.threads, command=command)
+    _report(summary, run_dir)
+    built = None
+    if 3 in parse_phases(cfg.phases):
+        built = _build_phase3(run_dir, cfg.phase3, req.threads, data.path)
+    return FitOutcome(run_dir, summary, built)
+
+
+def _report(summary: dict, run_dir: Path) -> None:
+    """The training summary's lines (on stdout): test metrics, then Phase 2's diagnostics."""
+    ssim, lpips = summary["ssim"], summary["lpips"]
+    note(f"fit: done in {format_duration(summary['train_seconds'])} of training: test PSNR "
+         f"{summary['psnr']:.2f} dB, SSIM {'n/a' if ssim is None else format(ssim, '.4f')}, "
+         f"LPIPS {'n/a' if lpips is None else format(lpips, '.4f')}, "
+         f"{summary['gaussians']} Gaussians; run in {run_dir}", stream="out")  # fmt: skip
+    if "phase2" in summary:
+        d = summary["phase2"]
+        note(f"fit: Phase 2: mean rigid share {d['rigid_share']:.3f}, shuffle ratio "
+             f"{d['shuffle_ratio']:.2f}, {len(d['objects'])} labels ({d['assignment']})",
+             stream="out")  # fmt: skip
+
+
+def fit_phase3_only(req: FitRequest, kind: str | None) -> FitOutcome:
+    """`fit --out RUN --phases 3`: the language field of RUN's Phase 2 checkpoint, with the
+    run's recorded Phase 3 settings, then the config file's, then ``phase3.*`` overrides and
+    the encoder."""
+    run_dir = req.run_dir
+    if kind != "sync4d.phase2":
+        raise RunError(
+            f"{run_dir / CHECKPOINT_NAME}: --phases 3 needs a Phase 2 checkpoint (found "
+            f"{kind or 'none'}); run fit with --phases 2 (or 1,2) first"
+        )
+    if req.resume or req.force or req.iters is not None:
+        raise ConfigError("--phases 3 builds the language field of a finished Phase 2 run; "
+                          "--resume, --force and --iters do not apply to it")  # fmt: skip
+    others = [s for s in req.settings if not s.startswith("phase3.")]
+    if others or req.resolution_scale is not None:
+        raise ConfigError(
+            f"--phases 3 only builds the language field: settings other than phase3.* do not "
+            f"apply ({', '.join(others) or '--resolution-scale'}); drop them"
+        )
+    overrides = [s for s in req.overrides() if not s.startswith("phases=")]
+    cfg3 = phase3_config(run_dir, req.config, overrides)
+    return FitOutcome(run_dir, None, _build_phase3(run_dir, cfg3, req.threads, req.data))
+
+
+def _build_phase3(run_dir: Path, cfg3, threads: int | None, data: Path | None) -> Phase3Build:
+    """Build and save the language field of the Phase 2 run in `run_dir`."""
+    from sync4d.phase3 import load_encoder
+    from sync4d.phase3.build import skip_report
+
+    encoder = load_encoder(cfg3.encoder or None)
+    note(f"fit: Phase 3 (language field) with the {encoder.kind} encoder ({encoder.dim}-d"
+         f"{', closed-vocabulary' if encoder.closed_vocabulary else ''}) ...")  # fmt: skip
+    built = build_phase3(run_dir, cfg3, threads=threads, data=data, encoder=encoder)
+    field, t = built.field, built.field.timings
+    note(f"fit: Phase 3: {len(field.labels)} objects x {len(field.times)} frames, "
+         f"{int(t['crops'])} crops ({100 * field.observed.mean():.0f} % observed), built in "
+         f"{t['total_s']:.1f} s (observe {t['observe_s']:.1f}, encode {t['encode_s']:.1f}); "
+         f"field in {built.folder}", stream="out")  # fmt: skip
+    note(skip_report(field))
+    return built
