@@ -16,7 +16,8 @@ import time
 from sync4d.config import load_config, repo_configs
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
-from sync4d.phase2.trainer import Phase2Trainer
+from sync4d.phase2 import MotionStrategy, phase2_trainer
+from sync4d.phase2.refine import refine_motion
 from sync4d.pipeline import set_threads
 from sync4d.runs import load_model
 
@@ -36,7 +37,7 @@ def main() -> None:
     gt = syn.load_ground_truth(root)
     model, _ = load_model(args.checkpoint)
 
-    def report(what: str, trainer: Phase2Trainer) -> None:
+    def report(what: str, trainer: MotionStrategy) -> None:
         errors = gt.export_errors(trainer.motion_export())
         cells = ", ".join(f"{n} {r:.2f} deg / {c:.2f} %" for n, (r, c) in errors.items())
         print(f"{what} ({time.perf_counter() - t0:.0f} s): {cells}", flush=True)
@@ -44,10 +45,10 @@ def main() -> None:
     t0 = time.perf_counter()
     mc = cfg.phase2.motion
     fitted = dataclasses.replace(cfg.phase2, motion=dataclasses.replace(mc, refine_steps=0))
-    trainer = Phase2Trainer(model, scene, cfg.phase1, fitted, max(1, args.iters), threads)
+    trainer = phase2_trainer(model, scene, cfg.phase1, fitted, max(1, args.iters), threads)
     report("closed-form fit", trainer)
     if mc.refine_steps > 0:
-        trainer.refine_motion(mc)
+        refine_motion(trainer, mc)
         report("refined", trainer)
     if args.per_frame:
         export = trainer.motion_export()

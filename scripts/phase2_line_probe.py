@@ -19,8 +19,8 @@ from sync4d.config import load_config
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.geometry import matrix_to_rotvec, rotvec_to_matrix
-from sync4d.phase2.refine import _RigidTemplate, _template_loss
-from sync4d.phase2.trainer import Phase2Trainer
+from sync4d.phase2 import phase2_trainer
+from sync4d.phase2.refine import _RigidTemplate, _template_loss, refine_motion
 from sync4d.pipeline import set_threads
 from sync4d.runs import load_model
 
@@ -33,7 +33,7 @@ gt = syn.load_ground_truth(root)
 model, _ = load_model(ck)
 mc = cfg.phase2.motion
 fitted = dataclasses.replace(cfg.phase2, motion=dataclasses.replace(mc, refine_steps=0))
-tr = Phase2Trainer(model, scene, cfg.phase1, fitted, 1, 1)
+tr = phase2_trainer(model, scene, cfg.phase1, fitted, 1, 1)
 m = tr.motion
 moving = [k for k in range(tr.assignment.num_objects) if not bool(tr.static[k])]
 r0 = rotvec_to_matrix(m.rotvecs[moving, 0].detach().float())
@@ -45,7 +45,7 @@ if os.path.exists(cache):
         m.rotvecs.copy_(rv)
         m.translations.copy_(tt)
 else:
-    tr.refine_motion(mc)
+    refine_motion(tr, mc)
     colours = tr.template_colours
     torch.save((m.rotvecs.detach().clone(), m.translations.detach().clone(), colours), cache)
 print(gt.export_errors(tr.motion_export()), flush=True)

@@ -12,7 +12,7 @@ from typing import Any
 
 from sync4d.data.loaders import offered_splits
 from sync4d.phase1.trainer import Phase1Config
-from sync4d.phase2.trainer import Phase2Config
+from sync4d.phase2.config import Phase2Config
 from sync4d.phase3.config import Phase3Config
 from sync4d.settings import ConfigError, allowed, budget_floor, choice, ranged
 
@@ -286,11 +286,16 @@ def _check(field: dataclasses.Field, value: Any, key: str) -> None:
 
 def validate(cfg: RunConfig, source: str | None = None) -> None:
     """Raise ConfigError naming the key, the value and the allowed values when a value of `cfg`
-    (any section) is outside its field's declared range or choices (`sync4d.settings`), or a
-    flag is not a bool; `source` (a file name, "--set") leads the message."""
+    (any section) is outside its field's declared range or choices (`sync4d.settings`), a flag
+    is not a bool, or a section's settings do not go together (its `combination_problem`);
+    `source` (a file name, "--set") leads the message. The one place ranges are checked: the
+    trainers take their configs as given."""
     prefix = f"{source}: " if source else ""
 
     def walk(obj: Any, path: str) -> None:
+        combination = getattr(obj, "combination_problem", None)
+        if combination is not None and (problem := combination()) is not None:
+            raise ConfigError(f"{prefix}{path}{problem}")
         for f in dataclasses.fields(obj):
             value = getattr(obj, f.name)
             key = f"{path}{f.name}"

@@ -8,19 +8,19 @@ What the loop does is composed, not overridden, where it is a policy: densificat
 `Densifier` strategy (its settings `densify`, default `Phase1Config.densify`), and the
 iteration schedules (coarse resolution, SH degree, D_theta's warm-up) are a `Phase1Schedule`
 (`FinishedSchedule` for a trainer that continues a finished model), both passed at
-construction. A trainer that adds to the loop (Phase 2) subclasses `Phase1Trainer` and
-overrides these hooks only: `auxiliary_loss` (losses added to the photometric one),
-`on_gaussians_changed` (after densification changed N), `update_learning_rates` (after the
-loop set its groups' rates) and `step` (to extend an iteration), plus `state` / `restore` /
-`from_state` for its checkpoint. Other modules read the trainer through public names
-(`image`, `background`), never its private attributes.
+construction. A phase that adds to the step (Phase 2's motion strategy) is a plug-in
+(`sync4d.phase1.plugin.TrainerPlugin`, `plug`), not a subclass: its hooks run at fixed points
+of `step` (rates, loss terms before the backward pass, watched parameters, its own update
+after Phase 1's, re-assignment after densification) and its state goes into the checkpoint
+beside Phase 1's. One loop runs every phase: the pipeline's (`sync4d.pipeline.fit`), calling
+`step`. Other modules read the trainer through public names (`image`, `background`), never
+its private attributes.
 """
 
 from __future__ import annotations
 
 import math
 import random
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -35,6 +35,7 @@ from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
 from sync4d.phase1.init import INIT_SOURCES, scene_extent, scene_scale
 from sync4d.phase1.losses import photometric_loss
 from sync4d.phase1.nodes import NodeConfig, NodeMotion, arap_loss, densify_nodes
+from sync4d.phase1.plugin import TrainerPlugin
 from sync4d.phase1.static import (
     StaticConfig,
     StaticUpdate,
@@ -195,9 +196,10 @@ class FinishedSchedule:
 
 
 class Phase1Trainer:
-    """Owns the optimizer, densifier and image cache for one `DeformableGaussians` model."""
+    """Owns the optimizer, densifier and image cache for one `DeformableGaussians` model, and
+    the training step; later phases plug into the step (`plug`, `sync4d.phase1.plugin`)."""
 
-    #: The `kind` its checkpoints record.
+    #: The `kind` its checkpoints record without a plug-in that names another.
     KIND = "sync4d.phase1"
 
     def __init__(
@@ -260,6 +262,22 @@ class Phase1Trainer:
         self.last_arap: float | None = None
         #: The sorted distinct times of the training frames (the ARAP loss's second times).
         self._times = sorted({float(f.time) for f in scene.train})
+        #: The plug-ins called at fixed points of each step, in order (`plug`).
+        self.plugins: list[TrainerPlugin] = []
+
+    def plug(self, plugin: TrainerPlugin) -> None:
+        """Add `plugin` to every later step (`sync4d.phase1.plugin` says where it is called)."""
+        self.plugins.append(plugin)
+
+    @property
+    def kind(self) -> str:
+        """The checkpoint kind: the last plug-in's that names one, else `KIND`."""
+        return next((p.kind for p in reversed(self.plugins) if p.kind), self.KIND)
+
+    @property
+    def phase_name(self) -> str:
+        """The name the watchdog gives this trainer's failures ("Phase 1", or a plug-in's)."""
+        return next((p.phase_name for p in reversed(self.plugins) if p.phase_name), "Phase 1")
 
     def _add_node_groups(self) -> None:
         """The node parameters' Adam groups, after D_theta's (`node_positions`,
@@ -367,8 +385,8 @@ class Phase1Trainer:
         return self.schedule.deform_lr_factor(self.iteration)
 
     def update_learning_rates(self) -> None:
-        """Set the rates of this iteration: the means' and D_theta's decays, the ramp (a hook:
-        a subclass adds its own optimizers' rates after these)."""
+        """Set the rates of this iteration: the means' and D_theta's decays, the ramp; then
+        the plug-ins set their own optimizers' rates."""
         c = self.config
         ramp = self.deform_lr_factor()
         for g in self.optimizer.param_groups:
@@ -381,6 +399,8 @@ class Phase1Trainer:
             elif g["name"] == "node_positions":
                 final = c.nodes.lr_position * c.lr_means_final / c.lr_means
                 g["lr"] = self._decayed(c.nodes.lr_position, final) * self.extent
+        for plugin in self.plugins:
+            plugin.update_learning_rates()
 
     def step(self) -> dict[str, float]:
         """One iteration on a random training frame; returns loss, PSNR and N."""
@@ -447,10 +467,9 @@ class Phase1Trainer:
             stats["static"] = float(self.model.static.sum())
         if self.model.nodes is not None:
             stats["nodes"] = float(self.model.nodes.count)
+        for plugin in self.plugins:
+            plugin.after_step()
         return stats
-
-    #: The name the watchdog gives this trainer's failures.
-    phase_name = "Phase 1"
 
     def check_inputs(self, inputs: dict[str, torch.Tensor]) -> None:
         """The watchdog's check of what this iteration's render receives (`render`'s
@@ -462,7 +481,12 @@ class Phase1Trainer:
         rows (per-Gaussian tensors: "Gaussians")."""
         units = dict.fromkeys(PER_GAUSSIAN, "Gaussians")
         units.update({f"nodes.{n}": "nodes" for n in NodeMotion.PER_NODE})
-        return dict(self.model.named_parameters()), units
+        params = dict(self.model.named_parameters())
+        for plugin in self.plugins:
+            more, more_units = plugin.watched()
+            params.update(more)
+            units.update(more_units)
+        return params, units
 
     def static_check_due(self, densified: bool) -> bool:
         """Whether the static set is re-checked after this iteration: from `static.start` on,
@@ -500,23 +524,23 @@ class Phase1Trainer:
     def auxiliary_loss(
         self, frame: Frame, means: torch.Tensor
     ) -> tuple[torch.Tensor | None, dict[str, float]]:
-        """Loss terms added to the photometric loss for `frame`, given the deformed means
-        [N, 3] the render used, and scalars to report; Phase 1 has none (a hook: Phase 2 sums
-        its loss terms here)."""
-        return None, {}
+        """The plug-ins' loss terms added to the photometric loss for `frame`, given the
+        deformed means [N, 3] the render used, and their scalars to report; Phase 1 alone has
+        none."""
+        total: torch.Tensor | None = None
+        stats: dict[str, float] = {}
+        for plugin in self.plugins:
+            loss, more = plugin.loss(frame, means)
+            if loss is not None:
+                total = loss if total is None else total + loss
+            stats.update(more)
+        return total, stats
 
     def on_gaussians_changed(self) -> None:
-        """Called after densification changed the number of Gaussians (a hook: Phase 2
+        """After densification changed the number of Gaussians: the plug-ins follow (Phase 2
         re-assigns)."""
-
-    def train(self, iterations: int, callback: Callable[[int, dict], None] | None = None) -> dict:
-        """Run `iterations` steps, calling `callback(iteration, stats)` after each."""
-        stats: dict = {}
-        for _ in range(iterations):
-            stats = self.step()
-            if callback is not None:
-                callback(self.iteration, stats)
-        return stats
+        for plugin in self.plugins:
+            plugin.on_gaussians_changed()
 
     # -- checkpoint state -------------------------------------------------------------------
     def state(self) -> tuple[dict[str, torch.Tensor], dict]:
@@ -539,7 +563,7 @@ class Phase1Trainer:
         tensors["densify.rng"] = self.densifier.generator.get_state()
         version, internal, gauss = self._rng.getstate()
         meta.update({
-            "kind": self.KIND,
+            "kind": self.kind,
             "iteration": self.iteration,
             "total_iterations": self.total,
             "lrs": [g["lr"] for g in self.optimizer.param_groups],
@@ -547,6 +571,10 @@ class Phase1Trainer:
             "python_rng": [version, list(internal), gauss],
             "background": list(self.config.background),
         })  # fmt: skip
+        for plugin in self.plugins:
+            more, more_meta = plugin.state()
+            tensors.update(more)
+            meta.update(more_meta)
         return tensors, meta
 
     @classmethod

@@ -127,6 +127,18 @@ class MotionConfig:
     #: kind "mlp": frequencies of its time encoding.
     mlp_bands: int = ranged(6, 0, 20)
 
+    def combination_problem(self) -> str | None:
+        """What is wrong with these settings together (each is within its own range), or
+        None; `sync4d.config.validate` calls it once all overrides are applied."""
+        if self.init == "fit" and not MOTION_CLASSES[self.kind].fits_closed_form:
+            return (f"init=fit: the {self.kind} M_phi has no closed-form start; use "
+                    "phase2.motion.init=identity")  # fmt: skip
+        if self.refine_steps > 0 and (self.init != "fit" or self.kind != "se3"):
+            return ("refine_steps refines the fitted SE(3) table: it needs "
+                    f"phase2.motion.init=fit and kind=se3 (got init={self.init!r}, "
+                    f"kind={self.kind!r})")  # fmt: skip
+        return None
+
 
 class ObjectMotion(nn.Module, ABC):
     """M_phi for K objects over the stored frame times `times` [T] (sorted, in [0, 1]).
@@ -410,6 +422,12 @@ class MotionMLP(ObjectMotion):
         if self.rigid:
             return rotvec_to_matrix(o[:, :3]), o[:, 3:]
         return torch.eye(3) + o[:, :9].reshape(-1, 3, 3), o[:, 9:]
+
+
+#: M_phi's class for each `MotionConfig.kind`.
+MOTION_CLASSES: dict[str, type[ObjectMotion]] = {
+    "se3": SE3Table, "affine": AffineTable, "mlp": MotionMLP,
+}  # fmt: skip
 
 
 def make_motion(

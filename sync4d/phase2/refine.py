@@ -26,7 +26,7 @@ from sync4d.phase1.losses import photometric_loss
 from sync4d.phase2.motion import MotionConfig, SE3Table, cosine_lr
 
 if TYPE_CHECKING:
-    from sync4d.phase2.trainer import Phase2Trainer
+    from sync4d.phase2.strategy import MotionStrategy
 
 __all__ = ["refine_motion"]
 
@@ -62,21 +62,21 @@ class _RigidTemplate:
 
     @classmethod
     @torch.no_grad()
-    def build(cls, trainer: Phase2Trainer, moving: list[int]) -> _RigidTemplate:
-        """The template of `moving` objects from `trainer`'s model and labels."""
-        views: list[list[int]] = [[] for _ in trainer.times]
-        for index, f in enumerate(trainer.scene.train):
-            views[trainer.motion.frame_index(f.time)].append(index)
-        slot = torch.full_like(trainer.labels, -1)  # index into `moving`, -1 elsewhere
+    def build(cls, p2: MotionStrategy, moving: list[int]) -> _RigidTemplate:
+        """The template of `moving` objects from the strategy `p2`'s model and labels."""
+        views: list[list[int]] = [[] for _ in p2.times]
+        for index, f in enumerate(p2.trainer.scene.train):
+            views[p2.motion.frame_index(f.time)].append(index)
+        slot = torch.full_like(p2.labels, -1)  # index into `moving`, -1 elsewhere
         for i, k in enumerate(moving):
-            slot[trainer.labels == k] = i
+            slot[p2.labels == k] = i
         sel = slot >= 0
         owner = slot[sel]
-        x_ref, q_ref, s_ref = (v[sel] for v in trainer.model.at_time(float(trainer.times[0])))
+        x_ref, q_ref, s_ref = (v[sel] for v in p2.trainer.model.at_time(float(p2.times[0])))
         centre = _centroids(x_ref, owner, len(moving))
         offsets = (x_ref - centre[owner]).unsqueeze(-1)
         return cls(moving, sel, owner, offsets, centre, q_ref, s_ref, views,
-                   trainer.model.sh_dc.detach().clone())  # fmt: skip
+                   p2.trainer.model.sh_dc.detach().clone())  # fmt: skip
 
     def centroids(self, x: Tensor) -> Tensor:
         """Each moving object's centroid [K', 3] of the template's points `x` [M, 3]."""
@@ -102,9 +102,9 @@ class _RigidTemplate:
         return means, quats, scales
 
 
-def refine_motion(trainer: Phase2Trainer, config: MotionConfig | None = None) -> None:
-    """Photometric refinement of `trainer`'s SE(3) table with the `refine_*` settings of
-    `config` (default: the trainer's `phase2.motion`; `steps` below is `refine_steps`, `lr`
+def refine_motion(p2: MotionStrategy, config: MotionConfig | None = None) -> None:
+    """Photometric refinement of the motion strategy `p2`'s SE(3) table with the `refine_*`
+    settings of `config` (default: its `phase2.motion`; `steps` below is `refine_steps`, `lr`
     `refine_lr`, and so on): every moving
     object's Gaussians of the first frame, moved rigidly as R_k (x - c_k) + c_k + d_k (c_k:
     their centroid), are rendered beside D_theta's other Gaussians and compared with each
@@ -123,32 +123,32 @@ def refine_motion(trainer: Phase2Trainer, config: MotionConfig | None = None) ->
     `steps`) from rate `retrack_lr` (default `lr`). D_theta's colours are a texture
     averaged over a morph; seen through the rigid motion it is blurred where the object
     turned most, which pulls the poses there toward the blur. Table entries become the
-    result composed with the first frame's fitted transform; static objects (the trainer's
+    result composed with the first frame's fitted transform; static objects (the strategy's
     `static` and held `frozen` ones) and the model are unchanged. Each pass's (object, stored
-    frame) visits are counted on the trainer: `refine_visits` for the moving objects,
+    frame) visits are counted on the strategy: `refine_visits` for the moving objects,
     `refine_visits_skipped` for the static ones."""
-    mc = config or trainer.phase2.motion
+    mc = config or p2.phase2.motion
     steps, lr, views_per_step = mc.refine_steps, mc.refine_lr, mc.refine_views
     lr_final = min(mc.refine_lr_final, lr)
     texture_rounds, colour_epochs = mc.refine_texture_rounds, mc.refine_colour_epochs
     retrack_steps = mc.refine_retrack_steps or steps
     retrack_lr = mc.refine_retrack_lr or lr
-    motion = trainer.motion
+    motion = p2.motion
     if not isinstance(motion, SE3Table):
         raise ValueError("refine_motion refines an SE(3) table (phase2.motion.kind=se3)")
-    k_all = trainer.assignment.num_objects
-    still = trainer.static | trainer.motion.frozen
+    k_all = p2.assignment.num_objects
+    still = p2.static | p2.motion.frozen
     moving = [k for k in range(k_all) if not bool(still[k])]
-    times = trainer.times
+    times = p2.times
     if len(times) < 2 or steps <= 0:
         return
-    visited = {motion.frame_index(f.time) for f in trainer.scene.train}
+    visited = {motion.frame_index(f.time) for f in p2.trainer.scene.train}
     pairs = len(visited) * (1 + texture_rounds)  # stored frames tracked, over every pass
-    trainer.refine_visits += pairs * len(moving)
-    trainer.refine_visits_skipped += pairs * (k_all - len(moving))
+    p2.refine_visits += pairs * len(moving)
+    p2.refine_visits_skipped += pairs * (k_all - len(moving))
     if not moving:
         return
-    template = _RigidTemplate.build(trainer, moving)
+    template = _RigidTemplate.build(p2, moving)
     with torch.no_grad():
         r0 = rotvec_to_matrix(motion.rotvecs[moving, 0].detach().float())
         b0 = motion.translations[moving, 0].detach().float()
@@ -170,32 +170,32 @@ def refine_motion(trainer: Phase2Trainer, config: MotionConfig | None = None) ->
     for j in range(len(times)):
         # The first frame starts from the fitted pose, which holds whatever orientation
         # D_theta's texture has there: it gets more steps than the warm-started rest.
-        deformed = template.deformed(trainer.model, float(times[j]))
+        deformed = template.deformed(p2.trainer.model, float(times[j]))
         d = template.centroids(deformed[0][template.sel]) - template.centre
         n = 4 * steps if j == 0 else steps
         track = (n, lr, lr_final, views_per_step, deformed)
-        pose, loss = _track_frame(trainer, template, j, w, d, *track)
+        pose, loss = _track_frame(p2, template, j, w, d, *track)
         if mc.refine_restart_jump > 0:
-            pose, scores = _restart_if_jumped(trainer, template, j, pose, poses, scores, mc, track)
+            pose, scores = _restart_if_jumped(p2, template, j, pose, poses, scores, mc, track)
         poses.append(pose)
         w = pose[0]
         advance(first[j], loss)
     for r in range(texture_rounds):
         loss = _fit_template_colours(
-            trainer, template, poses, mc.refine_colour_lr, colour_epochs, seed=r
+            p2, template, poses, mc.refine_colour_lr, colour_epochs, seed=r
         )
         advance(colour_epochs * n_views, loss)
         scores = []
         for j in range(len(times)):
             track = (retrack_steps, retrack_lr, min(lr_final, retrack_lr), views_per_step, None)
-            poses[j], loss = _track_frame(trainer, template, j, *poses[j], *track)
+            poses[j], loss = _track_frame(p2, template, j, *poses[j], *track)
             if mc.refine_restart_jump > 0:
                 poses[j], scores = _restart_if_jumped(
-                    trainer, template, j, poses[j], poses[:j], scores, mc, track
+                    p2, template, j, poses[j], poses[:j], scores, mc, track
                 )
             advance(retrack_steps if template.views[j] else 0, loss)
     emit(Finished("refine M_phi"))
-    trainer.template_colours = template.sh_dc
+    p2.template_colours = template.sh_dc
     with torch.no_grad():
         centre = template.centre
         for j, (w, d) in enumerate(poses):
@@ -210,18 +210,18 @@ def refine_motion(trainer: Phase2Trainer, config: MotionConfig | None = None) ->
 
 
 def _frame_score(
-    trainer: Phase2Trainer, template: _RigidTemplate, j: int, pose: tuple[Tensor, Tensor]
+    p2: MotionStrategy, template: _RigidTemplate, j: int, pose: tuple[Tensor, Tensor]
 ) -> float:
     """Mean loss over stored frame `j`'s training views with the template at `pose`."""
-    t = float(trainer.times[j])
+    t = float(p2.times[j])
     with torch.no_grad():
-        posed = template.pose(*pose, template.deformed(trainer.model, t))
-        return float(np.mean([float(_template_loss(trainer, i, t, posed, template.sh_dc))
+        posed = template.pose(*pose, template.deformed(p2.trainer.model, t))
+        return float(np.mean([float(_template_loss(p2, i, t, posed, template.sh_dc))
                               for i in template.views[j]]))  # fmt: skip
 
 
 def _restart_if_jumped(
-    trainer: Phase2Trainer,
+    p2: MotionStrategy,
     template: _RigidTemplate,
     j: int,
     pose: tuple[Tensor, Tensor],
@@ -236,7 +236,7 @@ def _restart_if_jumped(
     frame j's appended."""
     if not template.views[j]:
         return pose, [*scores, scores[-1] if scores else float("nan")]
-    score = _frame_score(trainer, template, j, pose)
+    score = _frame_score(p2, template, j, pose)
     if j >= 2 and scores and score > (1.0 + mc.refine_restart_jump) * scores[-1]:
         w_prev, w_last = before[j - 2][0], before[j - 1][0]
         for i in range(len(template.moving)):
@@ -250,15 +250,15 @@ def _restart_if_jumped(
                 start = pose[0].clone()
                 kick = rotvec_to_matrix(axis * np.radians(angle)) @ r_last
                 start[i] = torch.as_tensor(matrix_to_rotvec(kick.numpy()), dtype=start.dtype)
-                cand, _ = _track_frame(trainer, template, j, start, pose[1], *track)
-                cand_score = _frame_score(trainer, template, j, cand)
+                cand, _ = _track_frame(p2, template, j, start, pose[1], *track)
+                cand_score = _frame_score(p2, template, j, cand)
                 if cand_score < score:
                     pose, score = cand, cand_score
     return pose, [*scores, score]
 
 
 def _track_frame(
-    trainer: Phase2Trainer,
+    p2: MotionStrategy,
     template: _RigidTemplate,
     j: int,
     w: Tensor,
@@ -275,9 +275,9 @@ def _track_frame(
     views = template.views[j]
     if not views or n_steps <= 0:
         return (w.clone(), d.clone()), float("nan")
-    t = float(trainer.times[j])
+    t = float(p2.times[j])
     if deformed is None:
-        deformed = template.deformed(trainer.model, t)
+        deformed = template.deformed(p2.trainer.model, t)
     w_j = w.clone().requires_grad_(True)
     d_j = d.clone().requires_grad_(True)
     opt = torch.optim.Adam([w_j, d_j], lr=lr)
@@ -293,10 +293,10 @@ def _track_frame(
             index = views[drawn % len(views)]
             drawn += 1
             pose = template.pose(w_j, d_j, deformed)
-            loss = _template_loss(trainer, index, t, pose, template.sh_dc,
+            loss = _template_loss(p2, index, t, pose, template.sh_dc,
                                   lambda inputs: watchdog.check_inputs(
                                       "Phase 2 refinement", j, inputs,
-                                      scale=trainer.watch_scale))  # fmt: skip
+                                      scale=p2.trainer.watch_scale))  # fmt: skip
             loss = watchdog.check_loss("Phase 2 refinement", j, loss)
             loss.backward()
             loss_value += float(loss.detach()) / per_step
@@ -304,12 +304,12 @@ def _track_frame(
         units = {"rotation": "objects", "shift": "objects"}
         watchdog.check_grads("Phase 2 refinement", j, pose_params, units)
         opt.step()
-        watchdog.check_params("Phase 2 refinement", j, pose_params, units, trainer.watch_scale)
+        watchdog.check_params("Phase 2 refinement", j, pose_params, units, p2.trainer.watch_scale)
     return (w_j.detach().clone(), d_j.detach().clone()), loss_value
 
 
 def _fit_template_colours(
-    trainer: Phase2Trainer,
+    p2: MotionStrategy,
     template: _RigidTemplate,
     poses: list[tuple[Tensor, Tensor]],
     lr: float,
@@ -324,13 +324,13 @@ def _fit_template_colours(
         return float("nan")
     with torch.no_grad():
         posed = [
-            template.pose(w, d, template.deformed(trainer.model, float(trainer.times[j])))
+            template.pose(w, d, template.deformed(p2.trainer.model, float(p2.times[j])))
             for j, (w, d) in enumerate(poses)
         ]
     rows = template.rows
     colours = template.sh_dc[rows].clone().requires_grad_(True)
     opt = torch.optim.Adam([colours], lr=lr)
-    generator = torch.Generator().manual_seed(trainer.config.seed * 1000 + seed)
+    generator = torch.Generator().manual_seed(p2.trainer.config.seed * 1000 + seed)
     total = 0.0
     for _ in range(epochs):
         total = 0.0
@@ -338,7 +338,7 @@ def _fit_template_colours(
             j, index = frames[k]
             opt.zero_grad(set_to_none=True)
             sh_dc = template.sh_dc.index_put((rows,), colours)
-            loss = _template_loss(trainer, index, float(trainer.times[j]), posed[j], sh_dc)
+            loss = _template_loss(p2, index, float(p2.times[j]), posed[j], sh_dc)
             loss.backward()
             opt.step()
             total += float(loss.detach())
@@ -347,7 +347,7 @@ def _fit_template_colours(
 
 
 def _template_loss(
-    trainer: Phase2Trainer,
+    p2: MotionStrategy,
     index: int,
     t: float,
     deformed: tuple[Tensor, Tensor, Tensor],
@@ -357,12 +357,12 @@ def _template_loss(
     """Photometric loss of training frame `index` rendered at time `t` with `deformed`
     means, quaternions and scales and base colours `sh_dc` [N, 1, 3] (`check`: the
     watchdog's, on what the rasteriser receives)."""
-    frame = trainer.scene.train[index]
-    out = trainer.model.render(
-        frame.camera, t, sh_degree=trainer.model.sh_degree, background=trainer.background,
-        deformed=deformed, sh_dc=sh_dc, threads=trainer.threads, check=check,
+    frame = p2.trainer.scene.train[index]
+    out = p2.trainer.model.render(
+        frame.camera, t, sh_degree=p2.trainer.model.sh_degree, background=p2.trainer.background,
+        deformed=deformed, sh_dc=sh_dc, threads=p2.trainer.threads, check=check,
     )  # fmt: skip
     return photometric_loss(
-        out.features, trainer.image(index, frame), trainer.config.lambda_l1,
-        trainer.config.lambda_dssim, threads=trainer.threads,
+        out.features, p2.trainer.image(index, frame), p2.trainer.config.lambda_l1,
+        p2.trainer.config.lambda_dssim, threads=p2.trainer.threads,
     )  # fmt: skip

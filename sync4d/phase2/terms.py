@@ -1,6 +1,6 @@
 """Phase 2's loss terms (paper Eqs. 8-12): each regulariser is one object with its weight and
 start iteration, both read from `Phase2Config` (`from_config`), so the config keys stay as
-they are. `Phase2Trainer.auxiliary_loss` builds one `TermContext` per iteration (the deformed
+they are. The motion strategy's `loss` builds one `TermContext` per iteration (the deformed
 and M_phi-carried positions, the residuals, M_phi itself) and sums the terms' weighted losses.
 
 The protocol (`LossTerm`): `name` (reported as ``L_<name>``), `weight`, `start`;
@@ -12,7 +12,7 @@ applies and value) and sums ``weight * value`` in that order: the order of the s
 the autograd graph the terms build, is part of the result's bits.
 
 A new term is one class here with `weight_key` and `start_key` naming its `Phase2Config`
-fields, added to `TERMS` (or passed to `Phase2Trainer(terms=...)`). Its start field, declared
+fields, added to `TERMS` (or passed to `phase2_trainer(terms=...)`). Its start field, declared
 `ranged(..., scales=0)` as every ``*_start`` field is (a test checks), scales with
 `fit --iters` (`sync4d.config.phase2_budget`) with no list to update.
 """
@@ -29,13 +29,12 @@ import torch
 from torch import Tensor
 
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.phase2.diagnostics import rigid_share
 from sync4d.phase2.motion import ObjectMotion
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from sync4d.phase2.trainer import Phase2Config
+    from sync4d.phase2.config import Phase2Config
 
 __all__ = [
     "IdentityPrior",
@@ -51,6 +50,12 @@ __all__ = [
 ]
 
 
+def rigid_share(x0: Tensor, x_obj: Tensor, residual: Tensor, eps: float = 1e-6) -> Tensor:
+    """Per-Gaussian rigid share ||x~ - x0|| / (||x~ - x0|| + ||r|| + eps) [N] (Eq. 9's terms)."""
+    shared = (x_obj - x0).norm(dim=-1)
+    return shared / (shared + residual.norm(dim=-1) + eps)
+
+
 @dataclass
 class TermContext:
     """What the terms of one iteration read: its `iteration` (and `simultaneous`, every term
@@ -59,7 +64,7 @@ class TermContext:
     on the scene's gradient, D_theta's positions `x` [N, 3] and the canonical ones `x0`
     [N, 3] (both with that factor on their gradient), M_phi's `x_obj` [N, 3] (Eq. 5), the
     residuals `r` = x - x_obj (Eq. 6), the rigid share's `share_eps` and `modulate`, which
-    updates the residual EMA and returns m_i (`Phase2Trainer.modulation_weights`).
+    updates the residual EMA and returns m_i (`MotionStrategy.modulation_weights`).
     `rho` and `residual_norm` are computed on first use; `modulation` is m_i [N] once the
     residual term has observed this iteration."""
 

@@ -39,7 +39,7 @@ import torch
 from sync4d import raster, watchdog
 from sync4d.data import Scene
 from sync4d.events import Advanced, Finished, Started, emit
-from sync4d.phase2.diagnostics import rigid_share
+from sync4d.phase2.terms import rigid_share
 from sync4d.runs import Run
 
 __all__ = ["Observations", "crop_box", "observe"]

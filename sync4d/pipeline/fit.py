@@ -24,8 +24,9 @@ from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
 from sync4d.files import RunLock, write_atomic, write_text_atomic
 from sync4d.phase1.init import initial_model, scene_extent, with_initial_points
 from sync4d.phase1.trainer import Phase1Trainer
-from sync4d.phase2.diagnostics import format_diagnostics
-from sync4d.phase2.trainer import Phase2Trainer
+from sync4d.phase2.diagnostics import diagnostics, format_diagnostics
+from sync4d.phase2.strategy import MotionStrategy
+from sync4d.phase2.trainer import phase2_from_state, phase2_trainer
 from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
 from sync4d.pipeline.record import continue_command, dataset_fingerprint
 from sync4d.pipeline.stop import StopSignals
@@ -248,16 +249,16 @@ def resume_trainer(
     phase2=None,
     near: float | None = None,
 ) -> Phase1Trainer:
-    """Rebuild the trainer (`Phase1Trainer`, or `Phase2Trainer` for a Phase 2 checkpoint, with
-    `phase2`'s settings) exactly as it was when `path` was saved (`total_iterations` extends or
-    shortens the run; the learning-rate schedules follow the new length; `near` replaces the
-    stored near plane)."""
+    """Rebuild the trainer (`Phase1Trainer`; for a Phase 2 checkpoint with the motion strategy
+    plugged in, with `phase2`'s settings) exactly as it was when `path` was saved
+    (`total_iterations` extends or shortens the run; the learning-rate schedules follow the
+    new length; `near` replaces the stored near plane)."""
     path = Path(path)
     tensors, meta = read_checkpoint(path)
     kw = dict(config=config, total_iterations=total_iterations, threads=threads, near=near)
     with state_errors(path):
         if meta.get("kind") == "sync4d.phase2":
-            return Phase2Trainer.from_state(tensors, meta, scene, phase2=phase2, **kw)
+            return phase2_from_state(tensors, meta, scene, phase2=phase2, **kw).trainer
         return Phase1Trainer.from_state(tensors, meta, scene, **kw)
 
 
@@ -372,7 +373,7 @@ def _run_fit(
                 n_threads=n_threads, log_every=log_every, stop=stop)  # fmt: skip
     interrupted = False
     try:
-        if trainer is not None and not isinstance(trainer, Phase2Trainer) and 1 in phases:
+        if trainer is not None and _motion(trainer) is None and 1 in phases:
             train_seconds, interrupted = _train_loop(
                 trainer, p1.iterations, desc="fit", train_seconds=train_seconds, **loop
             )
@@ -381,18 +382,20 @@ def _run_fit(
             if not interrupted:
                 emit(PhaseDone("phase1", _phase_summary(trainer, train_seconds)))
         if not interrupted and 2 in phases:
-            if not isinstance(trainer, Phase2Trainer):
+            p2 = _motion(trainer)
+            if p2 is None:
                 t0 = time.perf_counter()
-                trainer = _start_phase2(trainer, scene, cfg, run_dir, n_threads)
+                p2 = _start_phase2(trainer, scene, cfg, run_dir, n_threads)
+                trainer = p2.trainer
                 train_seconds += time.perf_counter() - t0  # the assignment and refinement
-            if trainer.skip_loop(cfg.phase2.iterations):
-                k = trainer.assignment.num_objects
+            if p2.skip_loop(cfg.phase2.iterations):
+                k = p2.assignment.num_objects
                 note(f"fit: Phase 2 skipped: no object moves ({k} static objects)")
             train_seconds, interrupted = _train_loop(
                 trainer, cfg.phase2.iterations, desc="phase2", train_seconds=train_seconds,
                 **loop,
             )  # fmt: skip
-            note(phase2_skip_report(trainer))
+            note(phase2_skip_report(p2))
             if not interrupted:
                 emit(PhaseDone("phase2", _phase_summary(trainer, train_seconds)))
         if interrupted:
@@ -407,8 +410,8 @@ def _run_fit(
              "wall_seconds": time.perf_counter() - wall0,
              "gaussians": trainer.model.num_gaussians, "skipped": skip_counts(trainer.model)}
         )  # fmt: skip
-        if isinstance(trainer, Phase2Trainer):
-            summary["phase2_skipped"] = trainer.skip_counts()
+        if (p2 := _motion(trainer)) is not None:
+            summary["phase2_skipped"] = p2.skip_counts()
         log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
     finally:
         metrics_log.close()
@@ -441,11 +444,17 @@ def skip_report(model, phase: str) -> str:
     return line  # fmt: skip
 
 
-def phase2_skip_report(trainer: Phase2Trainer) -> str:
+def _motion(trainer: Phase1Trainer | None) -> MotionStrategy | None:
+    """The Phase 2 motion strategy plugged into `trainer` (None: a Phase 1 trainer)."""
+    plugins = [] if trainer is None else trainer.plugins
+    return next((p for p in plugins if isinstance(p, MotionStrategy)), None)
+
+
+def phase2_skip_report(p2: MotionStrategy) -> str:
     """One line: what Phase 2 skipped in this process on objects that do not move
-    (`Phase2Trainer.skip_counts`): held objects, M_phi object-row updates, refinement visits,
-    and whether its loop was skipped."""
-    c = trainer.skip_counts()
+    (`MotionStrategy.skip_counts`): held objects, M_phi object-row updates, refinement
+    visits, and whether its loop was skipped."""
+    c = p2.skip_counts()
     updates = c["motion_updates"] + c["motion_updates_skipped"]
     visits = c["refine_visits"] + c["refine_visits_skipped"]
     line = (
@@ -489,9 +498,10 @@ def phase1_skip_lines(trainer: Phase1Trainer) -> list[str]:
 
 def _start_phase2(
     trainer: Phase1Trainer | None, scene: Scene, cfg: RunConfig, run_dir: Path, n_threads: int
-) -> Phase2Trainer:
+) -> MotionStrategy:
     """Keep the Phase 1 checkpoint as ``phase1.safetensors`` and build Phase 2's trainer from
-    its model (the assignment, M_phi's start and the photometric refinement run here)."""
+    its model (the assignment, M_phi's start and the photometric refinement run here);
+    returns its motion strategy."""
     p1 = cfg.phase1
     ckpt = run_dir / CHECKPOINT_NAME
     kept = run_dir / PHASE1_CHECKPOINT_NAME
@@ -502,8 +512,8 @@ def _start_phase2(
         "to objects ..."
     )
     try:
-        p2 = Phase2Trainer(model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads)
-    except ValueError as e:  # bad Phase 2 settings or assignment input
+        p2 = phase2_trainer(model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads)
+    except ValueError as e:  # bad assignment input
         raise ConfigError(str(e)) from None
     counts = p2.assignment.counts()
     names = p2.assignment.names
@@ -519,9 +529,9 @@ def _finish(
 ) -> dict:
     """The final evaluation, and after Phase 2 its diagnostics and trajectory plot."""
     summary = evaluate_run(run_dir, trainer.model, scene, cfg.phase1.background, n_threads)
-    if isinstance(trainer, Phase2Trainer):
-        diag = trainer.diagnostics()
-        export = trainer.motion_export()
+    if (p2 := _motion(trainer)) is not None:
+        diag = diagnostics(p2)
+        export = p2.motion_export()
         cent = export["centroids"]
         diag["trajectories"] = {
             "times": export["times"].tolist(),
@@ -529,7 +539,7 @@ def _finish(
         }
         write_text_atomic(run_dir / PHASE2_FILE, json.dumps(diag, indent=2) + "\n")
         plot = plot_object_trajectories(
-            export, trainer.assignment.names, run_dir / TRAJECTORY_PLOT,
+            export, p2.assignment.names, run_dir / TRAJECTORY_PLOT,
             f"{scene.name}: object centroids after Phase 2 ({diag['assignment']} assignment)",
         )  # fmt: skip
         summary["phase2"] = diag

@@ -62,8 +62,8 @@ def test_phase2_budget_scales_every_marked_field() -> None:
     import dataclasses
 
     from sync4d.config import phase2_budget
+    from sync4d.phase2.config import Phase2Config
     from sync4d.phase2.motion import MotionConfig
-    from sync4d.phase2.trainer import Phase2Config
     from sync4d.settings import budget_floor, ranged
 
     motion = MotionConfig(refine_steps=40, refine_texture_rounds=2, refine_retrack_steps=80)

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from support.scenes import orbit_scene, orbit_student, random_gaussians
+from support.training import train
 from sync4d.geometry import axis_angle_to_quat, quat_multiply, rotvec_to_matrix
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
@@ -256,7 +257,7 @@ def test_densification_carries_each_gaussians_nodes(tmp_path: Path) -> None:
                        motion="nodes", nodes=NodeConfig(count=8, init_after=2, neighbours=3,
                                                         densify_until=0))  # fmt: skip
     trainer = Phase1Trainer(model, scene, cfg, total_iterations=20, threads=1)
-    stats = trainer.train(20)
+    stats = train(trainer, 20)
     assert stats["gaussians"] > 40 and stats["nodes"] == 8
     assert model.nodes is not None and model.nodes.index.shape == (model.num_gaussians, 3)
 
@@ -272,17 +273,17 @@ def test_training_on_nodes_switches_after_the_coarse_stage_and_resumes_exactly(
         return Phase1Trainer(model, scene, cfg, total_iterations=30, threads=1)
 
     t1 = trainer_for(orbit_student(gt, 1, jitter=0.05))
-    t1.train(5)
+    train(t1, 5)
     assert t1.model.nodes is None
-    t1.train(5)
+    train(t1, 5)
     assert t1.model.nodes is not None and t1.last_arap is not None
     names = [g["name"] for g in t1.optimizer.param_groups]
     assert names[-3:] == ["node_positions", "node_radii", "node_embeddings"]
     before = t1.model.nodes.positions.detach().clone()
     tensors, meta = t1.state()
     t2 = Phase1Trainer.from_state(tensors, meta, scene, config=cfg, threads=1)
-    t1.train(10)
-    t2.train(10)
+    train(t1, 10)
+    train(t2, 10)
     assert not torch.equal(before, t1.model.nodes.positions.detach())  # nodes are trained
     for a, b in zip(t1.model.at_time(0.5), t2.model.at_time(0.5), strict=True):
         torch.testing.assert_close(a, b, atol=0, rtol=0)

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from support.scenes import orbit_scene, orbit_student
+from support.training import train
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
@@ -20,7 +21,7 @@ def test_training_reduces_the_photometric_loss(tmp_path: Path) -> None:
     cfg = Phase1Config(densify=DensifyConfig(start=10_000))
     trainer = Phase1Trainer(model, scene, cfg, total_iterations=150, threads=1)
     first = [trainer.step()["loss"] for _ in range(5)]
-    trainer.train(140)
+    train(trainer, 140)
     last = [trainer.step()["loss"] for _ in range(5)]
     assert np.mean(last) < 0.5 * np.mean(first), (first, last)
     assert trainer.iteration == 150
@@ -31,7 +32,7 @@ def test_densification_runs_inside_the_loop(tmp_path: Path) -> None:
     model = DeformableGaussians(gt.means.data.clone(), None, sh_degree=0)
     cfg = Phase1Config(densify=DensifyConfig(start=5, interval=5, stop=40, grad_threshold=1e-6))
     trainer = Phase1Trainer(model, scene, cfg, total_iterations=20, threads=1)
-    stats = trainer.train(20)
+    stats = train(trainer, 20)
     assert stats["gaussians"] > 40  # low threshold: clones/splits happened
     # Parameters and optimizer state still line up after densification.
     for group in trainer.optimizer.param_groups:
@@ -50,7 +51,7 @@ def test_opacity_reset_applies_at_the_start_of_the_next_iteration(tmp_path: Path
         model.opacity_logits.fill_(2.0)
     dcfg = DensifyConfig(start=10_000, stop=100, opacity_reset_interval=3)
     trainer = Phase1Trainer(model, scene, Phase1Config(densify=dcfg), 10, threads=1)
-    trainer.train(3)
+    train(trainer, 3)
     assert float(torch.sigmoid(model.opacity_logits.detach()).min()) > 0.5
     trainer.step()
     assert float(torch.sigmoid(model.opacity_logits.detach()).max()) < 0.05
@@ -67,15 +68,15 @@ def test_static_and_learning_rate_warmups_hold_d_theta_back(tmp_path: Path) -> N
     trainer = Phase1Trainer(model, scene, cfg, total_iterations=40, threads=1)
     lr = {g["name"]: g for g in trainer.optimizer.param_groups}
     head = model.deform.head.weight.detach().clone()
-    trainer.train(4)
+    train(trainer, 4)
     assert not trainer.deform_active()
     assert torch.equal(model.deform.head.weight.detach(), head)
-    trainer.train(1)  # iteration 5: the first with D_theta, at a tenth of its rate
+    train(trainer, 1)  # iteration 5: the first with D_theta, at a tenth of its rate
     assert trainer.deform_active()
     full = trainer._decayed(cfg.lr_deform, cfg.lr_deform_final)
     assert math.isclose(lr["deform"]["lr"], 0.1 * full, rel_tol=1e-9)
     assert not torch.equal(model.deform.head.weight.detach(), head)
-    trainer.train(9)  # iteration 14: the ramp is over
+    train(trainer, 9)  # iteration 14: the ramp is over
     full = trainer._decayed(cfg.lr_deform, cfg.lr_deform_final)
     assert math.isclose(lr["deform"]["lr"], full, rel_tol=1e-9)
     embed = trainer._decayed(cfg.lr_embed, cfg.lr_embed_final)

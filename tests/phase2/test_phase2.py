@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -16,12 +17,15 @@ import torch
 
 from support.oracle import PHASE2_SCENE as SMALL
 from support.oracle import OracleGaussians, oracle_points
+from sync4d.config import ConfigError, RunConfig, apply_overrides
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase2 import MotionStrategy, Phase2Config, phase2_trainer
+from sync4d.phase2.diagnostics import diagnostics
 from sync4d.phase2.motion import MotionConfig
-from sync4d.phase2.trainer import Phase2Config, Phase2Trainer, frame_times
+from sync4d.phase2.strategy import frame_times
 
 
 @pytest.fixture(scope="module")
@@ -34,9 +38,9 @@ def oracle(tmp_path_factory):
     return scene, model, truth_arr, gt
 
 
-def _trainer(scene, model, **motion) -> Phase2Trainer:
+def _trainer(scene, model, **motion) -> MotionStrategy:
     p2 = Phase2Config(motion=MotionConfig(**motion))
-    return Phase2Trainer(model, scene, Phase1Config(), p2, 100, threads=1)
+    return phase2_trainer(model, scene, Phase1Config(), p2, 100, threads=1)
 
 
 def test_mask_assignment_matches_the_true_objects(oracle):
@@ -52,7 +56,7 @@ def test_mask_assignment_matches_the_true_objects(oracle):
     assert tr.static.tolist() == [True, False, False, True]
 
 
-def _relative_errors(tr: Phase2Trainer, gt, label: int) -> tuple[float, float]:
+def _relative_errors(tr: MotionStrategy, gt, label: int) -> tuple[float, float]:
     """Mean rotation error (degrees) and mean object-centre error (metres) of M_phi's motion of
     `label` relative to the first frame, against the truth."""
     ex = tr.motion_export()
@@ -79,7 +83,7 @@ def test_fitted_motion_matches_the_known_trajectories(oracle, kind):
 def test_diagnostics_and_shuffle_test(oracle):
     scene, model, _, _ = oracle
     tr = _trainer(scene, model, init="fit")
-    d = tr.diagnostics(shuffles=5)
+    d = diagnostics(tr, shuffles=5)
     assert d["assignment"] == "masks"
     assert d["shuffle_ratio"] >= 1.5 and len(d["shuffle_ratios"]) == 5
     by = {o["label"]: o for o in d["objects"]}
@@ -90,7 +94,7 @@ def test_diagnostics_and_shuffle_test(oracle):
         assert by[k]["rigid_share"] > 5 * by[3]["rigid_share"]
     assert by[3]["motion_variance"] < 1e-8  # the pillar never moves
     # The identity start explains nothing yet: the fit must beat it by far.
-    ident = _trainer(scene, model).diagnostics(shuffles=0)
+    ident = diagnostics(_trainer(scene, model), shuffles=0)
     assert ident["residual_energy"] > 10 * d["residual_energy"]
     ex = tr.motion_export()
     assert ex["rotations"].shape == (4, SMALL.frames, 3, 3)
@@ -108,7 +112,7 @@ def test_training_steps_update_motion_and_keep_the_render(oracle):
     # A fresh D_theta moves nothing: a still scene, every object held (skip_still_scene).
     p2 = Phase2Config(motion_start=0, velocity_start=0, residual_start=0, warmup_start=0,
                       warmup_end=2, skip_still_scene=False)  # fmt: skip
-    tr = Phase2Trainer(model, scene, Phase1Config(), p2, 20, threads=1)
+    tr = phase2_trainer(model, scene, Phase1Config(), p2, 20, threads=1)
     before = tr.motion.translations.detach().clone()
     frame = scene.train[5]
     with torch.no_grad():
@@ -119,7 +123,7 @@ def test_training_steps_update_motion_and_keep_the_render(oracle):
         same = model.render(frame.camera, frame.time, background=torch.ones(3), threads=1)
         tr.motion.translations.sub_(1.0)
     assert torch.equal(img, same.features)
-    stats = [tr.step() for _ in range(6)]
+    stats = [tr.trainer.step() for _ in range(6)]
     assert all(math.isfinite(v) for s in stats for v in s.values())
     assert {"L_smooth", "L_res", "rho"} <= set(stats[-1])
     assert not torch.equal(before, tr.motion.translations.detach())
@@ -143,20 +147,23 @@ def test_unsupervised_assignment_separates_the_moving_objects(oracle):
     assert len(ball) == len(box) == 1 and a.num_objects == 3
 
 
-def test_bad_motion_settings_are_named(oracle):
-    scene, model, _, _ = oracle
-    with pytest.raises(ValueError, match="no closed-form start"):
-        _trainer(scene, model, kind="mlp", init="fit")
-    with pytest.raises(ValueError, match="phase2.motion.init"):
-        _trainer(scene, model, init="spline")
-    with pytest.raises(ValueError, match="refine_steps.*init=fit and kind=se3"):
-        _trainer(scene, model, init="identity", refine_steps=5)
-    with pytest.raises(ValueError, match="refine_steps.*init=fit and kind=se3"):
-        _trainer(scene, model, kind="affine", init="fit", refine_steps=5)
-    with pytest.raises(ValueError, match="refine_steps: expected >= 0"):
-        _trainer(scene, model, init="fit", refine_steps=-1)
-    with pytest.raises(ValueError, match="refine_lr: expected > 0"):
-        _trainer(scene, model, init="fit", refine_steps=5, refine_lr=0.0)
+def _refused(*settings: str) -> str:
+    """The config's error for `phase2.motion` settings that it refuses."""
+    with pytest.raises(ConfigError) as e:
+        apply_overrides(RunConfig(), [f"phase2.motion.{s}" for s in settings])
+    return str(e.value)
+
+
+def test_bad_motion_settings_are_named_by_the_config():
+    """Ranges and combinations are checked once, by the config, before anything trains."""
+    assert "no closed-form start" in _refused("kind=mlp", "init=fit")
+    assert "phase2.motion.init: expected one of identity, fit" in _refused("init=spline")
+    for combo in (("init=identity", "refine_steps=5"), ("kind=affine", "init=fit",
+                                                        "refine_steps=5")):  # fmt: skip
+        assert re.search("refine_steps.*init=fit and kind=se3", _refused(*combo)), combo
+    assert "refine_steps: must be an integer >= 0" in _refused("init=fit", "refine_steps=-1")
+    assert "refine_lr: must be a finite number > 0" in _refused("refine_lr=0")
+    apply_overrides(RunConfig(), ["phase2.motion.init=fit", "phase2.motion.refine_steps=5"])
 
 
 def test_unsupervised_source_on_a_masked_scene_reports_agreement(oracle, tmp_path):
@@ -168,12 +175,12 @@ def test_unsupervised_source_on_a_masked_scene_reports_agreement(oracle, tmp_pat
 
     scene, model, _, _ = oracle
     p2 = Phase2Config(assign=AssignConfig(source="trajectories"), motion=MotionConfig(init="fit"))
-    tr = Phase2Trainer(model, scene, Phase1Config(), p2, 100, threads=1)
-    d = tr.diagnostics(shuffles=1)
+    tr = phase2_trainer(model, scene, Phase1Config(), p2, 100, threads=1)
+    d = diagnostics(tr, shuffles=1)
     assert d["assignment"] == "trajectories" and d["num_objects"] == 3
     assert d["mask_objects"] == 3
     assert 0.5 < d["mask_agreement_ari"] < 1.0
-    masks = _trainer(scene, model, init="fit").diagnostics(shuffles=0)
+    masks = diagnostics(_trainer(scene, model, init="fit"), shuffles=0)
     assert "mask_agreement_ari" not in masks
     png = plot_object_trajectories(tr.motion_export(), tr.assignment.names, tmp_path / "t.png")
     assert png.stat().st_size > 1000
@@ -184,14 +191,15 @@ def test_unknown_or_impossible_assignment_source_is_named(oracle):
 
     scene, model, _, _ = oracle
     with pytest.raises(ValueError, match="phase2.assign.source"):
-        Phase2Trainer(model, scene, Phase1Config(), Phase2Config(assign=AssignConfig(source="x")),
-                      10, threads=1)  # fmt: skip
+        phase2_trainer(model, scene, Phase1Config(), Phase2Config(assign=AssignConfig(source="x")),
+                       10, threads=1)  # fmt: skip
     unmasked = dataclasses.replace(
         scene, train=[dataclasses.replace(f, mask_path=None) for f in scene.train]
     )
     with pytest.raises(ValueError, match="has training frames without instance masks"):
-        Phase2Trainer(model, unmasked, Phase1Config(),
-                      Phase2Config(assign=AssignConfig(source="masks")), 10, threads=1)  # fmt: skip
+        phase2_trainer(model, unmasked, Phase1Config(),
+                       Phase2Config(assign=AssignConfig(source="masks")), 10,
+                       threads=1)  # fmt: skip
 
 
 def _textured(model: DeformableGaussians, seed: int = 1) -> DeformableGaussians:
@@ -232,10 +240,10 @@ def test_photometric_refinement_recovers_rotations_the_correspondences_miss(orac
     _, _, _, gt = oracle
     taught, _, student, assignment = _taught(oracle, tmp_path)
 
-    def trainer(refine_steps: int) -> Phase2Trainer:
+    def trainer(refine_steps: int) -> MotionStrategy:
         p2 = Phase2Config(motion=MotionConfig(init="fit", refine_steps=refine_steps))
-        return Phase2Trainer(student, taught, Phase1Config(), p2, 10, threads=1,
-                             assignment=assignment)  # fmt: skip
+        return phase2_trainer(student, taught, Phase1Config(), p2, 10, threads=1,
+                              assignment=assignment)  # fmt: skip
 
     fitted, refined = trainer(0), trainer(60)
     for label in (1, 2):
@@ -265,8 +273,8 @@ def test_texture_fit_restores_the_template_colours_and_keeps_the_model(oracle, t
     for rounds in (0, 1):
         motion = MotionConfig(init="fit", refine_steps=60, refine_texture_rounds=rounds,
                               refine_colour_epochs=10, refine_colour_lr=0.02)  # 32 views only
-        tr = Phase2Trainer(student, taught, Phase1Config(), Phase2Config(motion=motion), 10,
-                           threads=1, assignment=assignment)  # fmt: skip
+        tr = phase2_trainer(student, taught, Phase1Config(), Phase2Config(motion=motion), 10,
+                            threads=1, assignment=assignment)  # fmt: skip
         assert tr.template_colours is not None
         colours[rounds] = tr.template_colours
         assert torch.equal(student.sh_dc.detach(), before)  # the model keeps its colours
@@ -281,20 +289,16 @@ def test_texture_fit_restores_the_template_colours_and_keeps_the_model(oracle, t
     assert err[1] < 0.5 * err[0], err  # measured 0.33 against 1.02
 
 
-def test_bad_refinement_schedules_are_named(oracle):
-    scene, model, _, _ = oracle
-    with pytest.raises(ValueError, match="refine_lr_final: expected > 0"):
-        _trainer(scene, model, init="fit", refine_steps=5, refine_lr_final=0.0)
-    with pytest.raises(ValueError, match="refine_views: expected >= 0"):
-        _trainer(scene, model, init="fit", refine_steps=5, refine_views=-1)
-    with pytest.raises(ValueError, match="refine_texture_rounds: expected >= 0"):
-        _trainer(scene, model, init="fit", refine_steps=5, refine_texture_rounds=-1)
-    with pytest.raises(ValueError, match="refine_colour_lr: expected > 0"):
-        _trainer(scene, model, init="fit", refine_steps=5, refine_colour_lr=0.0)
+def test_bad_refinement_schedules_are_named_by_the_config():
+    fit = ("init=fit", "refine_steps=5")
+    assert "refine_lr_final: must be a finite number > 0" in _refused(*fit, "refine_lr_final=0")
+    assert "refine_views: must be an integer >= 0" in _refused(*fit, "refine_views=-1")
+    assert "refine_texture_rounds: must be an integer >= 0" in _refused(
+        *fit, "refine_texture_rounds=-1")
+    assert "refine_colour_lr: must be a finite number > 0" in _refused(*fit, "refine_colour_lr=0")
     for name in ("refine_colour_epochs", "refine_retrack_steps", "refine_retrack_lr",
                  "refine_restart_jump"):
-        with pytest.raises(ValueError, match=f"{name}: expected >= 0"):
-            _trainer(scene, model, init="fit", refine_steps=5, **{name: -1})
+        assert f"{name}: must be" in _refused(*fit, f"{name}=-1"), name
 
 
 def test_restart_keeps_the_lowest_loss_start_after_a_jump(monkeypatch):

@@ -17,9 +17,9 @@ from sync4d.geometry import matrix_to_rotvec
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.nodes import NodeConfig
 from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase2 import Phase2Config, phase2_trainer
 from sync4d.phase2.assign import node_votes
 from sync4d.phase2.motion import MotionConfig
-from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 
 
 class TrueNodeMotion(nn.Module):
@@ -74,8 +74,8 @@ def test_nodes_vote_for_their_gaussians_objects(node_oracle):
 
 def test_phase2_fits_its_start_on_node_trajectories(node_oracle):
     scene, model, _, gt = node_oracle
-    tr = Phase2Trainer(model, scene, Phase1Config(),
-                       Phase2Config(motion=MotionConfig(init="fit")), 100, threads=1)  # fmt: skip
+    tr = phase2_trainer(model, scene, Phase1Config(),
+                        Phase2Config(motion=MotionConfig(init="fit")), 100, threads=1)  # fmt: skip
     assert tr.node_fitted_objects >= 3  # objects with 3 or more nodes use them
     ex = tr.motion_export()
     for label in (1, 2):  # the ball rolls and hops, the box slides and turns

@@ -24,8 +24,9 @@ from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.geometry import rotvec_to_matrix
 from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase2 import MotionStrategy, Phase2Config, phase2_trainer
+from sync4d.phase2.diagnostics import diagnostics
 from sync4d.phase2.motion import MotionConfig, make_motion, still_objects
-from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 from sync4d.pipeline.fit import resume_trainer
 from sync4d.runs import load_run
 
@@ -131,12 +132,12 @@ def oracle(tmp_path_factory: pytest.TempPathFactory):
     return (scene, *oracle_points())
 
 
-def _trainer(oracle, iterations: int = 20, **phase2) -> Phase2Trainer:
+def _trainer(oracle, iterations: int = 20, **phase2) -> MotionStrategy:
     scene, points, truth = oracle
     motion = phase2.pop("motion", MotionConfig(init="fit"))
     p2 = Phase2Config(motion=motion, **{**EARLY, **phase2})
     model = OracleGaussians(points, truth)
-    return Phase2Trainer(model, scene, Phase1Config(), p2, iterations, threads=1)
+    return phase2_trainer(model, scene, Phase1Config(), p2, iterations, threads=1)
 
 
 def test_freeze_holds_still_objects_and_never_a_moving_one(oracle) -> None:
@@ -148,8 +149,8 @@ def test_freeze_holds_still_objects_and_never_a_moving_one(oracle) -> None:
     assert not off.frozen.any()
     start = {name: getattr(on.motion, name).detach().clone() for name in on.motion.row_params}
     for _ in range(6):
-        on.step()
-        off.step()
+        on.trainer.step()
+        off.trainer.step()
     h = int(on.frozen.sum())
     c = on.skip_counts()
     assert (c["held"], c["motion_updates"], c["motion_updates_skipped"]) == (h, 6 * (4 - h), 6 * h)
@@ -162,11 +163,11 @@ def test_freeze_holds_still_objects_and_never_a_moving_one(oracle) -> None:
         st = on.motion_optimizer.state[p]
         assert not st["exp_avg"][on.frozen].any() and not st["exp_avg_sq"][on.frozen].any()
     assert off.motion.translations[3].abs().max() > 1e-4
-    assert all(torch.isfinite(p).all() for p in on.model.parameters())
+    assert all(torch.isfinite(p).all() for p in on.trainer.model.parameters())
     ex = on.motion_export()  # D_theta leaves the pillar in place: its fit is the identity
     assert np.allclose(ex["rotations"][3], np.eye(3), atol=1e-6)
     assert np.allclose(ex["translations"][3], 0.0, atol=1e-6)
-    d = on.diagnostics(shuffles=0)
+    d = diagnostics(on, shuffles=0)
     assert [o["held"] for o in d["objects"]] == held
 
 
@@ -177,7 +178,7 @@ def test_freeze_changes_moving_objects_only_through_the_rigid_share(oracle) -> N
     for freeze in (True, False):
         tr = _trainer(oracle, freeze_static=freeze, hinge=False, modulation=False)
         for _ in range(5):
-            tr.step()
+            tr.trainer.step()
         rows[freeze] = (tr.motion.rotvecs[1:3].detach(), tr.motion.translations[1:3].detach())
     assert all(torch.equal(a, b) for a, b in zip(rows[True], rows[False], strict=True))
 
@@ -185,7 +186,7 @@ def test_freeze_changes_moving_objects_only_through_the_rigid_share(oracle) -> N
 def test_momentum_does_not_move_objects_held_at_a_reassignment(oracle) -> None:
     tr = _trainer(oracle, freeze_static=False)
     for _ in range(3):
-        tr.step()
+        tr.trainer.step()
     pillar = tr.motion.translations[3].detach().clone()
     st = tr.motion_optimizer.state[tr.motion.translations]
     assert pillar.abs().max() > 0 and st["exp_avg"][3].abs().max() > 0
@@ -196,7 +197,7 @@ def test_momentum_does_not_move_objects_held_at_a_reassignment(oracle) -> None:
     held = tr.motion.translations[3].detach().clone(), tr.motion.rotvecs[3].detach().clone()
     assert held[0].abs().max() < 1e-6  # the pillar's fit: the identity
     for _ in range(3):
-        tr.step()
+        tr.trainer.step()
     assert torch.equal(tr.motion.translations[3], held[0])
     assert torch.equal(tr.motion.rotvecs[3], held[1])
 
@@ -251,10 +252,11 @@ def test_a_scene_with_no_motion_skips_phase2_and_stays_a_phase2_run(
     assert np.allclose(rot, rot[:, :1], atol=1e-6) and np.allclose(trans, trans[:, :1], atol=1e-6)
     # A trainer resumed from it holds the same objects, unless the switches are now off.
     ckpt, scene = run / "checkpoint.safetensors", load_scene(tmp_path / "still")
-    tr = resume_trainer(ckpt, scene, threads=1, phase2=Phase2Config())
-    assert tr.frozen.all() and torch.equal(tr.motion.held_offset, r.motion.held_offset)
-    tr = resume_trainer(ckpt, scene, threads=1, phase2=Phase2Config(skip_still_scene=False))
-    assert not tr.frozen.any()
+    (p2,) = resume_trainer(ckpt, scene, threads=1, phase2=Phase2Config()).plugins
+    assert p2.frozen.all() and torch.equal(p2.motion.held_offset, r.motion.held_offset)
+    (p2,) = resume_trainer(ckpt, scene, threads=1,
+                           phase2=Phase2Config(skip_still_scene=False)).plugins  # fmt: skip
+    assert not p2.frozen.any()
     assert main(["eval", str(run), "--threads", "1"]) == 0
     assert main(["render", str(run), "--time", "0.5", "--no-gif", "--threads", "1"]) == 0
     assert main(["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]) == 0
@@ -288,7 +290,7 @@ def test_phase2_ignores_phase1s_coarse_iterations_and_late_pruning(oracle) -> No
     densify = dataclasses.replace(Phase1Config().densify, prune_after_stop=True)
     p1 = Phase1Config(coarse_iterations=100, densify=densify)
     p2 = Phase2Config(motion=MotionConfig(init="fit"), **EARLY)
-    tr = Phase2Trainer(OracleGaussians(points, truth), scene, p1, p2, 5, threads=1)
+    tr = phase2_trainer(OracleGaussians(points, truth), scene, p1, p2, 5, threads=1).trainer
     assert not tr.coarse() and not tr.densifier.config.prune_after_stop
     tr.step()
     assert tr.coarse_pixels == 0 and tr.pixels > 0

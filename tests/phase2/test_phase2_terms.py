@@ -14,6 +14,7 @@ from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase2 import Phase2Config, phase2_trainer
 from sync4d.phase2.terms import (
     TERMS,
     LossTerm,
@@ -22,7 +23,6 @@ from sync4d.phase2.terms import (
     TermContext,
     default_terms,
 )
-from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 
 SMALL = syn.SyntheticConfig(size=64, frames=8, train_cameras=4, test_cameras=1, test_every=4,
                             supersample=1)  # fmt: skip
@@ -72,14 +72,14 @@ def test_a_plugged_term_acts_from_its_start(scene) -> None:
     p2 = Phase2Config(motion_start=1, velocity_start=0, residual_start=0, warmup_start=0,
                       warmup_end=2, skip_still_scene=False)  # fmt: skip
     pull = _Pull(weight=0.5, start=3)
-    tr = Phase2Trainer(model, scene, Phase1Config(), p2, 10, threads=1,
-                       terms=[*default_terms(p2), pull])  # fmt: skip
+    tr = phase2_trainer(model, scene, Phase1Config(), p2, 10, threads=1,
+                        terms=[*default_terms(p2), pull]).trainer  # fmt: skip
     stats = [tr.step() for _ in range(4)]
     assert pull.seen == [1, 2, 3, 4]  # observed from M_phi's start, before its own
     assert "L_pull" not in stats[1] and "L_pull" in stats[2] and "L_pull" in stats[3]
     assert all(math.isfinite(v) for s in stats for v in s.values())
     # Only the plugged term: the others are not computed.
-    alone = Phase2Trainer(model, scene, Phase1Config(), p2, 10, threads=1, terms=[pull])
+    alone = phase2_trainer(model, scene, Phase1Config(), p2, 10, threads=1, terms=[pull]).trainer
     s = alone.step()
     assert [k for k in s if k.startswith("L_")] == [] and "rho" in s
     s = [alone.step() for _ in range(2)][-1]

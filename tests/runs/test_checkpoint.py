@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from support.scenes import orbit_scene, orbit_student
+from support.training import train
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
 from sync4d.pipeline import resume_trainer
@@ -24,7 +25,7 @@ def _trainer(tmp_path: Path) -> tuple[Phase1Trainer, object, Phase1Config]:
 
 def test_resume_gives_the_same_next_step(tmp_path: Path) -> None:
     trainer, scene, cfg = _trainer(tmp_path)
-    trainer.train(9)  # densification has changed N by now
+    train(trainer, 9)  # densification has changed N by now
     n_saved = trainer.model.num_gaussians
     assert n_saved != 40  # densification changed N before the save
     ck = save_checkpoint(trainer, tmp_path / "run" / "ckpt.safetensors")
@@ -58,38 +59,41 @@ def test_bad_checkpoints_are_named(tmp_path: Path) -> None:
 
 
 def test_phase2_checkpoint_resumes_the_same_next_step(tmp_path: Path) -> None:
-    from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
+    from sync4d.phase2 import MotionStrategy, Phase2Config, phase2_trainer
 
     trainer, scene, cfg = _trainer(tmp_path)
-    trainer.train(3)
+    train(trainer, 3)
     p2 = Phase2Config(motion_start=0, velocity_start=0, residual_start=0, warmup_start=0,
                       warmup_end=4, densify=True)  # fmt: skip
-    t2 = Phase2Trainer(trainer.model, scene, cfg, p2, 30, threads=1)
+    s2 = phase2_trainer(trainer.model, scene, cfg, p2, 30, threads=1)
+    t2 = s2.trainer
     n0 = t2.model.num_gaussians
-    t2.train(5)
+    train(t2, 5)
     assert t2.model.num_gaussians != n0  # densified, so the labels were re-assigned
-    assert len(t2.labels) == t2.model.num_gaussians
+    assert len(s2.labels) == t2.model.num_gaussians
     ck = save_checkpoint(t2, tmp_path / "p2.safetensors")
-    labels = t2.labels.clone()
+    labels = s2.labels.clone()
     expected = [t2.step()["loss"] for _ in range(3)]
     resumed = resume_trainer(ck, scene, cfg, threads=1, phase2=p2)
-    assert isinstance(resumed, Phase2Trainer) and resumed.iteration == 5
-    assert torch.equal(resumed.labels, labels)
+    (strategy,) = resumed.plugins
+    assert isinstance(strategy, MotionStrategy) and resumed.iteration == 5
+    assert torch.equal(strategy.labels, labels)
     got = [resumed.step()["loss"] for _ in range(3)]
     assert got == expected
     _, meta = load_model(ck)
     assert meta["kind"] == "sync4d.phase2"
-    assert meta["phase2"]["num_objects"] == t2.assignment.num_objects
+    assert meta["phase2"]["num_objects"] == s2.assignment.num_objects
 
 
 def test_phase2_keeps_the_phase1_scene_size_and_sh_degree_by_default(tmp_path: Path) -> None:
-    from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
+    from sync4d.phase2 import Phase2Config, phase2_trainer
 
     trainer, scene, cfg = _trainer(tmp_path)
-    trainer.train(3)
+    train(trainer, 3)
     n0 = trainer.model.num_gaussians
-    t2 = Phase2Trainer(trainer.model, scene, cfg, Phase2Config(motion_start=0), 30, threads=1)
-    t2.train(10)
+    t2 = phase2_trainer(trainer.model, scene, cfg, Phase2Config(motion_start=0), 30,
+                        threads=1).trainer  # fmt: skip
+    train(t2, 10)
     assert t2.model.num_gaussians == n0
     assert t2.sh_degree_now() == t2.model.sh_degree
 
@@ -116,13 +120,13 @@ def test_near_plane_is_a_model_setting_saved_with_it(tmp_path: Path) -> None:
 def test_resume_continues_the_densification_generator(tmp_path: Path) -> None:
     trainer, scene, cfg = _trainer(tmp_path)
     fresh = torch.Generator().manual_seed(cfg.seed).get_state()
-    trainer.train(9)
+    train(trainer, 9)
     # Splits have drawn child offsets before the save, so its generator state is not fresh.
     assert not torch.equal(trainer.densifier.generator.get_state(), fresh)
     ck = save_checkpoint(trainer, tmp_path / "run" / "ckpt.safetensors")
-    trainer.train(8)  # two more densification steps (12, 16)
+    train(trainer, 8)  # two more densification steps (12, 16)
     resumed = resume_trainer(ck, scene, cfg, threads=1)
-    resumed.train(8)
+    train(resumed, 8)
     assert resumed.model.num_gaussians == trainer.model.num_gaussians
     assert torch.equal(resumed.model.means.data, trainer.model.means.data)
     assert torch.equal(resumed.densifier.generator.get_state(),

@@ -9,6 +9,7 @@
 - `oracle`: the oracle Phase 1 (the synthetic scene's true motion) and an oracle Phase 2 run.
 - `readme`: the README's command blocks, as a user reads them.
 - `render`: running the standalone renderer `sync4d-render`, and the Python render it matches.
+- `training`: stepping a trainer N times (the library's one loop is the pipeline's).
 """
 
 from __future__ import annotations

@@ -15,8 +15,8 @@ from sync4d.data.detect import load_scene
 from sync4d.phase1.gaussians import DeformableGaussians, rgb_to_sh_dc
 from sync4d.phase1.nodes import NodeConfig
 from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase2 import Phase2Config, phase2_trainer
 from sync4d.phase2.motion import MotionConfig
-from sync4d.phase2.trainer import Phase2Config, Phase2Trainer
 from sync4d.runs import CHECKPOINT_NAME, Run, camera_records, save_checkpoint
 
 #: Base colour of the oracle Gaussians of each label in a saved oracle run (plate, red ball,
@@ -95,8 +95,8 @@ def oracle_phase2_run(
     with torch.no_grad():
         model.log_scales.fill_(float(np.log(0.04)))
         model.opacity_logits.fill_(3.0)
-    tr = Phase2Trainer(model, scene, Phase1Config(),
-                       Phase2Config(motion=MotionConfig(init="fit")), 100, threads=1)  # fmt: skip
+    tr = phase2_trainer(model, scene, Phase1Config(),
+                        Phase2Config(motion=MotionConfig(init="fit")), 100, threads=1)  # fmt: skip
     run_dir = tmp / "run"
     run_dir.mkdir()
     if save and motion == "nodes":
@@ -106,7 +106,7 @@ def oracle_phase2_run(
             for label, rgb in OBJECT_COLOURS.items():
                 model.sh_dc[torch.as_tensor(labels == label), 0] = rgb_to_sh_dc(
                     torch.tensor(rgb))
-        save_checkpoint(tr, run_dir / CHECKPOINT_NAME,
+        save_checkpoint(tr.trainer, run_dir / CHECKPOINT_NAME,
                         extra={"data": str(root), "cameras": camera_records(scene)})
     names = {0: "background", 1: "red ball", 2: "blue box", 3: "green pillar"}
     run = Run(path=run_dir, checkpoint=run_dir / "checkpoint.safetensors", kind="sync4d.phase2",
