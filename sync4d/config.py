@@ -19,7 +19,6 @@ from sync4d.settings import ConfigError, allowed, budget_floor, choice, ranged
 __all__ = [
     "ConfigError",
     "Phase3Config",
-    "ALIASES",
     "config_path",
     "RunConfig",
     "apply_overrides",
@@ -96,29 +95,6 @@ class RunConfig:
     #: end and on Ctrl-C.
     checkpoint_every: int = ranged(1_000, 0)
 
-    def __getattr__(self, name: str) -> Any:
-        """Read-only spellings of the keys that moved into the phase sections (`ALIASES`):
-        ``cfg.iterations`` is ``cfg.phase1.iterations``."""
-        if name not in ALIASES:
-            raise AttributeError(f"'RunConfig' object has no attribute '{name}'")
-        value: Any = self
-        for part in ALIASES[name].split("."):
-            value = getattr(value, part)
-        return value
-
-
-#: Top-level keys of earlier config files and their place in the phase sections.
-ALIASES = {
-    "iterations": "phase1.iterations",
-    "sh_degree": "phase1.sh_degree",
-    "deform": "phase1.deform",
-    "near": "phase1.near",
-    "init_from": "phase1.init_from",
-    "init_points": "phase1.init_points",
-    "init_box_fraction": "phase1.init_box_fraction",
-    "phase2_iterations": "phase2.iterations",
-}
-
 
 def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     """`cfg` bounded to `iterations` per phase (`fit --iters N`). Phase 1 trains `iterations`
@@ -191,8 +167,6 @@ def _scale_marked(obj: Any, r: float) -> Any:
 
 
 def _replace(obj: Any, path: list[str], value: Any, full: str) -> Any:
-    if isinstance(obj, RunConfig) and path[0] in ALIASES:
-        path = ALIASES[path[0]].split(".") + path[1:]
     fields = {f.name: f for f in dataclasses.fields(obj)}
     name = path[0]
     if name not in fields:

@@ -33,10 +33,31 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from sync4d.files import write_text_atomic
+from sync4d.options import positive_int
 from sync4d.report import align_table
 from sync4d.runs.names import CHECKPOINT_NAME, EVAL_FILE, RUN_FILE
 
-__all__ = ["Job", "ManifestError", "expand", "main", "read_manifest", "run_sweep"]
+__all__ = ["add_arguments", "expand", "Job", "main", "ManifestError", "read_manifest", "run_sweep"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d sweep`` (`sync4d.cli`)."""
+    p.description = (
+        "Run every job of a manifest (dataset, config, overrides, seeds, phases; or a grid of "
+        "them) as a Ray task with its CPU count declared and torch, rayon and OpenMP threads "
+        "pinned to it, each into a normal run folder under SWEEP/runs; finished runs are not "
+        "run again, interrupted ones resume, failed ones are reported with their log's tail. "
+        "Writes a table (CSV, JSON, printed) and a plot of test PSNR against training time. "
+        "Needs Ray: pip install 'sync4d[sweep]'."
+    )
+    p.add_argument("manifest", metavar="MANIFEST.toml",
+                   help="the jobs: [[job]] entries and/or a [grid] (docs/sweep.md)")
+    p.add_argument("--out", required=True, metavar="SWEEP",
+                   help="folder of the sweep: runs/, logs/, results.csv/json, psnr-time.png")
+    p.add_argument("--address", default=None, metavar="auto|HOST:PORT",
+                   help="join a running Ray cluster (default: a local Ray in this process)")
+    p.add_argument("--cpus", type=positive_int, default=None, metavar="N",
+                   help="CPUs the local Ray may use (default: all)")
 
 #: Keys a job (or [defaults], or [grid]) may set.
 JOB_KEYS = ("name", "data", "config", "set", "seeds", "phases", "iters", "threads",

@@ -28,16 +28,52 @@ import sys
 import tempfile
 from itertools import product
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from sync4d import raster
-from sync4d.config import ConfigError, RunConfig, load_config, with_budget
-from sync4d.data import DatasetError, load_scene
+from sync4d.options import add_training_options, positive_float, positive_int
 from sync4d.progress import TerminalRenderer
 from sync4d.report import align_table
 from sync4d.runs.names import EVAL_FILE, RENDERS_DIR
+from sync4d.settings import ConfigError
 
-__all__ = ["main", "pareto_front", "plot_pareto", "rows_from_runs", "run_grid"]
+if TYPE_CHECKING:
+    from sync4d.config import RunConfig
+
+__all__ = ["add_arguments", "main", "pareto_front", "plot_pareto", "rows_from_runs", "run_grid"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d bench fit`` (`sync4d.cli`)."""
+    p.description = (
+        "Train one scene at several budgets (iterations x resolution scale x Gaussian cap) "
+        "and write a JSON and a PNG plot of test PSNR against training time; --runs tabulates "
+        "finished runs instead."
+    )
+    p.add_argument("data", nargs="*", default=[], metavar="DATA",
+                   help="dataset folders, each trained with every budget and variant in "
+                   "one invocation (default: the embedded synthetic scene)")
+    add_training_options(p, "hyperparameters of every budget (default as for 'fit')")
+    p.add_argument("--iters", nargs="+", type=positive_int, metavar="N", default=None,
+                   help="iteration budgets (default: 1/8, 1/4, 1/2 and all of the config's)")
+    p.add_argument("--scales", nargs="+", type=positive_float, metavar="S", default=None,
+                   help="resolution scales (default: the config's)")
+    p.add_argument("--caps", nargs="+", type=positive_int, metavar="N", default=None,
+                   help="Gaussian caps (default: the config's max_gaussians)")
+    p.add_argument("--variant", action="append", default=None, metavar="NAME[:KEY=VALUE,...]",
+                   help="a config variant to compare (repeatable): NAME, then the --set "
+                   "overrides it adds, e.g. --variant off --variant "
+                   "skip:phase1.static.enabled=true; every budget trains each variant in "
+                   "turn, so both see the same machine load. budget=F among them trains that "
+                   "variant F times the iterations (schedules scaled alike): equal-time "
+                   "comparisons")  # fmt: skip
+    p.add_argument("--out", metavar="FILE.json", default=None,
+                   help="results JSON (default bench-fit-NAME.json, bench-fit-scenes.json "
+                   "for several; the plots go beside it)")
+    p.add_argument("--keep-runs", metavar="DIR", default=None,
+                   help="keep each budget's run folder under DIR")
+    p.add_argument("--runs", nargs="+", metavar="RUN", default=None,
+                   help="train nothing: tabulate these finished fit runs (one per scene, "
+                   "say) and copy each one's worst test view beside --out")
 
 
 def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
@@ -97,6 +133,9 @@ def run_grid(
     names to configs: each budget then trains every variant in turn (interleaved, so a
     change of machine load hits both alike). `budget_factors` multiplies a variant's
     iterations (its schedules scaled alike), to compare variants at equal time."""
+    from sync4d import raster
+    from sync4d.config import with_budget
+    from sync4d.data import load_scene
     from sync4d.pipeline import run_fit
 
     variants = base if isinstance(base, dict) else {"": base}
@@ -444,6 +483,8 @@ def _variant_configs(args: argparse.Namespace, default_cfg: str | None
                      ) -> tuple[RunConfig, RunConfig | dict[str, RunConfig], dict[str, float]]:
     """The base config of a dataset (its default config unless --config), the configs of the
     variants (or the base alone) and their budget factors."""
+    from sync4d.config import load_config
+
     base = load_config(args.config or default_cfg, list(args.set or []))
     if not args.variant:
         return base, base, {}
@@ -460,6 +501,7 @@ def _variant_configs(args: argparse.Namespace, default_cfg: str | None
 
 
 def main(args: argparse.Namespace) -> int:
+    from sync4d.data import DatasetError
     from sync4d.files import WriteFailed, check_writable, write_text_atomic
     from sync4d.pipeline import FitInterrupted, resolve_data
 

@@ -22,9 +22,30 @@ import tempfile
 import time
 from pathlib import Path
 
+from sync4d.options import add_backend, add_threads, encoder_help, positive_int
 from sync4d.report import align_table
 
-__all__ = ["DEFAULT_QUERIES", "bench_run", "main"]
+__all__ = ["DEFAULT_QUERIES", "add_arguments", "bench_run", "main"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d bench phase3`` (`sync4d.cli`)."""
+    p.description = (
+        "Build each run's language field in a temporary folder (the run is not touched) and "
+        "time its steps and text queries, cold and cached; writes a JSON."
+    )
+    p.add_argument("runs", nargs="+", metavar="RUN", help="Phase 2 run folders")
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help=encoder_help(default=True))
+    p.add_argument("--queries", nargs="+", default=None, metavar="TEXT",
+                   help="the queries to time (default: five identity, state and motion "
+                   "queries)")  # fmt: skip
+    p.add_argument("--repeat", type=positive_int, default=3, metavar="N",
+                   help="timings per query (the median is reported; default 3)")
+    p.add_argument("--out", default=None, metavar="FILE.json",
+                   help="results JSON (default bench-phase3.json)")
+    add_threads(p)
+    add_backend(p)
 
 #: Queries timed by default (identity, state and motion phrases).
 DEFAULT_QUERIES = ("red ball", "the ball that is falling", "a ball touching the plate",

@@ -67,11 +67,13 @@ from torch import Tensor
 
 import sync4d
 from sync4d import _core
+from sync4d.options import positive_float, positive_int, resolution, thread_count
 from sync4d.report import align_table
 
 __all__ = [
     "BenchScene",
     "Timing",
+    "add_arguments",
     "bench_scene",
     "main",
     "parse_resolution",
@@ -853,13 +855,120 @@ class _Plan:
         return 1, (1 if n >= 100_000 else 2)
 
 
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d bench raster`` (`sync4d.cli`)."""
+    p.description = (
+        "Time sync4d.raster (forward and backward) on seeded random scenes or, given RUN, on "
+        "the run's own Gaussians at its test cameras."
+    )
+    p.add_argument(
+        "run",
+        nargs="?",
+        default=None,
+        metavar="RUN",
+        help="time the rasterizer on this trained run's own Gaussians at its test cameras "
+        "instead of the random scenes (one thread count: the first of --thread-counts)",
+    )
+    p.add_argument(
+        "--out",
+        metavar="FILE.json",
+        default=None,
+        help="where to write the results as JSON (default: bench-raster.json in the cwd)",
+    )
+    p.add_argument(
+        "--sizes",
+        nargs="+",
+        type=positive_int,
+        metavar="N",
+        default=None,
+        help="scene sizes as Gaussian counts, e.g. --sizes 1000 10000 "
+        "(default: 10000 100000 1000000)",
+    )
+    p.add_argument(
+        "--resolutions",
+        nargs="+",
+        type=resolution,
+        metavar="WxH",
+        default=None,
+        help="image sizes, e.g. --resolutions 800x800 960x536 (default: 256x256 800x800 960x536)",
+    )
+    p.add_argument(
+        "--thread-counts",
+        dest="threads",
+        nargs="+",
+        type=thread_count,
+        metavar="T",
+        default=None,
+        help="thread counts to time (rayon on the op, torch.set_num_threads for torch), "
+        "e.g. --thread-counts 1 2 (default: 1 2)",
+    )
+    p.add_argument(
+        "--repeats",
+        type=positive_int,
+        metavar="K",
+        default=None,
+        help="timed sync4d calls per measurement, median reported "
+        "(default: 5, 3 for N >= 1M, 3 with --quick)",
+    )
+    p.add_argument(
+        "--reference-max-gb",
+        type=positive_float,
+        metavar="GB",
+        default=None,
+        help="kill a reference run whose RSS passes this many GiB (default: 18, and never more "
+        "than the memory available minus 1.5 GiB)",
+    )
+    p.add_argument(
+        "--memory-method",
+        choices=("auto", "clear_refs", "subprocess"),
+        default="auto",
+        help="peak-memory method: reset VmHWM via /proc/self/clear_refs, or run each "
+        "measurement in a child process and read its ru_maxrss (default: auto)",
+    )
+    p.add_argument(
+        "--no-reference",
+        action="store_true",
+        help="skip the gsplat torch reference timings",
+    )
+    p.add_argument(
+        "--no-wgpu",
+        action="store_true",
+        help="skip the wgpu backend timings (default: timed when a wgpu adapter opens, "
+        "e.g. lavapipe)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="N=10000 at 256x256 only, fewer repeats (smoke run); --sizes/--resolutions win",
+    )
+    p.add_argument(
+        "--frames",
+        type=positive_int,
+        metavar="K",
+        default=3,
+        help="with RUN: test frames timed, evenly spread over the split (default: 3)",
+    )
+    p.add_argument(
+        "--data",
+        metavar="DATA",
+        default=None,
+        help="with RUN: the run's dataset folder, when it moved since the run",
+    )
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=None,
+        metavar="NAME:KEY=VALUE,...",
+        help="with RUN: also time rasterize with these keyword arguments (alpha_max, eps2d, "
+        "antialiased, backend), frame by frame beside the default (repeatable)",
+    )
+
+
 def _as_namespace(args: argparse.Namespace | Sequence[str] | None) -> argparse.Namespace:
     if isinstance(args, argparse.Namespace):
         return args
-    from sync4d.options import add_bench_raster_options
-
     parser = argparse.ArgumentParser(prog="python -m sync4d bench raster")
-    add_bench_raster_options(parser)
+    add_arguments(parser)
     return parser.parse_args(list(args or []))
 
 

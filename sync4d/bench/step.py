@@ -29,9 +29,32 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sync4d.options import add_threads, positive_int
 from sync4d.report import align_table
 
-__all__ = ["bench_step", "main"]
+__all__ = ["add_arguments", "bench_step", "main"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d bench step`` (`sync4d.cli`)."""
+    p.description = (
+        "Step a run's Gaussians with each variant of its config in turn and time the whole "
+        "step, the motion (D_theta, the node blend) and the rasterizer, forward and backward; "
+        "prints a table and writes a JSON."
+    )
+    p.add_argument("run", metavar="RUN", help="run folder (its Gaussians are stepped)")
+    p.add_argument("--variant", action="append", default=None, metavar="NAME[:KEY=VALUE,...]",
+                   help="a motion variant: overrides of the run's config (repeatable; default: "
+                   "gaussians:phase1.motion=gaussians and nodes:phase1.motion=nodes)")  # fmt: skip
+    p.add_argument("--steps", type=positive_int, default=10, metavar="N",
+                   help="steps timed per round and variant (default 10)")
+    p.add_argument("--rounds", type=positive_int, default=3, metavar="R",
+                   help="rounds, each variant in turn (default 3)")
+    p.add_argument("--data", default=None, metavar="DATA",
+                   help="the run's dataset, if it has moved")
+    p.add_argument("--out", default="bench-step.json", metavar="FILE.json",
+                   help="results JSON (default bench-step.json)")
+    add_threads(p, "torch and the rasterizer")
 
 
 def _median_ms(xs: list[float]) -> float:

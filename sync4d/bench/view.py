@@ -23,9 +23,26 @@ from pathlib import Path
 
 import numpy as np
 
+from sync4d.options import add_threads, positive_int
 from sync4d.report import align_table
 
-__all__ = ["bench_view", "main"]
+__all__ = ["add_arguments", "bench_view", "main"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d bench view`` (`sync4d.cli`)."""
+    p.description = (
+        "Serve a run in the viewer and time slider moves to new and to cached times (from the "
+        "change to the splats sent) and a query; prints a table and writes a JSON."
+    )
+    p.add_argument("run", metavar="RUN", help="run folder")
+    p.add_argument("--moves", type=positive_int, default=30, metavar="N",
+                   help="slider moves to time (default 30)")
+    p.add_argument("--query", default="the red ball", metavar="TEXT",
+                   help="a query to time too, when the run has a field (default: the red ball)")
+    p.add_argument("--out", default="bench-view.json", metavar="FILE.json",
+                   help="results JSON (default bench-view.json)")
+    add_threads(p, "torch")
 
 
 def _free_port() -> int:

@@ -15,7 +15,31 @@ from pathlib import Path
 from sync4d.files import WriteFailed
 from sync4d.phase3.encoders.encoder import EncoderError
 
-__all__ = ["main"]
+__all__ = ["add_convert_arguments", "add_info_arguments", "main"]
+
+
+def add_convert_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d encoder convert`` (`sync4d.cli`)."""
+    p.description = (
+        "Download a SigLIP model (needs internet once and the export extra: pip install "
+        "'sync4d[export]'), convert it to ONNX and write DIR: vision.onnx, text.onnx, "
+        "tokenizer.json and the manifest encoder.json. Phase 3 then runs it with onnxruntime, "
+        "offline (--encoder DIR or $SYNC4D_ENCODER)."
+    )
+    p.add_argument("--model", default="google/siglip-base-patch16-224", metavar="NAME",
+                   help="Hugging Face model id or a local save_pretrained folder "
+                   "(default google/siglip-base-patch16-224)")  # fmt: skip
+    p.add_argument("--out", required=True, metavar="DIR", help="encoder directory to write")
+    p.add_argument("--force", action="store_true", help="replace the encoder already in DIR")
+
+
+def add_info_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d encoder info`` (`sync4d.cli`)."""
+    p.description = (
+        "Print an encoder directory's kind, embedding size, preprocessing and files, after "
+        "checking every file's sha256 and loading both graphs."
+    )
+    p.add_argument("dir", metavar="DIR", help="encoder directory written by 'encoder convert'")
 
 
 def _size(path: Path) -> str:

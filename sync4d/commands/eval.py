@@ -11,21 +11,49 @@ import argparse
 import sys
 from pathlib import Path
 
-import torch
-
-from sync4d.data import DatasetError
 from sync4d.files import RunBusy, RunLock, WriteFailed
-from sync4d.options import BACKGROUNDS
-from sync4d.pipeline import evaluate_run
-from sync4d.pipeline.record import dataset_differences
-from sync4d.progress import TerminalRenderer
-from sync4d.runs import CheckpointError, RunError, load_run
+from sync4d.options import BACKGROUNDS, add_backend, add_rule, add_threads, background_colour
 
-__all__ = ["main"]
+__all__ = ["add_arguments", "main"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d eval`` (`sync4d.cli`)."""
+    from sync4d.phase3.query import SCORERS
+
+    p.description = (
+        "Evaluate a run's checkpoint on its dataset's test split (writes RUN/eval.json), or "
+        "with --queries its Phase 3 field on annotated temporal queries (writes "
+        "RUN/phase3/eval-NAME*.csv/json)."
+    )
+    p.add_argument("run", metavar="RUN", help="run folder written by 'fit'")
+    p.add_argument("--data", default=None, metavar="DATA",
+                   help="dataset folder, if it moved since training")
+    p.add_argument("--split", choices=("test", "train"), default="test")
+    p.add_argument("--background", type=background_colour, default=None, metavar="COLOUR",
+                   help="composite render and ground truth on this colour instead of the "
+                   "run's own: white, black or R,G,B in [0, 1] (Deformable-3DGS and SC-GS "
+                   "score D-NeRF on black); writes RUN/eval-<colour>.json")
+    p.add_argument("--queries", default=None, metavar="ANNOTATIONS",
+                   help="evaluate Phase 3's temporal queries instead (Acc, vIoU, tIoU, "
+                   "Appendix F): our query JSON or 4D LangSplat's annotations folder; a relational "
+                   "question file (\"kind\": \"relational\") reports Acc, tIoU and counts per "
+                   "question form")
+    p.add_argument("--scorer", nargs="+", default=None, metavar="S", choices=SCORERS,
+                   help=f"with --queries: the scorers to report, of {', '.join(SCORERS)} "
+                   "(default: all, in that order)")
+    add_rule(p, "with --queries: ")
+    p.add_argument("--encoder", default=None, metavar="DIR",
+                   help="with --queries: the encoder the field was built with, if it moved")
+    add_threads(p)
+    add_backend(p)
 
 
 def _queries(args: argparse.Namespace) -> int:
     """`eval RUN --queries ANNOTATIONS`: Acc / vIoU / tIoU per scorer, printed as a table."""
+    import torch
+
+    from sync4d.data import DatasetError
     from sync4d.phase3.encoders.encoder import EncoderError
     from sync4d.phase3.evaluation.annotations import AnnotationError
     from sync4d.phase3.evaluation.query_eval import evaluate_queries
@@ -33,6 +61,7 @@ def _queries(args: argparse.Namespace) -> int:
     from sync4d.phase3.query import SCORERS, QueryError
     from sync4d.phase3.store import FieldError
     from sync4d.report import align_table
+    from sync4d.runs import CheckpointError, RunError
 
     if is_relational(args.queries):
         return _relational(args)
@@ -100,6 +129,14 @@ def main(args: argparse.Namespace) -> int:
     """Run `eval` with parsed `args`; the exit status."""
     if getattr(args, "queries", None):
         return _queries(args)
+    import torch
+
+    from sync4d.data import DatasetError
+    from sync4d.pipeline.evaluate import evaluate_run
+    from sync4d.pipeline.record import dataset_differences
+    from sync4d.progress import TerminalRenderer
+    from sync4d.runs import CheckpointError, RunError, load_run
+
     run_dir = Path(args.run)
     try:
         run = load_run(run_dir)

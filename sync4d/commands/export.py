@@ -21,8 +21,50 @@ import tempfile
 from pathlib import Path
 
 from sync4d.files import write_text_atomic
+from sync4d.options import add_encoder, add_threads, frame_count, positive_int
 
-__all__ = ["main", "read_vocab"]
+__all__ = ["add_arguments", "main", "read_vocab"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d export`` (`sync4d.cli`)."""
+    p.description = (
+        "Write the scene description of a run with a language field (objects, per-frame "
+        "tracks, motion segments, contacts and other events, language slots; JSON valid "
+        "against the schema shipped in sync4d/export, deterministic), a plain-text summary of "
+        "it for an LLM, and the Gaussians as 3DGS PLY or SPZ at a time, or as a 4D sequence "
+        "(brush's delta-frame PLY, or a folder of PLYs for SuperSplat's timeline). Each option "
+        "names the file it writes."
+    )
+    p.add_argument("run", metavar="RUN", help="run folder written by 'fit'")
+    p.add_argument("--scene", default=None, metavar="FILE.json",
+                   help="the scene description (needs the language field: fit --out RUN "
+                   "--phases 3); embeddings go beside it in FILE.embeddings.safetensors")
+    p.add_argument("--prompt", default=None, metavar="FILE.txt",
+                   help="a plain-text summary of the scene description for an LLM")
+    p.add_argument("--vocab", default=None, metavar="FILE",
+                   help="vocabulary (one entry per line, or a JSON list): each object's "
+                   "nearest entries, and where each entry is active")
+    p.add_argument("--query", nargs="+", default=None, metavar="TEXT",
+                   help="queries whose active frames go into the description")
+    p.add_argument("--ply", default=None, metavar="FILE.ply",
+                   help="the Gaussians as a 3DGS PLY (gsplat's layout plus object_id)")
+    p.add_argument("--spz", default=None, metavar="FILE.spz",
+                   help="the Gaussians as SPZ (compressed, lossy; no object ids)")
+    p.add_argument("--time", type=float, default=None, metavar="T",
+                   help="with --ply / --spz: the scene deformed to time T in [0, 1] "
+                   "(default: the canonical Gaussians)")
+    p.add_argument("--sequence", default=None, metavar="FILE.ply|DIR/",
+                   help="the scene over time: FILE.ply is brush's delta-frame PLY (brush 0.3 "
+                   "and earlier play it); DIR/ a folder of one PLY per time, NAME_0000.ply ..., "
+                   "that SuperSplat imports as a sequence, times in DIR.json beside it; "
+                   "FILE.zip (deprecated) a zip of PLYs")
+    p.add_argument("--frames", type=frame_count, default=None, metavar="N",
+                   help="with --sequence: N evenly spaced times (default: the run's frames)")
+    p.add_argument("--decimals", type=positive_int, default=6, metavar="D",
+                   help="decimal places of the scene description's numbers (default 6)")
+    add_encoder(p)
+    add_threads(p, "torch")
 
 
 class _Usage(ValueError):

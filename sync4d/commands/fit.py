@@ -7,8 +7,7 @@ it ended (2: a bad input, 3: the watchdog's stop, 130: interrupted).
 
 Without DATA it trains on the embedded synthetic scene (generated once into a cache folder).
 The run is always ``--out RUN``, also when fit continues it (``--resume``), redoes Phase 2
-(``--phases 2``) or builds its language field (``--phases 3``). ``fit RUN --phases 3`` (or
-``--phases 2``, ``--resume``), the spelling before, still works for one release, with a note.
+(``--phases 2``) or builds its language field (``--phases 3``).
 """
 
 from __future__ import annotations
@@ -18,10 +17,11 @@ import os
 import sys
 from pathlib import Path
 
-from sync4d.config import ConfigError, parse_phases
-from sync4d.data import DatasetError
+from sync4d.config import ConfigError
+from sync4d.data import DatasetError, loaders
 from sync4d.data.synthetic import default_scene_dir
 from sync4d.files import LOCK_FILE, RunBusy, RunLock, WriteFailed
+from sync4d.options import add_encoder, add_training_options, positive_float, positive_int
 from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.store import FieldError
 from sync4d.pipeline import FitInterrupted, TrainingDiverged
@@ -30,7 +30,44 @@ from sync4d.progress import TerminalRenderer
 from sync4d.runs import CheckpointError, RunError
 from sync4d.watchdog import NonFinite
 
-__all__ = ["main"]
+__all__ = ["add_arguments", "main"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d fit`` (`sync4d.cli`)."""
+    p.description = (
+        f"Train Phase 1, then Phase 2, on a dataset folder ({loaders.titles()}) or, without "
+        "DATA, on the embedded synthetic scene, into the run folder RUN; --phases 3 adds the "
+        "language field. Ctrl-C saves a checkpoint; fit --out RUN --resume continues it."
+    )
+    p.add_argument("data", nargs="?", default=None, metavar="DATA",
+                   help="dataset folder (optional when RUN exists: the run records it)")
+    p.add_argument("--out", metavar="RUN", default=None,
+                   help="the run folder to write, new or existing (default runs/NAME)")
+    add_training_options(
+        p, "hyperparameters: a TOML file or a shipped config's name (dnerf, panoptic, "
+        "synthetic; default: the paper's values, synthetic for the embedded scene)",
+    )  # fmt: skip
+    p.add_argument("--iters", type=positive_int, default=None, metavar="N",
+                   help="bound each phase to N iterations: Phase 1 trains N, with the config's "
+                   "densification, opacity-reset and SH schedules scaled to the new length; "
+                   "Phase 2 trains at most N, its start and warm-up iterations and the "
+                   "photometric refinement's steps per frame scaled alike. With --resume: "
+                   "continue the checkpoint's phase to N iterations")  # fmt: skip
+    p.add_argument("--resolution-scale", type=positive_float, default=None, metavar="S",
+                   help="downsample images by S, e.g. 0.5")  # fmt: skip
+    p.add_argument("--phases", default=None, metavar="P",
+                   help="1, 2, 3 or a contiguous list such as 1,2 or 1,2,3 (default from the "
+                   "config: 1,2): Phase 1 reconstruction, Phase 2 motion decomposition, Phase "
+                   "3 language field; 2 alone restarts Phase 2 from RUN's Phase 1 checkpoint, "
+                   "3 alone builds the field of RUN's Phase 2 checkpoint "
+                   "(fit --out RUN --phases 3)")  # fmt: skip
+    add_encoder(p, "Phase 3's image-text encoder: ", default=True)
+    p.add_argument("--resume", action="store_true",
+                   help="continue RUN's checkpoint with the data and settings RUN recorded "
+                   "(DATA and settings that contradict them are refused)")
+    p.add_argument("--force", action="store_true",
+                   help="start over in an existing RUN (deletes its results)")
 
 
 def _request(args: argparse.Namespace, run_dir: Path) -> FitRequest:
@@ -43,25 +80,16 @@ def _request(args: argparse.Namespace, run_dir: Path) -> FitRequest:
     )  # fmt: skip
 
 
-def _extends_a_run(args: argparse.Namespace) -> bool:
-    """Whether the command line continues or extends an existing run: --resume, or --phases
-    without Phase 1 (2, 2,3 or 3)."""
-    try:
-        return args.resume or (args.phases is not None and 1 not in parse_phases(args.phases))
-    except ConfigError:
-        return False
-
-
 def main(args: argparse.Namespace) -> int:
     """Run `fit` with parsed `args`; the exit status."""
     if args.resume and args.force:
         print("fit: --resume continues RUN and --force deletes it; pass one of them",
               file=sys.stderr)  # fmt: skip
         return 2
-    if args.out is None and args.data and is_run(Path(args.data)) and _extends_a_run(args):
-        args.out, args.data = args.data, None  # `fit RUN --phases 3`: RUN, not a dataset
-        print("fit: `fit RUN --phases ...` is now `fit --out RUN --phases ...` (the old "
-              "spelling goes after this release)", file=sys.stderr)  # fmt: skip
+    if args.data and is_run(Path(args.data)):
+        print(f"fit: {args.data} is a run folder, not a dataset: a run is named --out RUN "
+              "(fit --out RUN --resume | --phases 2 | --phases 3)", file=sys.stderr)  # fmt: skip
+        return 2
     name = Path(args.data).name if args.data else default_scene_dir().name
     run_dir = Path(args.out) if args.out else Path("runs") / name
     created = not run_dir.exists()

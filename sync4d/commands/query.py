@@ -11,13 +11,37 @@ import re
 import sys
 from pathlib import Path
 
+from sync4d.options import add_encoder, add_rule
 from sync4d.phase3.encoders.encoder import EncoderError
-from sync4d.phase3.query import QueryError, TextCache, answer
+from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS, QueryError, TextCache, answer
 from sync4d.phase3.store import FieldError, load_field
 from sync4d.report import align_table, plot_query_timeline
 from sync4d.runs.names import FIELD_DIR, query_plot
 
-__all__ = ["main", "slug"]
+__all__ = ["add_arguments", "main", "slug"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d query`` (`sync4d.cli`)."""
+    p.description = (
+        "Rank a run's objects for each text query and give the frames where each is active, "
+        "from the Phase 3 field (fit --out RUN --phases 3). Writes a timeline PNG per query."
+    )
+    p.add_argument("run", metavar="RUN",
+                   help="run folder with a Phase 3 field (fit --out RUN --phases 3)")
+    p.add_argument("texts", nargs="+", metavar="TEXT",
+                   help="one or more queries; relational ones (first, how many times, while, "
+                   "before, highest, never ...) print the plan they were read as "
+                   "(docs/phase3-queries.md)")
+    scorers = "; ".join(f"{name}: {s.summary}" for name, s in SCORER_TABLE.items())
+    p.add_argument("--scorer", choices=SCORERS, default=DEFAULT_SCORER,
+                   help=f"{scorers} (default {DEFAULT_SCORER})")
+    add_rule(p)
+    add_encoder(p)
+    p.add_argument("--json", action="store_true", help="print the answers as JSON")
+    p.add_argument("--plot", default=None, metavar="DIR",
+                   help="folder for the timeline PNGs (default RUN/phase3)")
+    p.add_argument("--no-plot", action="store_true", help="write no timeline PNG")
 
 
 def slug(text: str) -> str:

@@ -1,4 +1,4 @@
-"""``python -m sync4d render RUN [--times ...] [--camera ...]``: render a run's checkpoint from
+"""``python -m sync4d render RUN [--time ...] [--camera ...]``: render a run's checkpoint from
 one of its stored cameras at chosen times (default: a sweep over [0, 1]) to PNGs and a GIF.
 
 Cameras come from the checkpoint's header, so rendering needs no dataset."""
@@ -8,18 +8,50 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 from PIL import Image
 
 from sync4d.data.scene import Camera
-from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.options import add_backend, add_threads, frame_count, positive_float
 from sync4d.progress import Progress
-from sync4d.runs import RENDERS_DIR, CheckpointError, RunError, load_run
-from sync4d.runs.names import render_frame, render_sweep
+from sync4d.runs.names import RENDERS_DIR, render_frame, render_sweep
 
-__all__ = ["main", "camera_from_record", "pick_camera", "render_times", "save_gif"]
+if TYPE_CHECKING:
+    from sync4d.phase1.gaussians import DeformableGaussians
+
+__all__ = [
+    "add_arguments",
+    "camera_from_record",
+    "main",
+    "pick_camera",
+    "render_times",
+    "save_gif",
+]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d render`` (`sync4d.cli`)."""
+    p.description = (
+        "Render a run's checkpoint from one of its stored cameras at chosen times (default: a "
+        "sweep over [0, 1]) to PNGs and a GIF."
+    )
+    p.add_argument("run", metavar="RUN", help="run folder (or a checkpoint file)")
+    p.add_argument("--time", nargs="+", type=float, default=None, metavar="T", dest="times",
+                   help="times in [0, 1], one PNG each (default: a --sweep)")
+    p.add_argument("--sweep", type=frame_count, default=48, metavar="N", dest="frames",
+                   help="frames of the default time sweep, evenly spaced over [0, 1] "
+                   "(default 48)")
+    p.add_argument("--camera", default=None, metavar="CAM",
+                   help="test:K / train:K (K-th frame of that split), K (a test frame) or a "
+                   "frame name such as cam10_000000.jpg; default test:0")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="output folder (default RUN/renders)")
+    p.add_argument("--fps", type=positive_float, default=15.0, help="GIF frame rate")
+    p.add_argument("--no-gif", action="store_true", help="write PNGs only")
+    add_threads(p)
+    add_backend(p)
 
 
 def camera_from_record(rec: dict) -> Camera:
@@ -54,7 +86,6 @@ def pick_camera(records: list[dict], spec: str | None) -> dict:
     raise ValueError(f"--camera {spec}: no camera with that name; use test:K, train:K or a name")
 
 
-@torch.no_grad()
 def render_times(
     model: DeformableGaussians,
     camera: Camera,
@@ -63,14 +94,17 @@ def render_times(
     threads: int | None = None,
 ) -> list[np.ndarray]:
     """uint8 RGB frames [H, W, 3] of `model` seen by `camera` at each time."""
-    bg = torch.tensor(background, dtype=torch.float32)
-    out = []
-    bar = Progress(len(times), desc="render", log_every=max(1, len(times) // 4))
-    for i, t in enumerate(times):
-        img = model.render(camera, t, background=bg, threads=threads).features.clamp(0, 1)
-        out.append((img.numpy() * 255.0 + 0.5).astype(np.uint8))
-        bar.update(i + 1)
-    bar.close()
+    import torch
+
+    with torch.no_grad():
+        bg = torch.tensor(background, dtype=torch.float32)
+        out = []
+        bar = Progress(len(times), desc="render", log_every=max(1, len(times) // 4))
+        for i, t in enumerate(times):
+            img = model.render(camera, t, background=bg, threads=threads).features.clamp(0, 1)
+            out.append((img.numpy() * 255.0 + 0.5).astype(np.uint8))
+            bar.update(i + 1)
+        bar.close()
     return out
 
 
@@ -85,6 +119,10 @@ def save_gif(frames: list[np.ndarray], path: Path, fps: float = 15.0) -> Path:
 
 def main(args: argparse.Namespace) -> int:
     """Run `render` with parsed `args`; the exit status."""
+    import torch
+
+    from sync4d.runs import CheckpointError, RunError, load_run
+
     try:
         run = load_run(args.run)
         rec = pick_camera(run.cameras, args.camera)
@@ -97,7 +135,7 @@ def main(args: argparse.Namespace) -> int:
         times = list(np.linspace(0.0, 1.0, args.frames))
     bad = [t for t in times if not 0.0 <= t <= 1.0]
     if bad:
-        print(f"render: --times must lie in [0, 1], got {bad}", file=sys.stderr)
+        print(f"render: --time must lie in [0, 1], got {bad}", file=sys.stderr)
         return 2
     out_dir = Path(args.out) if args.out else run.path / RENDERS_DIR
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -17,8 +17,31 @@ import signal
 import sys
 
 from sync4d.commands.view import port_problem
+from sync4d.options import add_encoder, add_threads
 
-__all__ = ["main", "parse_address"]
+__all__ = ["add_arguments", "main", "parse_address"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d serve`` (`sync4d.cli`)."""
+    p.description = (
+        "Serve a run to an MCP client (an LLM desktop app, an agent): tools describe (the "
+        "scene description), query (which object matches a text, and when), track (an "
+        "object's pose, velocity and box over an interval), events (contacts, approaches, "
+        "motion segments) and render (a PNG at a time and camera), and the scene JSON and LLM "
+        "prompt as resources. Over stdio (the client starts it), or --http. docs/mcp.md has a "
+        "client's configuration."
+    )
+    p.add_argument("run", metavar="RUN", help="run folder written by 'fit' (the language field "
+                   "of --phases 3 answers query, describe, track and events)")
+    p.add_argument("--http", default=None, metavar="[HOST:]PORT",
+                   help="serve over HTTP (streamable HTTP at http://HOST:PORT/mcp) instead of "
+                   "stdio; HOST defaults to 127.0.0.1 (this machine only)")
+    p.add_argument("--sse", action="store_true",
+                   help="with --http: the older SSE transport (at /sse) for clients without "
+                   "streamable HTTP")
+    add_encoder(p)
+    add_threads(p, "torch and the rasterizer")
 
 #: Address of ``--http PORT`` without a host: this machine only.
 DEFAULT_HOST = "127.0.0.1"

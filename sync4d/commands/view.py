@@ -17,9 +17,32 @@ import time
 from pathlib import Path
 
 from sync4d.files import writer_of
+from sync4d.options import add_encoder, add_threads, port_number
 from sync4d.runs.names import CHECKPOINT_NAME
 
-__all__ = ["main", "port_problem"]
+__all__ = ["add_arguments", "main", "port_problem"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The description and arguments of ``sync4d view`` (`sync4d.cli`)."""
+    p.description = (
+        "Serve a run's Gaussians on a local web page (viser): a time slider with play and "
+        "speed, the dataset's cameras, the objects (show, isolate, highlight) and their "
+        "tracks, a query box that ranks the objects and lights up the answer while it is "
+        "active, and a button that renders the current view through sync4d's rasterizer into "
+        "RUN/renders. Ctrl-C, or closing the last tab, stops it."
+    )
+    p.add_argument("run", metavar="RUN", help="run folder (one still training is reloaded as "
+                   "it saves)")
+    p.add_argument("--port", type=port_number, default=8080, metavar="P",
+                   help="the port to serve on (default 8080)")
+    p.add_argument("--host", default="127.0.0.1", metavar="ADDR",
+                   help="the address to listen on (default 127.0.0.1: this machine only; "
+                   "0.0.0.0 shares it on the network)")
+    p.add_argument("--keep-open", action="store_true",
+                   help="keep serving after the last browser tab closes (default: stop)")
+    add_encoder(p)
+    add_threads(p, "torch and the rasterizer")
 
 #: Seconds without any browser before the server stops (a page reload reconnects sooner).
 LINGER_SECONDS = 5.0

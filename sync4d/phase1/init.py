@@ -192,15 +192,15 @@ def with_initial_points(scene: Scene, p1: Phase1Settings, threads: int = 1) -> S
     if source == "points":
         if not has_points:
             raise ConfigError(
-                f"init_from=points: the dataset '{scene.name}' has no point cloud; "
-                "use init_from=triangulate (multi-view) or init_from=random"
+                f"phase1.init_from=points: the dataset '{scene.name}' has no point cloud; "
+                "use phase1.init_from=triangulate (multi-view) or random"
             )
         return with_dome_points(scene, p1)
     if source == "random":
         if p1.init_dome_points > 0:
             raise ConfigError(
-                "init_dome_points adds to a point cloud; use init_from=points or triangulate "
-                "with it, or set init_dome_points = 0"
+                "phase1.init_dome_points adds to a point cloud; use phase1.init_from=points or "
+                "triangulate with it, or set phase1.init_dome_points = 0"
             )
         return dataclasses.replace(scene, points=None, point_colors=None)
     note("fit: triangulating initial points (pycolmap, fixed poses)...", detail=True)
@@ -208,7 +208,7 @@ def with_initial_points(scene: Scene, p1: Phase1Settings, threads: int = 1) -> S
     if len(tri.points) == 0:
         raise DatasetError(
             scene.train[0].image_path.parent,
-            "triangulation found no points (too little texture?); use init_from=random",
+            "triangulation found no points (too little texture?); use phase1.init_from=random",
         )
     how = "cached" if tri.cached else f"{tri.seconds:.0f} s"
     note(f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "

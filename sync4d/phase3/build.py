@@ -74,7 +74,7 @@ def build_field(
     if run.kind != "sync4d.phase2" or run.motion is None:
         raise FieldError(
             f"{run.checkpoint}: Phase 3 needs a Phase 2 run (this checkpoint is {run.kind}); "
-            "run `fit RUN --phases 2` first"
+            "run `fit --out RUN --phases 2` first"
         )
     scene = run.scene(data)
     if scene is None:

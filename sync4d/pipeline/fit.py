@@ -102,8 +102,8 @@ def length_advice(extent: float, p1) -> str | None:
     return (
         f"fit: this scene is {ratio:.3g} times the size the absolute lengths' defaults are for "
         f"(extent {extent:.3g} world units against {REFERENCE_EXTENT}); to train it as the "
-        f"default-sized scene trains, scale them with it: --set near={0.01 * ratio:.3g} --set "
-        f"phase1.init_scale={0.02 * ratio:.3g} --set "
+        f"default-sized scene trains, scale them with it: --set "
+        f"phase1.near={0.01 * ratio:.3g} --set phase1.init_scale={0.02 * ratio:.3g} --set "
         f"phase1.deform.scale_position={0.1 * ratio:.3g} --set "
         f"phase1.deform.position_unit={ratio:.3g}"
     )

@@ -159,7 +159,7 @@ def test_run_mode_times_a_trained_runs_frames(
                      "--set", "phase1.init_points=300",
                      "--set", "phase1.init_from=random"]) == 0  # fmt: skip
     out = tmp_path / "bench.json"
-    argv = ["bench", "raster", "--run", str(run), "--frames", "2", "--repeats", "1",
+    argv = ["bench", "raster", str(run), "--frames", "2", "--repeats", "1",
             "--thread-counts", "1", "--variant", "aa:antialiased=true", "--out", str(out)]
     assert cli.main(argv) == 0
     printed = capsys.readouterr().out
@@ -182,9 +182,9 @@ def test_run_mode_times_a_trained_runs_frames(
 def test_run_mode_names_a_missing_run_and_a_bad_variant(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert cli.main(["bench", "raster", "--run", str(tmp_path / "nope")]) == 2
+    assert cli.main(["bench", "raster", str(tmp_path / "nope")]) == 2
     assert "nope" in capsys.readouterr().err
-    argv = ["bench", "raster", "--run", str(tmp_path), "--variant", "x:speed=fast"]
+    argv = ["bench", "raster", str(tmp_path), "--variant", "x:speed=fast"]
     assert cli.main(argv) == 2
     assert "alpha_max" in capsys.readouterr().err
 
@@ -202,9 +202,9 @@ def test_run_mode_names_a_moved_dataset(tmp_path: Path, capsys: pytest.CaptureFi
                      "--set", "phase1.init_from=random"]) == 0  # fmt: skip
     data.rename(tmp_path / "moved")
     capsys.readouterr()
-    assert cli.main(["bench", "raster", "--run", str(run), "--repeats", "1"]) == 2
+    assert cli.main(["bench", "raster", str(run), "--repeats", "1"]) == 2
     err = capsys.readouterr().err
     assert "is not there any more" in err and "--data" in err and "Traceback" not in err
-    argv = ["bench", "raster", "--run", str(run), "--data", str(tmp_path / "moved"),
+    argv = ["bench", "raster", str(run), "--data", str(tmp_path / "moved"),
             "--frames", "1", "--repeats", "1", "--out", str(tmp_path / "b.json")]
     assert cli.main(argv) == 0

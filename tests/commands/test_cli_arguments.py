@@ -76,11 +76,10 @@ def _stop_long_renders(real):
 
 #: Where each long command's work starts (module attribute replaced by `_stop`).
 STOPS = {
-    "fit": ("sync4d.commands.fit.run_fit", "sync4d.commands.fit._build_phase3",
-            "sync4d.commands.fit.restart_phase2"),
+    "fit": ("sync4d.commands.fit.fit_request",),
     "process": ("sync4d.data.process.process_capture",
                 "sync4d.commands.process.process_capture"),
-    "eval": ("sync4d.commands.eval.evaluate_run",),
+    "eval": ("sync4d.pipeline.evaluate.evaluate_run",),
     "view": ("sync4d.viewer.state.ViewerState",),
     "serve": ("sync4d.serve.server.serve",),
     "sweep": ("sync4d.sweep.run_sweep",),
@@ -134,7 +133,7 @@ def _bases(w: dict[str, str]) -> dict[str, tuple[list[str], dict[str, list[str]]
 
 
 def _arguments(parser: argparse.ArgumentParser) -> list[argparse.Action]:
-    """The arguments of a command's parser that take a value, hidden spellings included."""
+    """The arguments of a command's parser that take a value."""
     return [a for a in parser._actions if not isinstance(a, NO_VALUE)]
 
 
@@ -156,7 +155,7 @@ def _argv(words: str, positionals: list[str], options: dict[str, list[str]],
     if action.option_strings:
         for flag in action.option_strings:
             opts.pop(flag, None)
-        for other in parser._actions:  # an option stored in the same dest (an old spelling)
+        for other in parser._actions:  # another option stored in the same dest
             if other.dest == action.dest:
                 for flag in other.option_strings:
                     opts.pop(flag, None)

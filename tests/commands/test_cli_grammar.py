@@ -1,6 +1,6 @@
 """The command line's table of commands, its registries and its grammar: every name comes from
-one registry, the old spellings still work for one release and are hidden everywhere a user
-looks (--help, completion, docs/cli.md)."""
+one registry, each command's module adds its own arguments, and the spellings from before 0.1.0
+are refused (CHANGELOG.md)."""
 
 from __future__ import annotations
 
@@ -23,8 +23,6 @@ from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS
 from sync4d.runs.names import RUN_FILE
 from sync4d.settings import allowed
 
-NOTE = "the old spelling goes after this release"
-
 
 def _option(parser: argparse.ArgumentParser, flag: str) -> argparse.Action:
     return next(a for a in parser._actions if flag in a.option_strings)
@@ -35,9 +33,11 @@ def test_every_command_is_a_row_with_a_module() -> None:
     assert list(parsers) == [c.name for c in COMMANDS]
     for c in COMMANDS:
         assert c.forms and all(f.startswith(c.name) for f in c.forms), c
-        if c.module is not None:
-            assert importlib.util.find_spec(c.module) is not None, c.module
-        assert parsers[c.name].description == c.description
+        assert importlib.util.find_spec(c.module) is not None, c.module
+        module = importlib.import_module(c.module)
+        assert callable(getattr(module, c.arguments)), c  # the command owns its arguments
+        assert c.name == "completion" or callable(module.main), c
+        assert parsers[c.name].description, c  # set by its arguments function
     for c in COMMANDS:  # the module docstring lists every form
         assert all(f in cli.__doc__ for f in c.forms)
 
@@ -88,7 +88,7 @@ def test_main_adds_only_the_arguments_of_its_command() -> None:
     """`main` builds the parser of the command it runs: --help imports no registry, and the
     command parses as with the whole parser."""
     for argv in (["query", "R", "a ball", "--scorer", "paper", "--rule", "mean"],
-                 ["bench", "raster", "R", "--frames", "2"], ["encoder", "export", "--out", "d"],
+                 ["bench", "raster", "R", "--frames", "2"], ["encoder", "convert", "--out", "d"],
                  ["eval", "R", "--queries", "q.json", "--scorer", "full", "names"]):  # fmt: skip
         assert build_parser(argv=argv).parse_args(argv) == build_parser().parse_args(argv)
     code = ("import sys; from sync4d.cli import build_parser; "
@@ -104,40 +104,30 @@ def test_the_grammar_is_in_help_and_docs() -> None:
     assert GRAMMAR in docs and "## `encoder convert`" in docs
 
 
-def test_old_spellings_are_hidden(capsys: pytest.CaptureFixture[str]) -> None:
-    parser = build_parser()
-    parsers = command_parsers(parser)
-    assert "encoder export" not in parsers
-    encoder = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    group = encoder.choices["encoder"]
-    assert "export" not in group.format_help() and "convert" in group.format_help()
-    assert "--run" not in parsers["bench raster"].format_help()
+def test_the_spellings_before_0_1_0_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The shims of the renames before 0.1.0 are gone (CHANGELOG.md): each old spelling is an
+    argparse error (exit 2) naming it, and appears nowhere a user looks."""
+    old = (["encoder", "export", "--out", "d"], ["bench", "raster", "--run", "R"],
+           ["render", "R", "--times", "0.5"], ["render", "R", "--frames", "4"])  # fmt: skip
+    for argv in old:
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2, argv
+        err = capsys.readouterr().err
+        assert "invalid choice: 'export'" in err or f"unrecognized arguments: {argv[-2]}" in err
     docs = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
-    assert "encoder export" not in docs and "bench raster --run" not in docs
+    assert "encoder export" not in docs and "--times" not in docs and "--run " not in docs
     assert main(["completion", "bash"]) == 0
     bash = capsys.readouterr().out
-    # the encoder's words: convert and info, not the old "export" (a command of its own now)
     assert "_shtab_sync4d_encoder_subparsers=(convert info)" in bash
-    assert "encoder_export" not in bash
-
-
-def test_encoder_export_is_encoder_convert(tmp_path: Path,
-                                           capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
-    parser = build_parser()
-    old = parser.parse_args(["encoder", "export", "--out", "d"])
-    new = parser.parse_args(["encoder", "convert", "--out", "d"])
-    assert old.renamed == ("encoder export", "encoder convert") and new.renamed is None
-    assert {**vars(old), "renamed": None} == vars(new)
-    enc = tmp_path / "enc"
-    enc.mkdir()
-    (enc / "encoder.json").write_text("{}")
-    assert main(["encoder", "export", "--out", str(enc)]) == 2  # refused before any download
-    err = capsys.readouterr().err
-    assert "`encoder export` is now `encoder convert`" in err and NOTE in err
-    assert "already holds an encoder" in err
-    assert main(["encoder", "convert", "--out", str(enc)]) == 2
-    err = capsys.readouterr().err
-    assert "already holds an encoder" in err and NOTE not in err
+    # `fit --out RUN --phases 3`, the one spelling of extending a run (`fit RUN` names DATA)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / RUN_FILE).write_text("{}")
+    assert main(["fit", "--out", str(run), "--phases", "3"]) == 2
+    assert "needs a Phase 2 checkpoint" in capsys.readouterr().err
 
 
 def test_bench_raster_takes_its_run_first(capsys: pytest.CaptureFixture[str]) -> None:
@@ -147,23 +137,3 @@ def test_bench_raster_takes_its_run_first(capsys: pytest.CaptureFixture[str]) ->
         assert (args.run, args.frames) == ("R", 2)
     assert capsys.readouterr().err == ""
     assert parser.parse_args(["bench", "raster", "--quick"]).run is None
-    args = parser.parse_args(["bench", "raster", "--run", "R", "--frames", "2"])
-    assert (args.run, args.frames) == ("R", 2)
-    err = capsys.readouterr().err
-    assert "`--run` is now `bench raster RUN`" in err and NOTE in err
-
-
-def test_fit_run_phases_3_is_fit_out_run(tmp_path: Path,
-                                         capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
-    """The old `fit RUN --phases 3` (and 2, --resume) still reads RUN as the run (here one
-    without a Phase 2 checkpoint: refused, naming it), with a note; `fit --out RUN --phases 3`
-    says the same."""
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / RUN_FILE).write_text("{}")
-    assert main(["fit", str(run), "--phases", "3"]) == 2
-    err = capsys.readouterr().err
-    assert "is now `fit --out RUN --phases ...`" in err and "needs a Phase 2 checkpoint" in err
-    assert main(["fit", "--out", str(run), "--phases", "3"]) == 2
-    err = capsys.readouterr().err
-    assert "is now" not in err and "needs a Phase 2 checkpoint" in err

@@ -21,7 +21,7 @@ from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.progress import Progress, format_duration
 from sync4d.runs import load_model
 
-TINY = ["--set", "init_points=300", "--set", "eval_frames=2", "--threads", "1",
+TINY = ["--set", "phase1.init_points=300", "--set", "eval_frames=2", "--threads", "1",
         "--set", "phases=1"]  # fmt: skip
 
 
@@ -59,7 +59,7 @@ def test_fit_eval_render(data: Path, tmp_path: Path, capsys) -> None:
     assert "mean" in capsys.readouterr().out
     assert len(json.loads((run / "eval.json").read_text())["frames"]) == 4
 
-    assert main(["render", str(run), "--times", "0", "0.5", "1", "--camera", "train:1"]) == 0
+    assert main(["render", str(run), "--time", "0", "0.5", "1", "--camera", "train:1"]) == 0
     pngs = sorted((run / "renders").glob("*.png"))
     assert [p.name for p in pngs] == [
         "r_001_t0.000.png", "r_001_t0.500.png", "r_001_t1.000.png",
@@ -69,7 +69,7 @@ def test_fit_eval_render(data: Path, tmp_path: Path, capsys) -> None:
     # --backend auto always works (wgpu on a GPU, else cpu) and says what it picked.
     capsys.readouterr()
     out_auto = tmp_path / "auto"
-    assert main(["render", str(run), "--times", "0.5", "--camera", "train:1", "--no-gif",
+    assert main(["render", str(run), "--time", "0.5", "--camera", "train:1", "--no-gif",
                  "--backend", "auto", "--out", str(out_auto)]) == 0  # fmt: skip
     assert "backend auto ->" in capsys.readouterr().err
     _render_matches_cpu_on_wgpu(run, tmp_path)
@@ -89,7 +89,7 @@ def _render_matches_cpu_on_wgpu(run: Path, tmp_path: Path) -> None:
     outs = {}
     for backend in ("cpu", "wgpu"):
         out = tmp_path / backend
-        args = ["render", str(run), "--times", "0.5", "--camera", "train:1", "--no-gif",
+        args = ["render", str(run), "--time", "0.5", "--camera", "train:1", "--no-gif",
                 "--backend", backend, "--out", str(out)]  # fmt: skip
         assert main(args) == 0
         with Image.open(out / "r_001_t0.500.png") as im:
@@ -158,7 +158,7 @@ def test_sigint_in_a_real_process_keeps_a_checkpoint(data: Path, tmp_path: Path)
 def test_fit_runs_phase2_after_phase1_and_restarts_it(data: Path, tmp_path: Path, capsys) -> None:
     run = tmp_path / "run"
     base = ["fit", str(data), "--out", str(run), "--iters", "12", *TINY, "--set", "eval_every=0",
-            "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2"]  # fmt: skip
+            "--set", "phase2.iterations=8", "--set", "phase2.motion_start=2"]  # fmt: skip
     assert main(base + ["--phases", "1,2"]) == 0
     out = capsys.readouterr()
     assert "Phase 2" in out.out and "masks assignment, K = 3" in out.err
@@ -170,9 +170,9 @@ def test_fit_runs_phase2_after_phase1_and_restarts_it(data: Path, tmp_path: Path
     assert len(diag["trajectories"]["times"]) == len(diag["trajectories"]["centroids"]["1"])
     assert (run / "phase2-trajectories.png").stat().st_size > 1000
     # Resume continues Phase 2; --phases 2 restarts it from the kept Phase 1 checkpoint.
-    assert main(base + ["--resume", "--phases", "1,2", "--set", "phase2_iterations=10"]) == 0
+    assert main(base + ["--resume", "--phases", "1,2", "--set", "phase2.iterations=10"]) == 0
     assert _iteration(run) == 10
-    assert main(base + ["--phases", "2", "--set", "phase2_iterations=4"]) == 0
+    assert main(base + ["--phases", "2", "--set", "phase2.iterations=4"]) == 0
     assert _iteration(run) == 4
     # --resume keeps the run's phases (here "2"): Phase 1 cannot continue it.
     assert main(base + ["--resume", "--phases", "1"]) == 2
@@ -203,7 +203,7 @@ def test_bad_inputs_give_one_clear_message(data: Path, tmp_path: Path, capsys) -
 
 def test_bad_near_plane_is_one_clear_message(data: Path, tmp_path: Path, capsys) -> None:
     args = ["fit", str(data), "--out", str(tmp_path / "r"), "--iters", "3", *TINY]
-    assert main(args + ["--set", "near=-1"]) == 2
+    assert main(args + ["--set", "phase1.near=-1"]) == 2
     assert "near: must be a finite distance > 0" in capsys.readouterr().err
 
 
@@ -317,7 +317,7 @@ def test_bench_fit_tabulates_finished_runs(data: Path, tmp_path: Path, capsys) -
     (row,) = rec["results"]
     final = json.loads((run / "eval.json").read_text())["mean"]
     assert row["iterations"] == 6 and row["psnr"] == pytest.approx(final["psnr"])
-    assert row["scene"] in printed and "init_points=300" in " ".join(row["settings"])
+    assert row["scene"] in printed and "phase1.init_points=300" in " ".join(row["settings"])
     with Image.open(row["worst_view_png"]) as im:  # render beside ground truth
         assert im.size == (2 * row["width"], row["height"])
     # an unfinished run, or a dataset given with --runs, is one clear message
@@ -357,7 +357,7 @@ def test_render_and_eval_reject_bad_arguments(data: Path, tmp_path: Path, capsys
     run = tmp_path / "run"
     assert main(["fit", str(data), "--out", str(run), "--iters", "3", *TINY]) == 0
     capsys.readouterr()
-    assert main(["render", str(run), "--times", "0.5", "1.5"]) == 2
+    assert main(["render", str(run), "--time", "0.5", "1.5"]) == 2
     assert "[0, 1]" in capsys.readouterr().err
     assert main(["render", str(run), "--camera", "test:99"]) == 2
     assert "only 4 test cameras" in capsys.readouterr().err

@@ -26,7 +26,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     write_blender(data, n=3, size=24)
     out = tmp / "run"
     args = ["fit", str(data), "--out", str(out), "--iters", "6", "--threads", "1",
-            "--set", "init_points=300", "--set", "eval_every=0", "--set", "phases=1"]  # fmt: skip
+            "--set", "phase1.init_points=300", "--set", "eval_every=0",
+            "--set", "phases=1"]  # fmt: skip
     assert main(args) == 0
     return out
 

@@ -17,8 +17,9 @@ from sync4d.data import synthetic as syn
 
 SMALL = small_synthetic()
 
-SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=300", "--set", "eval_every=0",
-            "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2"]  # fmt: skip
+SETTINGS = ["--iters", "12", "--threads", "1", "--set", "phase1.init_points=300",
+            "--set", "eval_every=0", "--set", "phase2.iterations=8",
+            "--set", "phase2.motion_start=2"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -31,34 +32,36 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     # the embedded scene, small: its masks give every object Gaussians from the first votes
     syn.write_synthetic_scene(tmp / "objects", SMALL)
     assert main(["fit", str(tmp / "objects"), "--out", str(tmp / "objects-run"), *SETTINGS,
-                 "--set", "init_points=3000", "--set", "init_from=random"]) == 0  # fmt: skip
+                 "--set", "phase1.init_points=3000",
+                 "--set", "phase1.init_from=random"]) == 0  # fmt: skip
     return {"data": tmp / "tiny", "p1": tmp / "p1", "p2": tmp / "p2", "tmp": tmp,
             "objects": tmp / "objects-run"}  # fmt: skip
 
 
 def test_phase3_needs_a_phase2_run(runs, capsys):
-    assert main(["fit", str(runs["p1"]), "--phases", "3", "--threads", "1"]) == 2
+    assert main(["fit", "--out", str(runs["p1"]), "--phases", "3", "--threads", "1"]) == 2
     err = capsys.readouterr().err
     assert "needs a Phase 2 checkpoint" in err and "--phases 2" in err
     assert not (runs["p1"] / "phase3").exists()
 
 
 def test_phase3_refuses_settings_that_do_not_apply(runs, capsys):
-    assert main(["fit", str(runs["p2"]), "--phases", "3", "--set", "phase1.iterations=5"]) == 2
+    assert main(["fit", "--out", str(runs["p2"]), "--phases", "3",
+                 "--set", "phase1.iterations=5"]) == 2
     assert "settings other than phase3.*" in capsys.readouterr().err
-    assert main(["fit", str(runs["p2"]), "--phases", "3", "--set", "phase3.beta=2"]) == 2
+    assert main(["fit", "--out", str(runs["p2"]), "--phases", "3", "--set", "phase3.beta=2"]) == 2
     assert "phase3.beta" in capsys.readouterr().err
 
 
 def test_a_missing_or_broken_encoder_folder_is_named(runs, capsys, tmp_path):
     missing = tmp_path / "no-such-encoder"
-    assert main(["fit", str(runs["p2"]), "--phases", "3", "--encoder", str(missing)]) == 2
+    assert main(["fit", "--out", str(runs["p2"]), "--phases", "3", "--encoder", str(missing)]) == 2
     err = capsys.readouterr().err
     assert str(missing) in err and "encoder convert" in err
     broken = tmp_path / "broken"
     broken.mkdir()
     (broken / "encoder.json").write_text("{}")
-    assert main(["fit", str(runs["p2"]), "--phases", "3", "--encoder", str(broken)]) == 2
+    assert main(["fit", "--out", str(runs["p2"]), "--phases", "3", "--encoder", str(broken)]) == 2
     assert str(broken) in capsys.readouterr().err
 
 
@@ -79,7 +82,8 @@ def test_phases_must_be_contiguous(runs, capsys):
 def test_fit_query_and_eval_with_the_offline_encoder(runs, capsys, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(runs["objects"], run)
-    assert main(["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]) == 0
+    assert main(["fit", "--out", str(run), "--phases", "3",
+                 "--encoder", "offline", "--threads", "1"]) == 0
     out, err = capsys.readouterr()
     assert "Phase 3: 3 objects x 6 frames" in out
     assert "fit: Phase 3 encoded " in err and " of 18 object-frames in " in err
@@ -120,7 +124,7 @@ def test_a_field_of_another_model_is_refused_and_refits_clear_it(runs, capsys, t
     `--force` remove it with the model it described."""
     run = tmp_path / "run"
     shutil.copytree(runs["objects"], run)
-    build = ["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]
+    build = ["fit", "--out", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]
     assert main(build) == 0
     meta = json.loads((run / "phase3" / "field.json").read_text())
     assert meta["checkpoint"]["file"] == "checkpoint.safetensors"
@@ -155,5 +159,5 @@ def test_a_field_of_another_model_is_refused_and_refits_clear_it(runs, capsys, t
     # ... and so does starting over with --force, even with Phase 1 alone
     assert main(build) == 0
     assert main(["fit", str(runs["objects"].parent / "objects"), "--out", str(run), "--force",
-                 *SETTINGS, "--set", "init_from=random", "--phases", "1"]) == 0  # fmt: skip
+                 *SETTINGS, "--set", "phase1.init_from=random", "--phases", "1"]) == 0  # fmt: skip
     assert not (run / "phase3").exists()

@@ -108,7 +108,7 @@ MANIFEST = """
 iters = 12
 phases = "1"
 threads = 1
-set = ["init_points=300", "eval_every=0"]
+set = ["phase1.init_points=300", "eval_every=0"]
 
 [[job]]
 name = "tiny"
@@ -197,7 +197,7 @@ def test_an_interrupted_job_continues_from_its_checkpoint(folder, tmp_path, ray_
     from sync4d.sweep import Job, run_job
 
     job = Job(name="cut", data=str(folder / "tiny"), iters=CUT_ITERS, phases="1",
-              overrides=("init_points=300", "eval_every=0"))  # fmt: skip
+              overrides=("phase1.init_points=300", "eval_every=0"))  # fmt: skip
     run = tmp_path / "runs" / "cut"
     code = ("from pathlib import Path; from sync4d.sweep import Job, run_job; "
             f"run_job(Job(**{dataclasses.asdict(job)!r}), Path({str(tmp_path)!r}))")  # fmt: skip

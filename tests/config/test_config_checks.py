@@ -19,15 +19,15 @@ from sync4d.config import ConfigError, RunConfig, apply_overrides, load_config, 
 #: (key as written, TOML literal, --set text, the message after "SOURCE: key: "; a pair when
 #: the file's and the command line's differ).
 BAD: list[tuple[str, str, str, str | tuple[str, str]]] = [
-    ("iterations", "-3", "-3", "must be an integer >= 1, got -3"),
+    ("phase1.iterations", "-3", "-3", "must be an integer >= 1, got -3"),
     ("eval_every", "-1", "-1", "must be an integer >= 0, got -1"),
     ("checkpoint_every", "-1", "-1", "must be an integer >= 0, got -1"),
-    ("phase2_iterations", "-4", "-4", "must be an integer >= 0, got -4"),
-    ("sh_degree", "7", "7", "must be an integer in 0..3, got 7"),
-    ("init_points", "-10", "-10", "must be an integer >= 1, got -10"),
+    ("phase2.iterations", "-4", "-4", "must be an integer >= 0, got -4"),
+    ("phase1.sh_degree", "7", "7", "must be an integer in 0..3, got 7"),
+    ("phase1.init_points", "-10", "-10", "must be an integer >= 1, got -10"),
     ("phase1.lr_means", "nan", "nan", "must be a finite number > 0, got nan"),
     ("phase1.lr_means", "inf", "inf", "must be a finite number > 0, got inf"),
-    ("iterations", "true", "true", "expected an integer, got the bool true"),
+    ("phase1.iterations", "true", "true", "expected an integer, got the bool true"),
     ("phase1.background", "[true, 1, 1]", "true,1,1", "expected numbers, got the bool true"),
     (
         "phase2.motion.mlp_affine",
@@ -39,7 +39,7 @@ BAD: list[tuple[str, str, str, str | tuple[str, str]]] = [
      'expected "1", "2", "3", "1,2", "2,3" or "1,2,3", got \'1,3\''),
     ("test_split", '"train"', "train", "expected one of test, val, got 'train'"),
     (
-        "init_from",
+        "phase1.init_from",
         '"sfm"',
         "sfm",
         "expected one of auto, points, triangulate, random, got 'sfm'",
@@ -52,7 +52,7 @@ BAD: list[tuple[str, str, str, str | tuple[str, str]]] = [
         "expected one of auto, masks, trajectories, got 'sam'",
     ),
     ("resolution_scale", "1.5", "1.5", "must be a finite number in (0, 1], got 1.5"),
-    ("near", "-1", "-1", "must be a finite distance > 0, got -1.0"),
+    ("phase1.near", "-1", "-1", "must be a finite distance > 0, got -1.0"),
     ("phase1.densify.interval", "0", "0", "must be an integer >= 1, got 0"),
     (
         "phase1.background",

@@ -174,18 +174,19 @@ def test_ambiguous_numbers_give_no_map() -> None:
 
 
 QUICK = ["--iters", "12", "--threads", "1", "--set", "eval_every=0",
-         "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2"]  # fmt: skip
+         "--set", "phase2.iterations=8", "--set", "phase2.motion_start=2"]  # fmt: skip
 # Enough training (60 iterations) that the rendered label masks overlap the annotated ones, so
 # vIoU > 0 shows the masks reach the frames they were drawn on.
 LONGER = ["--iters", "60", "--threads", "1", "--set", "eval_every=0",
-          "--set", "phase2_iterations=10", "--set", "phase2.motion_start=2"]  # fmt: skip
+          "--set", "phase2.iterations=10", "--set", "phase2.motion_start=2"]  # fmt: skip
 
 
 def _fit_and_eval(root: Path, run: Path, settings: list[str], capsys) -> tuple[str, dict]:
     """`fit` (Phases 1, 2), `fit --phases 3` (offline encoder) and `eval --queries` on 4D
     LangSplat's annotations folder: the printed table and the summary JSON."""
     assert main(["fit", str(root), "--out", str(run), *settings]) == 0
-    assert main(["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]) == 0
+    assert main(["fit", "--out", str(run), "--phases", "3",
+                 "--encoder", "offline", "--threads", "1"]) == 0
     capsys.readouterr()
     assert main(["eval", str(run), "--queries", str(root / "annotations"), "--threads",
                  "1"]) == 0  # fmt: skip

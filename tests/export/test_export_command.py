@@ -13,8 +13,8 @@ from sync4d.cli import main
 from sync4d.data import synthetic as syn
 from sync4d.export import load, read_ply, read_sequence, read_spz
 
-SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=3000", "--set",
-            "init_from=random", "--set", "eval_every=0", "--set", "phase2_iterations=8",
+SETTINGS = ["--iters", "12", "--threads", "1", "--set", "phase1.init_points=3000", "--set",
+            "phase1.init_from=random", "--set", "eval_every=0", "--set", "phase2.iterations=8",
             "--set", "phase2.motion_start=2"]  # fmt: skip
 
 

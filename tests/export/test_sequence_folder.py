@@ -153,7 +153,7 @@ def test_export_command_writes_the_folder(tmp_path: Path, capsys) -> None:
 
     write_blender(tmp_path / "tiny", n=4, size=16)
     assert main(["fit", str(tmp_path / "tiny"), "--out", str(tmp_path / "run"), "--iters", "4",
-                 "--threads", "1", "--phases", "1", "--set", "init_points=100",
+                 "--threads", "1", "--phases", "1", "--set", "phase1.init_points=100",
                  "--set", "eval_every=0"]) == 0  # fmt: skip
     capsys.readouterr()
     folder = tmp_path / "out" / "bb-4d"

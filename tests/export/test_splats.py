@@ -38,8 +38,9 @@ from sync4d.export import (
 )
 from sync4d.runs import PHASE1_CHECKPOINT_NAME, Run, load_run
 
-SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=300", "--set", "eval_every=0",
-            "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2",
+SETTINGS = ["--iters", "12", "--threads", "1", "--set", "phase1.init_points=300",
+            "--set", "eval_every=0",
+            "--set", "phase2.iterations=8", "--set", "phase2.motion_start=2",
             "--set", "phase2.motion.kind=mlp"]  # fmt: skip
 
 # Renders of a PLY read back against `run.model.render` (max abs difference, colour units):

@@ -302,7 +302,7 @@ def test_bench_fit_rows_say_which_ssim(tmp_path: Path, capsys) -> None:
     write_blender(tmp_path / "tiny", n=3, size=24)
     run = tmp_path / "run"
     assert main(["fit", str(tmp_path / "tiny"), "--out", str(run), "--iters", "4", "--threads",
-                 "1", "--set", "init_points=200", "--set", "phases=1"]) == 0  # fmt: skip
+                 "1", "--set", "phase1.init_points=200", "--set", "phases=1"]) == 0  # fmt: skip
     assert "SSIM 0." in capsys.readouterr().out  # fit's final line
     ev = json.loads((run / "eval.json").read_text())
     (row,) = rows_from_runs([run])

@@ -97,16 +97,16 @@ def test_init_from_chooses_the_source(tmp_path, monkeypatch) -> None:
     write_blender(root, n=4, size=24)
     mono = load_scene(root)
     cfg = RunConfig()
-    assert cfg.init_from == "auto"
+    assert cfg.phase1.init_from == "auto"
     got = with_initial_points(multi, cfg.phase1)
     assert got.points is not None and len(got.points) >= 100  # auto: multi-view -> triangulate
     assert with_initial_points(mono, cfg.phase1).points is None  # auto: mono -> random
-    random = load_config(None, ["init_from=random"])
+    random = load_config(None, ["phase1.init_from=random"])
     assert with_initial_points(got, random.phase1).points is None
-    assert with_initial_points(got, load_config(None, ["init_from=points"]).phase1) is got
+    assert with_initial_points(got, load_config(None, ["phase1.init_from=points"]).phase1) is got
     with pytest.raises(ConfigError, match="has no point cloud"):
-        with_initial_points(mono, load_config(None, ["init_from=points"]).phase1)
+        with_initial_points(mono, load_config(None, ["phase1.init_from=points"]).phase1)
     with pytest.raises(ConfigError, match="init_from: expected one of"):
-        with_initial_points(mono, load_config(None, ["init_from=sfm"]).phase1)
+        with_initial_points(mono, load_config(None, ["phase1.init_from=sfm"]).phase1)
     with pytest.raises(DatasetError, match="at least two training cameras"):
-        with_initial_points(mono, load_config(None, ["init_from=triangulate"]).phase1)
+        with_initial_points(mono, load_config(None, ["phase1.init_from=triangulate"]).phase1)

@@ -30,7 +30,7 @@ def test_fit_recovers_the_synthetic_scene_motion(tmp_path) -> None:
     cfg = load_config(repo_configs() / "synthetic.toml", ["eval_every=0", "checkpoint_every=0"])
     run = tmp_path / "run"
     summary = run_fit(load_scene(root), cfg, run, root, threads=2)
-    assert summary["iterations"] == cfg.phase2_iterations
+    assert summary["iterations"] == cfg.phase2.iterations
 
     # The motion export written into the checkpoint, relative to each object's first frame.
     tensors = safetensors.numpy.load_file(str(run / CHECKPOINT_NAME))

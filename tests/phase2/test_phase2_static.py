@@ -221,7 +221,7 @@ def _still_fit(tmp_path: Path, name: str, *settings: str) -> Path:
     run = tmp_path / name
     args = ["fit", str(data), "--out", str(run), "--phases", "1,2", "--iters", "40",
             "--threads", "1", "--set", "eval_every=0", "--set", "phase1.init_points=400",
-            "--set", "phase1.init_from=random", "--set", "phase2_iterations=10",
+            "--set", "phase1.init_from=random", "--set", "phase2.iterations=10",
             "--set", "phase2.motion_start=2"]  # fmt: skip
     for s in settings:
         args += ["--set", s]
@@ -259,7 +259,8 @@ def test_a_scene_with_no_motion_skips_phase2_and_stays_a_phase2_run(
     assert not p2.frozen.any()
     assert main(["eval", str(run), "--threads", "1"]) == 0
     assert main(["render", str(run), "--time", "0.5", "--no-gif", "--threads", "1"]) == 0
-    assert main(["fit", str(run), "--phases", "3", "--encoder", "offline", "--threads", "1"]) == 0
+    assert main(["fit", "--out", str(run), "--phases", "3",
+                 "--encoder", "offline", "--threads", "1"]) == 0
     capsys.readouterr()
     assert main(["query", str(run), "the green pillar", "--json", "--no-plot"]) == 0
     answers = json.loads(capsys.readouterr().out)

@@ -333,7 +333,7 @@ def test_cli_encoder_info(exported: SimpleNamespace, tmp_path: Path, capsys) -> 
     assert main(["encoder", "info", str(d)]) == 2
     assert "text.onnx: missing" in capsys.readouterr().err
     # export refuses to overwrite an encoder without --force (before any download)
-    assert main(["encoder", "export", "--model", "none/such", "--out", str(exported.dir)]) == 2
+    assert main(["encoder", "convert", "--model", "none/such", "--out", str(exported.dir)]) == 2
     assert "already holds an encoder" in capsys.readouterr().err
 
 
@@ -344,7 +344,7 @@ def test_export_needs_transformers(monkeypatch: pytest.MonkeyPatch, tmp_path: Pa
 
 
 def test_export_pretrained_siglip_tokenizer(tmp_path: Path, capsys) -> None:
-    """`encoder export` on a local save_pretrained folder laid out like a Hub SigLIP (a
+    """`encoder convert` on a local save_pretrained folder laid out like a Hub SigLIP (a
     SentencePiece SiglipTokenizer, a SiglipImageProcessor config): the converted tokenizer.json
     gives SiglipTokenizer's ids (case, punctuation, whitespace, truncation), and the text
     embeddings match the torch model's."""
@@ -369,7 +369,7 @@ def test_export_pretrained_siglip_tokenizer(tmp_path: Path, capsys) -> None:
                    image_std=[0.5] * 3).save_pretrained(hub)  # fmt: skip
 
     out = tmp_path / "enc"
-    assert main(["encoder", "export", "--model", str(hub), "--out", str(out)]) == 0
+    assert main(["encoder", "convert", "--model", str(hub), "--out", str(out)]) == 0
     assert "dim 32" in capsys.readouterr().out
     enc = SiglipOnnxEncoder(out, threads=1)
     m = enc.manifest

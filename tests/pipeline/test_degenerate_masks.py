@@ -18,8 +18,9 @@ from sync4d.phase3.store import load_field
 from sync4d.runs import CHECKPOINT_NAME, read_checkpoint
 
 SETTINGS = ["--iters", "12", "--threads", "1", "--set", "eval_every=0", "--set",
-            "phase2_iterations=8", "--set", "phase2.motion_start=2", "--set",
-            "init_points=3000", "--set", "init_from=random", "--set", "phase2.still_position=0",
+            "phase2.iterations=8", "--set", "phase2.motion_start=2", "--set",
+            "phase1.init_points=3000", "--set", "phase1.init_from=random",
+            "--set", "phase2.still_position=0",
             "--set", "phase2.still_rotation=0", "--phases", "1,2,3"]  # fmt: skip
 
 

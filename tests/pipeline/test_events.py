@@ -14,7 +14,8 @@ from sync4d.events import Advanced, Finished, Note, PhaseDone, Started, emit, no
 from sync4d.pipeline import run_fit
 from sync4d.progress import TerminalRenderer
 
-SMALL = ["init_points=300", "eval_frames=2", "phases=1", "eval_every=3", "checkpoint_every=0"]
+SMALL = ["phase1.init_points=300", "eval_frames=2", "phases=1", "eval_every=3",
+         "checkpoint_every=0"]
 
 
 def _fit(tmp_path: Path, name: str) -> dict:

@@ -29,7 +29,7 @@ pytestmark = pytest.mark.slow  # two fits in fresh processes: about a minute on 
 
 TINY = small_synthetic(size=32, train_cameras=3)
 SETTINGS = [
-    "init_points=1500", "eval_every=0", "checkpoint_every=0", "phase2_iterations=40",
+    "phase1.init_points=1500", "eval_every=0", "checkpoint_every=0", "phase2.iterations=40",
     "phase2.motion_start=5", "phase2.velocity_start=10", "phase2.warmup_start=10",
     "phase2.warmup_end=30", "phase2.residual_start=15", "phase2.motion.refine_steps=2",
     "phase2.motion.refine_retrack_steps=2", "phase2.motion.refine_colour_epochs=1",

@@ -25,7 +25,7 @@ from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.runs import CHECKPOINT_NAME, CheckpointError, load_run, read_checkpoint
 from sync4d.runs import checkpoint as checkpoint_module
 
-TINY = ["--set", "init_points=300", "--set", "eval_every=0", "--threads", "1",
+TINY = ["--set", "phase1.init_points=300", "--set", "eval_every=0", "--threads", "1",
         "--set", "phases=1"]  # fmt: skip
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "RAYON_NUM_THREADS": "1"}
 

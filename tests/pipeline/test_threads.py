@@ -78,7 +78,7 @@ def test_fit_and_eval_with_one_thread_use_one_thread(tmp_path: Path) -> None:
     run = tmp_path / "run"
     fit = _cpu_times([
         "fit", str(data), "--out", str(run), "--threads", "1", "--phases", "1,2", "--iters", "20",
-        "--config", str(repo_configs() / "synthetic.toml"), "--set", "init_points=20000",
+        "--config", str(repo_configs() / "synthetic.toml"), "--set", "phase1.init_points=20000",
     ])  # fmt: skip
     _check_one_busy_thread("fit", fit)
     _check_one_busy_thread("eval", _cpu_times(["eval", str(run), "--threads", "1"]))

@@ -26,8 +26,8 @@ from sync4d.phase1.nodes import NodeConfig
 from sync4d.phase1.trainer import Phase1Config
 from sync4d.runs import CHECKPOINT_NAME, read_checkpoint
 
-SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=300", "--set",
-            "eval_every=0", "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2",
+SETTINGS = ["--iters", "12", "--threads", "1", "--set", "phase1.init_points=300", "--set",
+            "eval_every=0", "--set", "phase2.iterations=8", "--set", "phase2.motion_start=2",
             "--set", "checkpoint_every=3"]  # fmt: skip
 
 
@@ -45,7 +45,7 @@ def moving(tmp_path_factory) -> Path:
                                      small_synthetic())
 
 
-OBJECTS = ["--set", "init_points=3000", "--set", "init_from=random", "--set",
+OBJECTS = ["--set", "phase1.init_points=3000", "--set", "phase1.init_from=random", "--set",
            "phase2.still_position=0", "--set", "phase2.still_rotation=0", "--set",
            "phase2.static_fraction=0"]  # every object counts as moving
 

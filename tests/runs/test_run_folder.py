@@ -12,8 +12,9 @@ from support.datasets import write_blender
 from sync4d.cli import main
 from sync4d.runs import CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, RunError, load_model, load_run
 
-SETTINGS = ["--iters", "12", "--threads", "1", "--set", "init_points=300", "--set", "eval_every=0",
-            "--set", "phase2_iterations=8", "--set", "phase2.motion_start=2",
+SETTINGS = ["--iters", "12", "--threads", "1", "--set", "phase1.init_points=300",
+            "--set", "eval_every=0",
+            "--set", "phase2.iterations=8", "--set", "phase2.motion_start=2",
             "--set", "phase2.motion.kind=mlp"]  # fmt: skip
 
 
