@@ -1,14 +1,16 @@
 """The command line's shared options and argument types, in one place: every command's
 `add_arguments` (in its own module) builds its options from these, so one option means one
 thing everywhere (``--threads``, ``--backend``, ``--encoder``, ``--rule``, ``--config`` and
-``--set``). Light: argparse here; the registries an option's help lists (encoders, activation
-rules) are read when the option is added, which the command line does only for the command it
-runs."""
+``--set``). Light (argparse and `sync4d.settings`): the registries an option's help lists
+(encoders, activation rules) are read when the option is added, which the command line does
+only for the command it runs."""
 
 from __future__ import annotations
 
 import argparse
 import math
+
+from sync4d.settings import BACKENDS
 
 __all__ = [
     "BACKGROUNDS",
@@ -127,7 +129,7 @@ def add_backend(p: argparse.ArgumentParser) -> None:
     selects it before the command runs)."""
     p.add_argument(
         "--backend",
-        choices=("cpu", "wgpu", "auto"),
+        choices=BACKENDS,
         default="cpu",
         help="compositing backend: the Rust CPU path (default), wgpu (a GPU, else a CPU "
         "Vulkan driver such as lavapipe) or auto (wgpu on a GPU, else cpu)",

@@ -46,6 +46,7 @@ import torch
 from torch import Tensor
 
 from sync4d import _core
+from sync4d.settings import BACKENDS
 
 __all__ = [
     "BACKENDS",
@@ -60,8 +61,6 @@ __all__ = [
     "sh_features",
 ]
 
-#: Backend names accepted by ``backend=`` and ``--backend``.
-BACKENDS = ("cpu", "wgpu", "auto")
 _default_backend = "cpu"
 _auto_choice: str | None = None
 

@@ -17,7 +17,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
-__all__ = ["Allowed", "ConfigError", "allowed", "budget_floor", "choice", "ranged"]
+__all__ = ["BACKENDS", "Allowed", "ConfigError", "allowed", "budget_floor", "choice", "ranged"]
 
 class ConfigError(ValueError):
     """A bad config file or override; the message names the key and what to do (here, below
@@ -28,6 +28,9 @@ class ConfigError(ValueError):
 KEY = "sync4d.allowed"
 #: The metadata key of the floor of a field that scales with the budget (`budget_floor`).
 SCALES_KEY = "sync4d.scales"
+#: The compositing backends: ``backend=`` of `sync4d.raster` and ``--backend`` (here, light, so
+#: that the command line's options need not import the rasterizer).
+BACKENDS = ("cpu", "wgpu", "auto")
 
 
 def _num(x: float) -> str:
