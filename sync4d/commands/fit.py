@@ -16,19 +16,20 @@ import argparse
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from sync4d.config import ConfigError
-from sync4d.data import DatasetError, loaders
+from sync4d.data import loaders
+from sync4d.data.scene import DatasetError
 from sync4d.data.synthetic import default_scene_dir
 from sync4d.files import LOCK_FILE, RunBusy, RunLock, WriteFailed
 from sync4d.options import add_encoder, add_training_options, positive_float, positive_int
 from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.store import FieldError
-from sync4d.pipeline import FitInterrupted, TrainingDiverged
-from sync4d.pipeline.request import FitRequest, fit_request, fresh_config, is_run
 from sync4d.progress import TerminalRenderer
-from sync4d.runs import CheckpointError, RunError
-from sync4d.watchdog import NonFinite
+from sync4d.settings import ConfigError
+
+if TYPE_CHECKING:  # the pipeline loads torch: imported when fit runs, not for its --help
+    from sync4d.pipeline.request import FitRequest
 
 __all__ = ["add_arguments", "main"]
 
@@ -72,6 +73,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _request(args: argparse.Namespace, run_dir: Path) -> FitRequest:
     """The parsed command line as the pipeline's request."""
+    from sync4d.pipeline.request import FitRequest
+
     return FitRequest(
         run_dir=run_dir, data=Path(args.data) if args.data else None, config=args.config,
         settings=tuple(args.set or ()), iters=args.iters,
@@ -82,6 +85,11 @@ def _request(args: argparse.Namespace, run_dir: Path) -> FitRequest:
 
 def main(args: argparse.Namespace) -> int:
     """Run `fit` with parsed `args`; the exit status."""
+    from sync4d.pipeline import FitInterrupted, TrainingDiverged
+    from sync4d.pipeline.request import fit_request, fresh_config, is_run
+    from sync4d.runs import CheckpointError, RunError
+    from sync4d.watchdog import NonFinite
+
     if args.resume and args.force:
         print("fit: --resume continues RUN and --force deletes it; pass one of them",
               file=sys.stderr)  # fmt: skip

@@ -76,7 +76,7 @@ def _stop_long_renders(real):
 
 #: Where each long command's work starts (module attribute replaced by `_stop`).
 STOPS = {
-    "fit": ("sync4d.commands.fit.fit_request",),
+    "fit": ("sync4d.pipeline.request.fit_request",),
     "process": ("sync4d.data.process.process_capture",
                 "sync4d.commands.process.process_capture"),
     "eval": ("sync4d.pipeline.evaluate.evaluate_run",),
