@@ -40,8 +40,6 @@ PENDING: dict[str, str] = {
     "docs/results/offline-encoder.md": "no record named (accuracy, cost, settings tables)",
     "docs/results/run-contract.md": "no record named (2026-12-02 measurements)",
     "docs/export.md": "bouncingballs measurements: no record (another engineer edits the page)",
-    "docs/datasets.md": "the camera errors of `process` on the test video: asserted by "
-    "tests/data/test_process.py, no record",
 }
 
 # Generated from the code by scripts/gen_docs.py: option and config defaults, not measurements.

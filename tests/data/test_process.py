@@ -5,8 +5,11 @@ of ns-process-data output: times from the frame order, lens distortion, sparse_p
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import json
 import math
+import os
+import platform
 from pathlib import Path
 
 import av
@@ -14,6 +17,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+import sync4d.data.process as process_module
 import sync4d.data.synthetic as syn
 from sync4d.cli import main
 from sync4d.data import DatasetError, load_scene
@@ -124,6 +128,72 @@ def test_video_to_dataset_to_fit(
     assert main(fit) == 0
     psnr = json.loads((run / "eval.json").read_text())["mean"]["psnr"]
     assert math.isfinite(psnr)  # 30 iterations: it trains; docs/datasets.md has a longer fit
+    record = os.environ.get("SYNC4D_PROCESS_RECORD")
+    if record:
+        _write_process_record(record, orbit, data, rot_err, centre_err, tmp_path)
+
+
+def _errors(orbit: syn.OrbitVideo, data: Path) -> dict:
+    """Registered frames, focal length and the pose errors of a processed `data` folder."""
+    scene = load_scene(data)
+    frames = scene.train + scene.test
+    rows = [int(f.name.removeprefix("frame_").removesuffix(".png")) - 1 for f in frames]
+    rot_err, centre_err = pose_errors(frames, rows, orbit.c2w, orbit.extent)
+    doc = json.loads((data / "colmap" / "process.json").read_text())
+    return {
+        "registered": len(frames), "frames": len(orbit.times),
+        "error_threshold_px": doc["error_threshold_px"], "seconds": doc["seconds"],
+        "fl_x": json.loads((data / "transforms.json").read_text())["fl_x"],
+        "rotation_error_deg": {"max": float(rot_err.max()), "median": float(np.median(rot_err))},
+        "centre_error_percent": {"max": float(centre_err.max()),
+                                 "median": float(np.median(centre_err))},
+    }  # fmt: skip
+
+
+def _write_process_record(path: str, orbit: syn.OrbitVideo, data: Path, rot_err: np.ndarray,
+                          centre_err: np.ndarray, tmp_path: Path) -> None:  # fmt: skip
+    """docs/bench/process-orbit.json (docs/datasets.md): the test's `process` run, the same
+    video processed with COLMAP's default 4-pixel thresholds, and a Phase 1 fit of 300 iterations
+    on the test's dataset (test PSNR, SSIM, LPIPS)."""
+    default = _errors(orbit, data)
+    assert default["rotation_error_deg"]["max"] == float(rot_err.max())
+    assert default["centre_error_percent"]["max"] == float(centre_err.max())
+    four = tmp_path / "data-4px"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(process_module, "_error_threshold", lambda longest_side: 4.0)
+        assert main(["process", str(orbit.path), "--out", str(four), "--threads", "2"]) == 0
+    fits = {}
+    for iters in (300,):
+        run = tmp_path / f"run-{iters}"
+        assert main(["fit", str(data), "--out", str(run), "--iters", str(iters), "--phases",
+                     "1", "--threads", "2", "--set", "eval_every=0"]) == 0  # fmt: skip
+        fits[str(iters)] = json.loads((run / "eval.json").read_text())["mean"]
+    with open("/proc/cpuinfo") as fh:
+        cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
+    doc = {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": f"SYNC4D_PROCESS_RECORD={path} OMP_NUM_THREADS=1 python -m pytest -q "
+        "tests/data/test_process.py -k video_to_dataset -m slow -p no:cacheprovider",
+        "machine": {
+            "platform": platform.platform(),
+            "cpu": cpu,
+            "cpus": os.cpu_count(),
+            "note": "2 cores shared with other jobs",
+        },  # fmt: skip
+        "video": {
+            "frames": len(orbit.times),
+            "size": orbit.size,
+            "fps": orbit.fps,
+            "focal": orbit.focal,
+            "extent_m": orbit.extent,
+        },  # fmt: skip
+        "process_default": default,
+        "process_4px": _errors(orbit, four),
+        "fit_phase1": fits,
+    }
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(doc, fh, indent=1)
+        fh.write("\n")
 
 
 @pytest.mark.slow
