@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from sync4d.data.loaders import offered_splits
-from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase2.config import Phase2Config
 from sync4d.phase3.config import Phase3Config
 from sync4d.settings import ConfigError, allowed, budget_floor, choice, ranged
@@ -88,57 +88,29 @@ class RunConfig:
     #: (the splits the dataset loaders offer, `sync4d.data.loaders`).
     test_split: str = choice("test", offered_splits())
     #: Test-split PSNR/SSIM every this many iterations during `fit` (0: only at the end).
-    eval_every: int = ranged(1_000, 0)
+    eval_every: int = ranged(1_000, 0, scales=1)
     #: Test frames used by the periodic evaluation (0: all); the final evaluation uses all.
     eval_frames: int = ranged(0, 0)
     #: Atomic checkpoint every this many iterations (0: none in between); always one at the
     #: end and on Ctrl-C.
-    checkpoint_every: int = ranged(1_000, 0)
+    checkpoint_every: int = ranged(1_000, 0, scales=1)
 
 
 def with_budget(cfg: RunConfig, iterations: int) -> RunConfig:
     """`cfg` bounded to `iterations` per phase (`fit --iters N`). Phase 1 trains `iterations`
-    instead of `cfg.phase1.iterations`, with its iteration-based schedules (densification
-    start/stop/interval, opacity reset, SH degree steps, static and learning-rate warm-ups,
-    coarse iterations,
-    periodic evaluation and checkpoints) scaled by the same ratio, so a shorter run still
-    densifies, resets opacities and reaches full SH degree at the same fractions of training.
-    Phase 2 trains at most `iterations` (`phase2_budget`)."""
+    instead of `cfg.phase1.iterations`, with every iteration count marked `ranged(...,
+    scales=floor)` in it and in the run's cadence (densification start/stop/interval, opacity
+    reset, SH degree steps, static and learning-rate warm-ups, coarse iterations, node start
+    and refresh, periodic evaluation and checkpoints) scaled by the same ratio, so a shorter
+    run still densifies, resets opacities and reaches full SH degree at the same fractions of
+    training. Phase 2 trains at most `iterations` (`phase2_budget`). The marks, not a list
+    here, say what scales."""
     if iterations < 1:
         raise ConfigError(f"iterations: expected a positive integer, got {iterations}")
     r = iterations / cfg.phase1.iterations
-
-    def scaled(v: int, floor: int = 1) -> int:
-        return max(floor, int(round(v * r)))
-
-    d = cfg.phase1.densify
-    densify = dataclasses.replace(
-        d,
-        start=scaled(d.start, 0),
-        stop=scaled(d.stop, 0),
-        interval=scaled(d.interval, 10),
-        opacity_reset_interval=scaled(d.opacity_reset_interval),
-    )
-    st = cfg.phase1.static
-    static = dataclasses.replace(st, start=scaled(st.start), every=scaled(st.every, 10))
-    phase1 = dataclasses.replace(
-        cfg.phase1,
-        iterations=iterations,
-        densify=densify,
-        static=static,
-        nodes=_scale_marked(cfg.phase1.nodes, r),
-        sh_degree_interval=scaled(cfg.phase1.sh_degree_interval),
-        static_warmup=scaled(cfg.phase1.static_warmup, 0),
-        coarse_iterations=scaled(cfg.phase1.coarse_iterations, 0),
-        lr_deform_warmup=scaled(cfg.phase1.lr_deform_warmup, 0),
-    )
-    return dataclasses.replace(
-        cfg,
-        phase1=phase1,
-        phase2=phase2_budget(cfg.phase2, iterations),
-        eval_every=scaled(cfg.eval_every) if cfg.eval_every else 0,
-        checkpoint_every=scaled(cfg.checkpoint_every) if cfg.checkpoint_every else 0,
-    )
+    phase1 = dataclasses.replace(_scale_marked(cfg.phase1, r), iterations=iterations)
+    return dataclasses.replace(_scale_marked(cfg, r, sections=False), phase1=phase1,
+                               phase2=phase2_budget(cfg.phase2, iterations))  # fmt: skip
 
 
 def phase2_budget(p2: Phase2Config, iterations: int) -> Phase2Config:
@@ -153,14 +125,16 @@ def phase2_budget(p2: Phase2Config, iterations: int) -> Phase2Config:
     return dataclasses.replace(_scale_marked(p2, iterations / p2.iterations), iterations=iterations)
 
 
-def _scale_marked(obj: Any, r: float) -> Any:
+def _scale_marked(obj: Any, r: float, sections: bool = True) -> Any:
     """Dataclass `obj` with every field marked `ranged(..., scales=floor)` (`budget_floor`),
-    in it and in its sections, times `r`: rounded, at least `floor`; 0 stays 0."""
+    in it and (with `sections`) in its sections, times `r`: rounded, at least `floor`; 0
+    stays 0."""
     changes: dict[str, Any] = {}
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
         if dataclasses.is_dataclass(value):
-            changes[f.name] = _scale_marked(value, r)
+            if sections:
+                changes[f.name] = _scale_marked(value, r)
         elif (floor := budget_floor(f)) is not None and value > 0:
             changes[f.name] = max(floor, int(round(value * r)))
     return dataclasses.replace(obj, **changes)

@@ -28,13 +28,13 @@ class DensifyConfig:
     #: Mean screen-space gradient norm of a Gaussian's centre above which it is cloned or split.
     grad_threshold: float = ranged(2e-4, 0.0, lo_open=True)
     #: First iteration of densification.
-    start: int = ranged(500, 0)
+    start: int = ranged(500, 0, scales=0)
     #: Last iteration of densification.
-    stop: int = ranged(15_000, 0)
+    stop: int = ranged(15_000, 0, scales=0)
     #: Iterations between densification steps.
-    interval: int = ranged(100, 1)
+    interval: int = ranged(100, 1, scales=10)
     #: Iterations between opacity resets (every opacity set to at most 0.01).
-    opacity_reset_interval: int = ranged(3_000, 1)
+    opacity_reset_interval: int = ranged(3_000, 1, scales=1)
     #: Gaussians with opacity below this are pruned at each densification step.
     prune_opacity: float = ranged(0.005, 0.0, 1.0)
     #: Gaussians larger than this fraction of the scene extent are split, smaller ones cloned.

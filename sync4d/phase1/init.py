@@ -33,7 +33,7 @@ INIT_SOURCES = ("auto", "points", "triangulate", "random")
 
 
 class Phase1Settings(Protocol):
-    """The initialisation settings of `sync4d.phase1.trainer.Phase1Config` these read."""
+    """The initialisation settings of `sync4d.phase1.config.Phase1Config` these read."""
 
     init_from: str
     init_dome_points: int

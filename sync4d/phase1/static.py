@@ -53,10 +53,10 @@ class StaticConfig:
     enabled: bool = False
     #: Iteration of the first check (scaled with `fit --iters`); D_theta must have learnt
     #: the motion by then, or moving Gaussians look static.
-    start: int = ranged(3_000, 1)
+    start: int = ranged(3_000, 1, scales=1)
     #: Iterations between checks (scaled with `fit --iters`); the last densification also
     #: triggers one.
-    every: int = ranged(1_000, 1)
+    every: int = ranged(1_000, 1, scales=10)
     #: Training times at which D_theta is evaluated per check (evenly spread over the frames).
     times: int = ranged(16, 2, 1_000)
     #: Largest spread over time of the position offset of a static Gaussian, as a fraction of

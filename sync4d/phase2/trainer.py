@@ -51,8 +51,9 @@ import numpy as np
 from torch import Tensor
 
 from sync4d.data.scene import Scene
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.phase1.trainer import FinishedSchedule, Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import FinishedSchedule, Phase1Trainer
 from sync4d.phase2.assign import Assignment
 from sync4d.phase2.config import Phase2Config
 from sync4d.phase2.refine import refine_motion

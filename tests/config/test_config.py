@@ -99,3 +99,30 @@ def test_phase2_budget_scales_every_marked_field() -> None:
     assert budget_floor(tau) is None
     with pytest.raises(TypeError, match="scales"):
         ranged(0.5, 0.0, scales=0)
+
+
+def test_every_iteration_count_of_phase1_and_the_run_is_marked_to_scale() -> None:
+    """`with_budget` scales what is marked `ranged(..., scales=floor)`, not a list: every
+    integer field of Phase 1's sections and the run's cadence named as an iteration count (a
+    start, stop, interval, period, warm-up or coarse length) carries the mark, so a new one
+    cannot be forgotten; `iterations` itself is set, not scaled."""
+    import dataclasses
+    import re
+
+    from sync4d.config import RunConfig
+    from sync4d.settings import budget_floor
+
+    counts = re.compile(r"(^|_)(start|stop|interval|every|warmup|after|until|iterations)$")
+
+    def walk(obj, path: str):
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                if f.name not in ("phase2", "phase3"):  # phase2_budget: its own test
+                    yield from walk(value, f"{path}{f.name}.")
+            elif type(value) is int and counts.search(f.name) and f.name != "iterations":
+                yield f"{path}{f.name}", budget_floor(f)
+
+    fields = dict(walk(RunConfig(), ""))
+    assert len(fields) >= 12, fields
+    assert not [k for k, floor in fields.items() if floor is None], fields

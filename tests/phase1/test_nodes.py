@@ -13,6 +13,7 @@ import torch
 from support.scenes import orbit_scene, orbit_student, random_gaussians
 from support.training import train
 from sync4d.geometry import axis_angle_to_quat, quat_multiply, rotvec_to_matrix
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.nodes import (
@@ -26,7 +27,7 @@ from sync4d.phase1.nodes import (
     farthest_point_sample,
     knn,
 )
-from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import Phase1Trainer
 
 F64 = torch.float64
 

@@ -11,9 +11,10 @@ from pathlib import Path
 import torch
 
 from support.scenes import densify_case, orbit_scene, orbit_student
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.static import StaticConfig, motion_sparsity
-from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import Phase1Trainer
 
 
 def _trainer(tmp_path: Path, **config) -> Phase1Trainer:

@@ -10,9 +10,10 @@ import torch
 
 from support.scenes import orbit_scene, orbit_student
 from support.training import train
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import Phase1Trainer
 
 
 def test_training_reduces_the_photometric_loss(tmp_path: Path) -> None:

@@ -18,10 +18,11 @@ from PIL import Image
 
 from support.cameras import look_at_w2c
 from sync4d.data.scene import Camera, Frame, Scene
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.nodes import NodeConfig
-from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.watchdog import NonFinite
 
 

@@ -20,8 +20,8 @@ from support.oracle import OracleGaussians, oracle_points
 from sync4d.config import ConfigError, RunConfig, apply_overrides
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2 import MotionStrategy, Phase2Config, phase2_trainer
 from sync4d.phase2.diagnostics import diagnostics
 from sync4d.phase2.motion import MotionConfig

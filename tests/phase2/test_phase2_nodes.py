@@ -14,9 +14,9 @@ from support.oracle import oracle_points
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.geometry import matrix_to_rotvec
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.nodes import NodeConfig
-from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2 import Phase2Config, phase2_trainer
 from sync4d.phase2.assign import node_votes
 from sync4d.phase2.motion import MotionConfig

@@ -23,7 +23,7 @@ from sync4d.cli import main
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
 from sync4d.geometry import rotvec_to_matrix
-from sync4d.phase1.trainer import Phase1Config
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase2 import MotionStrategy, Phase2Config, phase2_trainer
 from sync4d.phase2.diagnostics import diagnostics
 from sync4d.phase2.motion import MotionConfig, make_motion, still_objects

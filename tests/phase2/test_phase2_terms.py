@@ -12,8 +12,8 @@ import torch
 
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2 import Phase2Config, phase2_trainer
 from sync4d.phase2.terms import (
     TERMS,

@@ -22,8 +22,8 @@ from sync4d import watchdog
 from sync4d.cli import main
 from sync4d.config import RunConfig
 from sync4d.data import synthetic as syn
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.nodes import NodeConfig
-from sync4d.phase1.trainer import Phase1Config
 from sync4d.runs import CHECKPOINT_NAME, read_checkpoint
 
 SETTINGS = ["--iters", "12", "--threads", "1", "--set", "phase1.init_points=300", "--set",

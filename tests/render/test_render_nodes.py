@@ -22,10 +22,11 @@ from safetensors.torch import load_file, save_file
 
 from support.render import python_png, run_render, skip_without_adapter
 from support.scenes import orbit_scene, random_gaussians
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.nodes import NodeConfig
-from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.runs import camera_records, save_checkpoint
 
 #: (blend, D_theta's position input, a static set left in the checkpoint).

@@ -10,8 +10,9 @@ import torch
 
 from support.scenes import orbit_scene, orbit_student
 from support.training import train
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.densify import DensifyConfig
-from sync4d.phase1.trainer import Phase1Config, Phase1Trainer
+from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.pipeline import resume_trainer
 from sync4d.runs import CheckpointError, load_model, save_checkpoint
 

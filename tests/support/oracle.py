@@ -12,9 +12,9 @@ import torch
 from support.scenes import small_synthetic
 from sync4d.data import synthetic as syn
 from sync4d.data.detect import load_scene
+from sync4d.phase1.config import Phase1Config
 from sync4d.phase1.gaussians import DeformableGaussians, rgb_to_sh_dc
 from sync4d.phase1.nodes import NodeConfig
-from sync4d.phase1.trainer import Phase1Config
 from sync4d.phase2 import Phase2Config, phase2_trainer
 from sync4d.phase2.motion import MotionConfig
 from sync4d.runs import CHECKPOINT_NAME, Run, camera_records, save_checkpoint
