@@ -1,6 +1,6 @@
 """``python -m sync4d encoder convert|info``: convert a Hugging Face SigLIP model into a
 SigLIP-ONNX encoder directory (once, with internet and the ``export`` extra), and describe and
-check one. (``encoder export``, the spelling before, still runs `convert` for one release.)
+check one.
 
 The directory is what ``--encoder DIR`` (or ``$SYNC4D_ENCODER``) names in Phase 3; its layout is
 documented in `sync4d.phase3.encoders.siglip`."""
