@@ -4,9 +4,11 @@ another experiment. One test per case of the issue that asked for it."""
 
 from __future__ import annotations
 
+import datetime
 import errno
 import json
 import os
+import platform
 import random
 import shlex
 import signal
@@ -134,9 +136,7 @@ def test_a_second_writer_is_told_who_holds_the_run(data: Path, tmp_path: Path, c
 
 
 # 4. A second Ctrl-C (and a hang-up) during a save waits for the save.
-def test_signals_during_a_save_wait_for_it(
-    data: Path, tmp_path: Path, monkeypatch, capsys
-) -> None:
+def test_signals_during_a_save_wait_for_it(data: Path, tmp_path: Path, monkeypatch, capsys) -> None:
     run = tmp_path / "run"
     real = checkpoint_module.save_file
     calls = []
@@ -236,9 +236,7 @@ def test_bench_fit_checks_its_output_before_training(
 
 
 # 8. Evaluating another split or dataset never overwrites the run's eval.json.
-def test_eval_of_another_split_or_dataset_writes_its_own_file(
-    data: Path, tmp_path: Path
-) -> None:
+def test_eval_of_another_split_or_dataset_writes_its_own_file(data: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
     assert main(["fit", str(data), "--out", str(run), "--iters", "3", *TINY]) == 0
     own = (run / "eval.json").read_bytes()
@@ -326,7 +324,7 @@ def test_sigkill_during_saves_always_leaves_a_checkpoint_to_resume(
     run = tmp_path / "run"
     rng = random.Random(1234)
     base = ["fit", str(data), "--out", str(run), *TINY, "--set", "checkpoint_every=1"]
-    iterations = []
+    iterations, delays, started = [], [], time.perf_counter()
     for kill in range(24):
         argv = [*base, "--iters", "100000"] + (["--resume"] if kill else [])
         proc = subprocess.Popen([sys.executable, "-c", _MARK_SAVES, *argv],
@@ -338,7 +336,8 @@ def test_sigkill_during_saves_always_leaves_a_checkpoint_to_resume(
             while saves < 2 + rng.randrange(3):  # at least one save has completed
                 assert proc.stdout.readline() == "S\n", "fit ended before its saves"
                 saves += 1
-            time.sleep(rng.uniform(0.0, 0.04))
+            delays.append(rng.uniform(0.0, 0.04))
+            time.sleep(delays[-1])
             proc.send_signal(signal.SIGKILL)
             proc.wait(timeout=30)
         finally:
@@ -348,3 +347,21 @@ def test_sigkill_during_saves_always_leaves_a_checkpoint_to_resume(
     last = iterations[-1]
     assert main([*base, "--resume", "--iters", str(last + 3)]) == 0
     assert _meta(run)["iteration"] == last + 3 and _no_temporaries(run)
+    record = os.environ.get("SYNC4D_SIGKILL_RECORD")
+    if record:
+        with open("/proc/cpuinfo") as fh:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in fh
+                        if ln.startswith("model name")), "")  # fmt: skip
+        doc = {
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "command": f"SYNC4D_SIGKILL_RECORD={record} OMP_NUM_THREADS=1 python -m pytest -q "
+            "tests/pipeline/test_run_contract.py -m slow -k sigkill -p no:cacheprovider",
+            "machine": {"platform": platform.platform(), "cpu": cpu, "cpus": os.cpu_count()},
+            "kills": len(delays),
+            "delay_after_save_start_ms": [1e3 * d for d in delays],
+            "iteration_after_each_kill": iterations,
+            "resumed_to": last + 3,
+            "all_loadable_and_resumed": True,
+            "seconds": time.perf_counter() - started,
+        }
+        Path(record).write_text(json.dumps(doc, indent=1) + "\n")
