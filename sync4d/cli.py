@@ -218,10 +218,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"python -m sync4d: '{args.command}' is not available: module {args.handler} is "
               "missing from this install", file=sys.stderr)  # fmt: skip
         return 2
-    _bound_torch_threads(args)
     if not hasattr(args, "backend"):  # e.g. query: no rendering, no torch import
+        _bound_torch_threads(args)
         return _call(module, args)
-    from sync4d import raster
+    from sync4d import raster  # torch too: a command that renders
+
+    _bound_torch_threads(args)
 
     backend = getattr(args, "backend", None)
     previous = raster.resolve_backend()
