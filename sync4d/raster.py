@@ -155,6 +155,19 @@ class _Camera:
     width: int
     height: int
 
+    def kwargs(self) -> dict:
+        """The projection bindings' camera arguments, by name."""
+        fx, fy, cx, cy = self.intrinsics
+        return {
+            "viewmat": self.viewmat,
+            "fx": fx,
+            "fy": fy,
+            "cx": cx,
+            "cy": cy,
+            "width": self.width,
+            "height": self.height,
+        }
+
 
 def _camera(viewmat: Tensor, K: Tensor, width: int, height: int) -> _Camera:
     _check_tensor("viewmat", viewmat, (4, 4))
@@ -206,7 +219,7 @@ class _ProjectFn(torch.autograd.Function):
         fn = _core.project_forward
         m2, co, de, op, ra, _visible = fn(
             _np(means), _np(quats), _np(scales), _np(opacities),
-            cam.viewmat, cam.intrinsics, cam.width, cam.height, settings, threads,
+            **cam.kwargs(), settings=settings, threads=threads,
         )  # fmt: skip
         n = means.shape[0]
         ctx.save_for_backward(means, quats, scales, opacities)
@@ -232,10 +245,10 @@ class _ProjectFn(torch.autograd.Function):
         fn = _core.project_backward
         gm, gq, gs, go = fn(
             _np(means), _np(quats), _np(scales), _np(opacities),
-            cam.viewmat, cam.intrinsics, cam.width, cam.height, ctx.settings,
-            (grad_or_zeros(v_m2, like2), grad_or_zeros(v_co, like3),
-             grad_or_zeros(v_de, like1), grad_or_zeros(v_op, like1)),
-            ctx.threads,
+            **cam.kwargs(), settings=ctx.settings,
+            grad_means2d=grad_or_zeros(v_m2, like2), grad_conics=grad_or_zeros(v_co, like3),
+            grad_depths=grad_or_zeros(v_de, like1), grad_opacities=grad_or_zeros(v_op, like1),
+            threads=ctx.threads,
         )  # fmt: skip
         return (
             torch.from_numpy(gm).reshape(n, 3),
@@ -278,7 +291,9 @@ def project_gaussians(
     through a pinhole camera into screen-space splats (differentiable, see :class:`Projection`)."""
     _check_gaussians(means, quats, scales, opacities)
     cam = _camera(viewmat, K, width, height)
-    settings = (float(near), float(far), float(eps2d), bool(antialiased))
+    settings = _core.ProjectSettings(
+        near=float(near), far=float(far), eps2d=float(eps2d), antialiased=bool(antialiased)
+    )
     out = _ProjectFn.apply(means, quats, scales, opacities, cam, settings, thread_count(threads))
     return Projection(*out)
 
@@ -324,18 +339,33 @@ class _Lease:
             pass
 
 
+def _splat_args(means2d, conics, depths, opacities, radii, features, background) -> dict:
+    """The compositing bindings' splat arguments, by name (zero-copy NumPy views)."""
+    return {
+        "means2d": _np(means2d),
+        "conics": _np(conics),
+        "depths": _np(depths),
+        "opacities": _np(opacities),
+        "radii": _np(radii),
+        "features": _np(features),
+        "channels": features.shape[1],
+        "background": _np(background),
+    }
+
+
 class _RasterizeFn(torch.autograd.Function):
     @staticmethod
     def forward(  # type: ignore[override]
         ctx, means2d, conics, depths, opacities, features, radii, background, opts, info
     ):
-        width, height, alpha_max, threads, backend = opts
+        settings, threads, backend = opts
+        width, height = settings.width, settings.height
         n, ch = features.shape
-        splats = (_np(means2d), _np(conics), _np(depths), _np(opacities), _np(radii), _np(features))
         lease = _Lease(backend)
         f, a, d, counters = lease.context.forward(
-            splats, ch, _np(background), width, height, alpha_max, threads
-        )
+            **_splat_args(means2d, conics, depths, opacities, radii, features, background),
+            settings=settings, threads=threads,
+        )  # fmt: skip
         if any(ctx.needs_input_grad[:5]):
             ctx.lease = lease
         info.update(counters)
@@ -350,18 +380,18 @@ class _RasterizeFn(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_f, v_a, v_d):  # type: ignore[override]
         means2d, conics, depths, opacities, features, radii, background = ctx.saved_tensors
-        width, height, alpha_max, threads, _backend = ctx.opts
+        settings, threads, _backend = ctx.opts
+        width, height = settings.width, settings.height
         n, ch = features.shape
-        splats = (_np(means2d), _np(conics), _np(depths), _np(opacities), _np(radii), _np(features))
         like_f = features.new_empty(height, width, ch)
         like_1 = features.new_empty(height, width, 1)
-        grads = (
-            grad_or_zeros(v_f, like_f),
-            grad_or_zeros(v_a, like_1),
-            grad_or_zeros(v_d, like_1),
-        )
         g2, gc, gd, go, gf = ctx.lease.context.backward(
-            splats, ch, _np(background), width, height, alpha_max, grads, threads
+            **_splat_args(means2d, conics, depths, opacities, radii, features, background),
+            settings=settings,
+            grad_features=grad_or_zeros(v_f, like_f),
+            grad_alpha=grad_or_zeros(v_a, like_1),
+            grad_depth=grad_or_zeros(v_d, like_1),
+            threads=threads,
         )
         return (
             torch.from_numpy(g2).reshape(n, 2),
@@ -414,7 +444,7 @@ def rasterize_to_pixels(
         _check_tensor("background", background, (ch,), dtype)
     background = background.detach()
     am = float(alpha_max)
-    if not (1.0 / 255.0 <= am < 1.0):
+    if not (_core.ALPHA_MIN <= am < 1.0):
         raise ValueError(f"alpha_max: must lie in [1/255, 1), got {alpha_max}")
     info: dict = {} if counters is None else counters
     be = resolve_backend(backend)
@@ -423,7 +453,8 @@ def rasterize_to_pixels(
             "backend 'wgpu' composites float32 only; use backend='cpu' for float64 "
             "(gradient checks)"
         )
-    opts = (w, h, am, thread_count(threads), be)
+    settings = _core.CompositeSettings(width=w, height=h, alpha_max=am)
+    opts = (settings, thread_count(threads), be)
     return _RasterizeFn.apply(
         means2d, conics, depths, opacities, features, radii, background, opts, info
     )

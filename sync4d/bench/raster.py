@@ -41,18 +41,12 @@ Units: ms are milliseconds; MB are MiB (2**20 bytes); GB are GiB.
 from __future__ import annotations
 
 import argparse
-import ctypes
-import ctypes.util
 import datetime as _dt
-import gc
 import importlib.metadata
 import importlib.util
 import json
 import math
 import os
-import platform
-import resource
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -67,6 +61,18 @@ from torch import Tensor
 
 import sync4d
 from sync4d import _core
+from sync4d.bench.measure import (
+    MEMORY_METHODS,
+    METHOD_CLEAR_REFS,
+    METHOD_SUBPROCESS,
+    OtherLoad,
+    Timing,
+    clear_refs_available,
+    machine_info,
+    measure,
+    mem_available_gb,
+    proc_status_kb,
+)
 from sync4d.options import positive_float, positive_int, resolution, thread_count
 from sync4d.report import align_table
 
@@ -99,19 +105,6 @@ CHILD_TIMEOUT_S = 1800.0
 LOAD_WARN_CORES = 0.15
 
 MODES = ("forward", "forward_backward")
-METHOD_CLEAR_REFS = "clear_refs"
-METHOD_SUBPROCESS = "subprocess"
-MEMORY_METHODS = {
-    METHOD_CLEAR_REFS: (
-        "in process: gc.collect() + malloc_trim(0), baseline = VmRSS, reset the high-water mark "
-        "with '5' > /proc/self/clear_refs, run the warm-up and timed calls of one mode, "
-        "peak = VmHWM from /proc/self/status"
-    ),
-    METHOD_SUBPROCESS: (
-        "one child process per measurement (scene built in the child), baseline = VmRSS before "
-        "the warm-up, peak = the child's resource.getrusage(RUSAGE_SELF).ru_maxrss"
-    ),
-}
 ALLOCATORS = {
     "sync4d": "Rust system allocator (glibc malloc) with per-context buffer reuse "
     "(RasterContext pool)",
@@ -198,164 +191,6 @@ def parse_resolution(text: str) -> tuple[int, int]:
     return width, height
 
 
-# --------------------------------------------------------------------------------------------
-# Memory probes
-# --------------------------------------------------------------------------------------------
-
-
-def _proc_status_kb(pid: int | str = "self") -> dict[str, int]:
-    """``Vm*`` / ``Rss*`` fields of ``/proc/<pid>/status`` in kB (empty if unreadable)."""
-    out: dict[str, int] = {}
-    try:
-        with open(f"/proc/{pid}/status") as fh:
-            for line in fh:
-                key, _, rest = line.partition(":")
-                if key.startswith(("Vm", "Rss")):
-                    fields = rest.split()
-                    if fields and fields[0].isdigit():
-                        out[key] = int(fields[0])
-    except OSError:
-        pass
-    return out
-
-
-def _rss_mb() -> float | None:
-    kb = _proc_status_kb().get("VmRSS")
-    return None if kb is None else kb / 1024.0
-
-
-def _reset_hwm() -> None:
-    """Reset this process's peak-RSS high-water mark (VmHWM) to its current RSS."""
-    with open("/proc/self/clear_refs", "w") as fh:
-        fh.write("5")
-
-
-def clear_refs_available() -> bool:
-    """Whether the high-water mark can be reset here (writable ``/proc/self/clear_refs``)."""
-    if "VmHWM" not in _proc_status_kb():
-        return False
-    try:
-        _reset_hwm()
-    except OSError:
-        return False
-    return True
-
-
-_LIBC: Any = None
-
-
-def _malloc_trim() -> bool:
-    """Return freed glibc heap memory to the kernel (``malloc_trim(0)``); False if no glibc."""
-    global _LIBC
-    if _LIBC is None:
-        try:
-            _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-            _LIBC.malloc_trim.argtypes = [ctypes.c_size_t]
-        except (OSError, AttributeError):
-            _LIBC = False
-    if not _LIBC:
-        return False
-    _LIBC.malloc_trim(0)
-    return True
-
-
-def _mem_available_gb() -> float | None:
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) / (1024.0 * 1024.0)
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def _system_busy_s() -> float | None:
-    """CPU seconds all processes have been busy (user + nice + system + irq + steal)."""
-    try:
-        with open("/proc/stat") as fh:
-            fields = [int(v) for v in fh.readline().split()[1:]]
-    except (OSError, ValueError):
-        return None
-    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
-    guest = sum(fields[8:10])  # already counted in user / nice
-    return (sum(fields) - idle - guest) / os.sysconf("SC_CLK_TCK")
-
-
-def _own_cpu_s() -> float:
-    """CPU seconds used by this process and its waited-for children."""
-    t = os.times()
-    return t.user + t.system + t.children_user + t.children_system
-
-
-class _OtherLoad:
-    """CPU cores used by *other* processes over an interval (a contention check)."""
-
-    def __init__(self) -> None:
-        self.busy0 = _system_busy_s()
-        self.own0 = _own_cpu_s()
-        self.t0 = time.monotonic()
-
-    def cores(self) -> float | None:
-        busy = _system_busy_s()
-        wall = time.monotonic() - self.t0
-        if busy is None or self.busy0 is None or wall <= 0:
-            return None
-        other = (busy - self.busy0) - (_own_cpu_s() - self.own0)
-        return round(max(other, 0.0) / wall, 3)
-
-
-# --------------------------------------------------------------------------------------------
-# Measurements
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Timing:
-    """One measured mode of one renderer: wall times in ms, memory in MB (MiB)."""
-
-    warmup: int
-    repeats: int
-    times_ms: list[float]
-    median_ms: float
-    rss_baseline_mb: float | None
-    rss_peak_mb: float | None
-    rss_delta_mb: float | None
-    memory_method: str
-
-
-def _measure(fn: Callable[[], None], warmup: int, repeats: int, memory_method: str) -> Timing:
-    """Run ``fn`` ``warmup`` times untimed, then ``repeats`` timed; peak RSS over all of it."""
-    gc.collect()
-    _malloc_trim()
-    baseline = _rss_mb()
-    if memory_method == METHOD_CLEAR_REFS:
-        _reset_hwm()
-    for _ in range(warmup):
-        fn()
-    times: list[float] = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    if memory_method == METHOD_CLEAR_REFS:
-        hwm = _proc_status_kb().get("VmHWM")
-        peak = None if hwm is None else hwm / 1024.0
-    else:  # a dedicated child process: its lifetime peak is this measurement's peak
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    delta = None if peak is None or baseline is None else peak - baseline
-    return Timing(
-        warmup=warmup,
-        repeats=repeats,
-        times_ms=[round(t, 4) for t in times],
-        median_ms=round(statistics.median(times), 4),
-        rss_baseline_mb=None if baseline is None else round(baseline, 2),
-        rss_peak_mb=None if peak is None else round(peak, 2),
-        rss_delta_mb=None if delta is None else round(delta, 2),
-        memory_method=memory_method,
-    )
-
-
 def _leaves(scene: BenchScene) -> list[Tensor]:
     return [t.detach().clone().requires_grad_(True) for t in scene.gaussians()]
 
@@ -433,7 +268,7 @@ def run_job(
         else:
             raise ValueError(f"unknown impl {impl!r}")
         results = {
-            mode: asdict(_measure(calls[mode], warmup, repeats, memory_method)) for mode in modes
+            mode: asdict(measure(calls[mode], warmup, repeats, memory_method)) for mode in modes
         }
         if impl == "sync4d" and "forward" not in modes:
             calls["forward"]()  # counters only
@@ -508,7 +343,7 @@ def run_child(
             try:
                 while proc.poll() is None:
                     execed = execed or _is_child_cmdline(proc.pid)
-                    rss_kb = _proc_status_kb(proc.pid).get("VmRSS", 0) if execed else 0
+                    rss_kb = proc_status_kb(proc.pid).get("VmRSS", 0) if execed else 0
                     max_rss_kb = max(max_rss_kb, rss_kb)
                     if limit_gb is not None and rss_kb > limit_gb * 1024 * 1024:
                         status = f"aborted (RSS > {limit_gb:.3g} GB limit)"
@@ -532,58 +367,6 @@ def run_child(
                 last = tail.strip().splitlines()[-1:] or [""]
                 status = f"failed (exit {proc.returncode}: {last[0][:120]})"
     return ChildOutcome(status, result, round(seconds, 3), round(max_rss_kb / 1024.0, 1), tail)
-
-
-# --------------------------------------------------------------------------------------------
-# Machine description
-# --------------------------------------------------------------------------------------------
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _version(dist: str) -> str | None:
-    try:
-        return importlib.metadata.version(dist)
-    except importlib.metadata.PackageNotFoundError:
-        return None
-
-
-def machine_info() -> dict[str, Any]:
-    """CPU, core counts, memory, OS, Python and library versions."""
-    try:
-        affinity = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        affinity = None
-    mem_total = None
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemTotal:"):
-                    mem_total = round(int(line.split()[1]) / (1024.0 * 1024.0), 2)
-    except OSError:
-        pass
-    return {
-        "cpu_model": _cpu_model(),
-        "nproc": affinity if affinity is not None else os.cpu_count(),
-        "cpu_count": os.cpu_count(),
-        "mem_total_gb": mem_total,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "torch_version": torch.__version__,
-        "torch_parallel_info": torch.__config__.parallel_info().strip().splitlines(),
-        "sync4d_version": sync4d.__version__,
-        "gsplat_version": _version("gsplat"),
-        "numpy_version": _version("numpy"),
-    }
 
 
 def _env_info() -> dict[str, str]:
@@ -1075,7 +858,7 @@ def _run_wgpu(plan: _Plan, n: int, width: int, height: int, threads: int) -> dic
 
 def _run_reference(plan: _Plan, n: int, width: int, height: int, threads: int) -> dict[str, Any]:
     warmup, repeats = plan.reference_repeats(n)
-    available = _mem_available_gb()
+    available = mem_available_gb()
     limit = plan.reference_max_gb
     if available is not None:
         if available - MEMORY_RESERVE_GB < 1.0:
@@ -1205,7 +988,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
                 "n": n, "width": w, "height": h, "resolution": f"{w}x{h}", "threads": t,
             }  # fmt: skip
             progress.say(f"sync4d     {label} ...")
-            t0, load = time.monotonic(), _OtherLoad()
+            t0, load = time.monotonic(), OtherLoad()
             row["sync4d"] = _run_sync4d(plan, n, w, h, t)
             s4d = row["sync4d"]
             s4d["seconds"] = round(time.monotonic() - t0, 3)
@@ -1218,7 +1001,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             )
             if plan.wgpu_adapter:
                 progress.say(f"wgpu       {label} ...")
-                t0, load = time.monotonic(), _OtherLoad()
+                t0, load = time.monotonic(), OtherLoad()
                 wg = row["wgpu"] = _run_wgpu(plan, n, w, h, t)
                 wg["seconds"] = round(time.monotonic() - t0, 3)
                 wg["other_load_cores"] = load.cores()
@@ -1232,7 +1015,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             skip = _reference_skip(plan, n, w, h, t, aborted)
             if skip is None:
                 progress.say(f"reference  {label} ...")
-                t0, load = time.monotonic(), _OtherLoad()
+                t0, load = time.monotonic(), OtherLoad()
                 row["reference"] = _run_reference(plan, n, w, h, t)
                 ref = row["reference"]
                 ref["seconds"] = round(time.monotonic() - t0, 3)

@@ -32,12 +32,12 @@ from torch import Tensor
 
 import sync4d
 from sync4d import raster
-from sync4d.bench.raster import (
+from sync4d.bench.measure import (
     METHOD_CLEAR_REFS,
     METHOD_SUBPROCESS,
-    _measure,
     clear_refs_available,
     machine_info,
+    measure,
 )
 from sync4d.data import DatasetError
 from sync4d.report import align_table
@@ -147,7 +147,7 @@ def run_frames(run_dir: str | Path, frames: int = 3, data: str | None = None) ->
 def time_frame(
     frame: RunFrame, threads: int, kwargs: dict[str, Any], repeats: int, warmup: int = 2
 ) -> dict[str, Any]:
-    """Times (ms, medians and every call; `sync4d.bench.raster`'s measurement) and peak RSS
+    """Times (ms, medians and every call; `sync4d.bench.measure`) and peak RSS
     (MB; the process's lifetime peak where the high-water mark cannot be reset) of projection,
     forward and forward+backward of `frame` with `rasterize` keyword arguments `kwargs`, and
     the forward's work counters."""
@@ -174,7 +174,7 @@ def time_frame(
     result: dict[str, Any] = {}
     for name, fn in (("project", project), ("forward", forward),
                      ("forward_backward", forward_backward)):  # fmt: skip
-        t = _measure(fn, warmup, repeats, memory)
+        t = measure(fn, warmup, repeats, memory)
         result[name] = {"median_ms": t.median_ms, "times_ms": t.times_ms,
                         "rss_peak_mb": t.rss_peak_mb}  # fmt: skip
     fwd = result["forward"]["median_ms"]

@@ -35,8 +35,9 @@ class _FusedLoss(torch.autograd.Function):
         x = pred.detach().contiguous().numpy().reshape(-1)
         y = target.detach().to(pred.dtype).contiguous().numpy().reshape(-1)
         loss, _, _, grad = _core.photometric_loss(
-            x, y, h, w, c, float(lambda_l1), float(lambda_dssim), 3, want_grad, threads
-        )
+            x, y, height=h, width=w, channels=c, l1=float(lambda_l1),
+            dssim=float(lambda_dssim), window=3, want_grad=want_grad, threads=threads,
+        )  # fmt: skip
         if want_grad:
             ctx.save_for_backward(torch.from_numpy(grad).view(h, w, c))
         return torch.tensor(loss, dtype=pred.dtype)

@@ -78,5 +78,6 @@ def test_fused_loss_bad_inputs_are_named() -> None:
         photometric_loss(torch.rand(1, 6, 3), torch.rand(1, 6, 3))
     with pytest.raises(ValueError, match="target: expected an array of the same dtype"):
         _core.photometric_loss(
-            img.numpy().ravel(), img.double().numpy().ravel(), 6, 6, 3, 0.8, 0.2, 3, True, 1
-        )
+            img.numpy().ravel(), img.double().numpy().ravel(), height=6, width=6, channels=3,
+            l1=0.8, dssim=0.2, window=3, want_grad=True, threads=1,
+        )  # fmt: skip

@@ -16,9 +16,10 @@ def test_render_passes_its_threads_to_every_op(monkeypatch: pytest.MonkeyPatch) 
     for name in OPS:
         op = getattr(raster._core, name)
 
-        def spy(*args, _name=name, _op=op):
-            seen.append((_name, args[-1]))  # threads: each op's last argument
-            return _op(*args)
+        def spy(*args, _name=name, _op=op, **kwargs):
+            # threads: by name, or the op's last positional argument
+            seen.append((_name, kwargs["threads"] if "threads" in kwargs else args[-1]))
+            return _op(*args, **kwargs)
 
         monkeypatch.setattr(raster._core, name, spy)
     model = random_gaussians(30, 0, sh_degree=3)

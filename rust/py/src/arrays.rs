@@ -1,6 +1,6 @@
 //! Arrays and arguments between NumPy and the core: the float32/float64 dispatch, flat borrows
 //! of C-contiguous arrays (failing with the argument's name), freshly allocated outputs and
-//! their mutable views, the splat, image and gradient tuples, and the counters dict. Shared by
+//! their mutable views, the splat, image and gradient arrays by name, and the counters dict. Shared by
 //! every binding, so apart from all of them.
 
 use numpy::{Element, PyArray1, PyArrayMethods, PyReadonlyArrayDyn};
@@ -74,12 +74,12 @@ pub(crate) fn splats_of<'a, T: Element>(
     channels: usize,
 ) -> PyResult<core::Splats<'a, T>> {
     Ok(core::Splats {
-        means2d: flat(&a.0, "means2d")?,
-        conics: flat(&a.1, "conics")?,
-        depths: flat(&a.2, "depths")?,
-        opacities: flat(&a.3, "opacities")?,
-        radii: flat(&a.4, "radii")?,
-        features: flat(&a.5, "features")?,
+        means2d: flat(&a.means2d, "means2d")?,
+        conics: flat(&a.conics, "conics")?,
+        depths: flat(&a.depths, "depths")?,
+        opacities: flat(&a.opacities, "opacities")?,
+        radii: flat(&a.radii, "radii")?,
+        features: flat(&a.features, "features")?,
         channels,
     })
 }
@@ -96,14 +96,15 @@ pub(crate) fn counters_dict<'py>(
     Ok(d)
 }
 
-pub(crate) type SplatArrs<'py, T> = (
-    Arr<'py, T>,
-    Arr<'py, T>,
-    Arr<'py, T>,
-    Arr<'py, T>,
-    Arr<'py, i32>,
-    Arr<'py, T>,
-);
+/// Splat arrays borrowed as element type `T` (radii as int32).
+pub(crate) struct SplatArrs<'py, T: Element> {
+    means2d: Arr<'py, T>,
+    conics: Arr<'py, T>,
+    depths: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+    radii: Arr<'py, i32>,
+    features: Arr<'py, T>,
+}
 pub(crate) type SplatGradOut<'py, T> = (
     Out<'py, T>,
     Out<'py, T>,
@@ -157,35 +158,60 @@ pub(crate) fn image_mut<'a, T: Element>(o: &'a ImageOut<'_, T>) -> core::ImageMu
     }
 }
 
+/// The backward's incoming image gradients as element type `T`.
+pub(crate) struct ImageGradArrs<'py, T: Element> {
+    features: Arr<'py, T>,
+    alpha: Arr<'py, T>,
+    depth: Arr<'py, T>,
+}
+
 /// Borrow the backward's incoming image gradients (features, alpha, depth).
 pub(crate) fn image_grads<'a, T: Element>(
-    g: &'a (Arr<'_, T>, Arr<'_, T>, Arr<'_, T>),
+    g: &'a ImageGradArrs<'_, T>,
 ) -> PyResult<core::ImageGrads<'a, T>> {
     Ok(core::ImageGrads {
-        features: flat(&g.0, "grad_features")?,
-        alpha: flat(&g.1, "grad_alpha")?,
-        depth: flat(&g.2, "grad_depth")?,
+        features: flat(&g.features, "grad_features")?,
+        alpha: flat(&g.alpha, "grad_alpha")?,
+        depth: flat(&g.depth, "grad_depth")?,
     })
 }
 
-/// Splat arrays of unknown dtype: (means2d, conics, depths, opacities, radii, features).
-pub(crate) type SplatAny<'py> = (
-    AnyArr<'py>,
-    AnyArr<'py>,
-    AnyArr<'py>,
-    AnyArr<'py>,
-    AnyArr<'py>,
-    AnyArr<'py>,
-);
+/// Splat arrays of unknown dtype, by name (the compositing bindings' keyword arguments).
+pub(crate) struct SplatAny<'py> {
+    pub(crate) means2d: AnyArr<'py>,
+    pub(crate) conics: AnyArr<'py>,
+    pub(crate) depths: AnyArr<'py>,
+    pub(crate) opacities: AnyArr<'py>,
+    pub(crate) radii: AnyArr<'py>,
+    pub(crate) features: AnyArr<'py>,
+}
 
 /// Borrow splat arrays as element type `T` (radii as int32).
 pub(crate) fn extract_splats<'py, T: Element>(s: &SplatAny<'py>) -> PyResult<SplatArrs<'py, T>> {
-    Ok((
-        s.0.extract()?,
-        s.1.extract()?,
-        s.2.extract()?,
-        s.3.extract()?,
-        s.4.extract()?,
-        s.5.extract()?,
-    ))
+    Ok(SplatArrs {
+        means2d: s.means2d.extract()?,
+        conics: s.conics.extract()?,
+        depths: s.depths.extract()?,
+        opacities: s.opacities.extract()?,
+        radii: s.radii.extract()?,
+        features: s.features.extract()?,
+    })
+}
+
+/// Incoming image gradients of unknown dtype, by name.
+pub(crate) struct ImageGradAny<'py> {
+    pub(crate) features: AnyArr<'py>,
+    pub(crate) alpha: AnyArr<'py>,
+    pub(crate) depth: AnyArr<'py>,
+}
+
+/// Borrow image gradients as element type `T`.
+pub(crate) fn extract_image_grads<'py, T: Element>(
+    g: &ImageGradAny<'py>,
+) -> PyResult<ImageGradArrs<'py, T>> {
+    Ok(ImageGradArrs {
+        features: g.features.extract()?,
+        alpha: g.alpha.extract()?,
+        depth: g.depth.extract()?,
+    })
 }

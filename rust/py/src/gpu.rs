@@ -6,13 +6,14 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Mutex, OnceLock};
-use sync4d_raster as core;
 
 use crate::arrays::{
-    alloc_image, alloc_splat_grads, counters_dict, extract_splats, flat, image_grads, image_mut,
-    splat_grads_mut, splats_of, to_object, AnyArr, Arr, SplatAny,
+    alloc_image, alloc_splat_grads, counters_dict, extract_image_grads, extract_splats, flat,
+    image_grads, image_mut, splat_grads_mut, splats_of, to_object, AnyArr, Arr, ImageGradAny,
+    SplatAny,
 };
 use crate::runtime::to_py;
+use crate::settings::CompositeSettings;
 
 /// The process-wide wgpu rasterizer (kernels compiled once), opened on first use on the adapter
 /// `AdapterChoice::Auto` picks (a discrete, then integrated GPU, then a CPU driver such as
@@ -87,28 +88,42 @@ impl WgpuContext {
         }
     }
 
-    /// Composite float32 splats (see `RasterContext.forward`).
+    /// Composite float32 splats (see `RasterContext.forward`: the same keyword arguments).
+    #[pyo3(signature = (
+        *, means2d, conics, depths, opacities, radii, features, channels, background, settings,
+        threads
+    ))]
     #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (splats, channels, background, width, height, alpha_max, threads))]
     fn forward<'py>(
         &self,
         py: Python<'py>,
-        splats: SplatAny<'py>,
+        means2d: AnyArr<'py>,
+        conics: AnyArr<'py>,
+        depths: AnyArr<'py>,
+        opacities: AnyArr<'py>,
+        radii: AnyArr<'py>,
+        features: AnyArr<'py>,
         channels: usize,
         background: AnyArr<'py>,
-        width: u32,
-        height: u32,
-        alpha_max: f64,
+        settings: CompositeSettings,
         threads: usize,
     ) -> PyResult<PyObject> {
         let _ = threads;
+        let splats = SplatAny {
+            means2d,
+            conics,
+            depths,
+            opacities,
+            radii,
+            features,
+        };
         let arrs = extract_splats::<f32>(&splats).map_err(|_| float32_only())?;
         let sp = splats_of(&arrs, channels)?;
         let bg: Arr<'py, f32> = background.extract().map_err(|_| float32_only())?;
         let bg = flat(&bg, "background")?;
-        let img = alloc_image::<f32>(py, width as usize * height as usize, channels);
+        let img = alloc_image::<f32>(py, settings.pixels(), channels);
         let out = image_mut(&img);
-        let bs = core::BlendSettings { alpha_max };
+        let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         let counters = run_wgpu(py, |r| {
             let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
@@ -117,35 +132,52 @@ impl WgpuContext {
         to_object(py, (img.0, img.1, img.2, counters_dict(py, counters)?))
     }
 
-    /// Backward of `forward` (see `RasterContext.backward`).
+    /// Backward of `forward` (see `RasterContext.backward`: the same keyword arguments).
+    #[pyo3(signature = (
+        *, means2d, conics, depths, opacities, radii, features, channels, background, settings,
+        grad_features, grad_alpha, grad_depth, threads
+    ))]
     #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (splats, channels, background, width, height, alpha_max, grads, threads))]
     fn backward<'py>(
         &self,
         py: Python<'py>,
-        splats: SplatAny<'py>,
+        means2d: AnyArr<'py>,
+        conics: AnyArr<'py>,
+        depths: AnyArr<'py>,
+        opacities: AnyArr<'py>,
+        radii: AnyArr<'py>,
+        features: AnyArr<'py>,
         channels: usize,
         background: AnyArr<'py>,
-        width: u32,
-        height: u32,
-        alpha_max: f64,
-        grads: (AnyArr<'py>, AnyArr<'py>, AnyArr<'py>),
+        settings: CompositeSettings,
+        grad_features: AnyArr<'py>,
+        grad_alpha: AnyArr<'py>,
+        grad_depth: AnyArr<'py>,
         threads: usize,
     ) -> PyResult<PyObject> {
         let _ = threads;
+        let splats = SplatAny {
+            means2d,
+            conics,
+            depths,
+            opacities,
+            radii,
+            features,
+        };
         let arrs = extract_splats::<f32>(&splats).map_err(|_| float32_only())?;
         let sp = splats_of(&arrs, channels)?;
         let bg: Arr<'py, f32> = background.extract().map_err(|_| float32_only())?;
         let bg = flat(&bg, "background")?;
-        let g: (Arr<'py, f32>, Arr<'py, f32>, Arr<'py, f32>) = (
-            grads.0.extract().map_err(|_| float32_only())?,
-            grads.1.extract().map_err(|_| float32_only())?,
-            grads.2.extract().map_err(|_| float32_only())?,
-        );
+        let grads = ImageGradAny {
+            features: grad_features,
+            alpha: grad_alpha,
+            depth: grad_depth,
+        };
+        let g = extract_image_grads::<f32>(&grads).map_err(|_| float32_only())?;
         let v = image_grads(&g)?;
         let out = alloc_splat_grads::<f32>(py, sp.len(), channels);
         let gm = splat_grads_mut(&out);
-        let bs = core::BlendSettings { alpha_max };
+        let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         run_wgpu(py, |r| {
             let mut st = state.lock().unwrap_or_else(|p| p.into_inner());

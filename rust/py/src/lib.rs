@@ -4,9 +4,11 @@
 //! Shapes are checked on the Python side (`sync4d/raster.py`); lengths again here by the core.
 //!
 //! One file per concern: `arrays` (NumPy arrays and argument conversion), `runtime` (threads,
-//! GIL release, error and panic mapping), `project`, `raster` (CPU compositing), `gpu` (the wgpu
-//! backend), `sh` and `loss` (the bindings), `motion` (the node motion kernels of sync4d-motion),
-//! and here the module's registration.
+//! GIL release, error and panic mapping), `settings` (the settings objects the bindings take by
+//! name), `project`, `raster` (CPU compositing), `gpu` (the wgpu backend), `sh` and `loss` (the
+//! bindings; the loss itself is the sync4d-loss crate), `motion` (the node motion kernels of
+//! sync4d-motion), and here the module's registration. Beyond the arrays themselves, the
+//! projection, compositing and loss bindings take their arguments by keyword.
 
 mod arrays;
 mod gpu;
@@ -15,6 +17,7 @@ mod motion;
 mod project;
 mod raster;
 mod runtime;
+mod settings;
 mod sh;
 
 use pyo3::prelude::*;
@@ -29,6 +32,7 @@ use motion::{
 use project::{project_backward, project_forward};
 use raster::RasterContext;
 use runtime::default_threads;
+use settings::{CompositeSettings, ProjectSettings};
 use sh::{sh_backward, sh_forward};
 
 /// The compiled core of sync4d.
@@ -36,6 +40,8 @@ use sh::{sh_backward, sh_forward};
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RasterContext>()?;
     m.add_class::<WgpuContext>()?;
+    m.add_class::<ProjectSettings>()?;
+    m.add_class::<CompositeSettings>()?;
     m.add_function(wrap_pyfunction!(wgpu_adapter, m)?)?;
     m.add_function(wrap_pyfunction!(wgpu_adapters, m)?)?;
     m.add_function(wrap_pyfunction!(project_forward, m)?)?;
@@ -49,5 +55,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(linear_epilogue_backward, m)?)?;
     m.add_function(wrap_pyfunction!(default_threads, m)?)?;
     m.add("TILE_SIZE", core::TILE_SIZE)?;
+    m.add("ALPHA_MIN", core::ALPHA_MIN)?;
+    m.add("T_MIN", core::T_MIN)?;
     Ok(())
 }

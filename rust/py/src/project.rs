@@ -8,14 +8,84 @@ use sync4d_raster::real::Real;
 
 use crate::arrays::{flat, slice_mut, to_object, with_float_type, zeros, AnyArr, Arr, Out};
 use crate::runtime::{run, to_py};
+use crate::settings::ProjectSettings;
 
-fn camera(
+/// The pinhole camera of a projection call, by name.
+struct CameraArgs {
     viewmat: Vec<f64>,
-    intr: (f64, f64, f64, f64),
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
     width: u32,
     height: u32,
-) -> PyResult<core::Camera> {
-    core::Camera::new(&viewmat, intr.0, intr.1, intr.2, intr.3, width, height).map_err(to_py)
+}
+
+impl CameraArgs {
+    fn camera(&self) -> PyResult<core::Camera> {
+        core::Camera::new(
+            &self.viewmat,
+            self.fx,
+            self.fy,
+            self.cx,
+            self.cy,
+            self.width,
+            self.height,
+        )
+        .map_err(to_py)
+    }
+}
+
+/// The Gaussians of a projection call, as element type `T`.
+struct GaussianArrs<'py, T: Element> {
+    means: Arr<'py, T>,
+    quats: Arr<'py, T>,
+    scales: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+}
+
+impl<'py, T: Real + Element> GaussianArrs<'py, T> {
+    fn extract(
+        means: &AnyArr<'py>,
+        quats: &AnyArr<'py>,
+        scales: &AnyArr<'py>,
+        opacities: &AnyArr<'py>,
+    ) -> PyResult<Self> {
+        Ok(GaussianArrs {
+            means: means.extract()?,
+            quats: quats.extract()?,
+            scales: scales.extract()?,
+            opacities: opacities.extract()?,
+        })
+    }
+
+    fn gaussians(&self) -> PyResult<core::Gaussians<'_, T>> {
+        Ok(core::Gaussians {
+            means: flat(&self.means, "means")?,
+            quats: flat(&self.quats, "quats")?,
+            scales: flat(&self.scales, "scales")?,
+            opacities: flat(&self.opacities, "opacities")?,
+        })
+    }
+}
+
+/// The gradients of a projection's outputs, as element type `T`.
+struct ProjectionGradArrs<'py, T: Element> {
+    means2d: Arr<'py, T>,
+    conics: Arr<'py, T>,
+    depths: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+}
+
+impl<T: Real + Element> ProjectionGradArrs<'_, T> {
+    fn grads(&self) -> PyResult<core::ProjectionGrads<'_, T>> {
+        Ok(core::ProjectionGrads {
+            means2d: flat(&self.means2d, "grad_means2d")?,
+            conics: flat(&self.conics, "grad_conics")?,
+            depths: flat(&self.depths, "grad_depths")?,
+            opacities: flat(&self.opacities, "grad_opacities")?,
+        })
+    }
 }
 
 /// (means2d, conics, depths, opacities, radii, visible count).
@@ -30,33 +100,16 @@ type ProjOut<'py, T> = (
 /// Four gradient arrays.
 type Grads4<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>, Out<'py, T>);
 
-#[allow(clippy::too_many_arguments)]
 fn project_fwd<'py, T: Real + Element>(
     py: Python<'py>,
-    means: Arr<'py, T>,
-    quats: Arr<'py, T>,
-    scales: Arr<'py, T>,
-    opacities: Arr<'py, T>,
-    viewmat: Vec<f64>,
-    intrinsics: (f64, f64, f64, f64),
-    width: u32,
-    height: u32,
-    settings: (f64, f64, f64, bool),
+    arrs: &GaussianArrs<'py, T>,
+    cam: &CameraArgs,
+    settings: &ProjectSettings,
     threads: usize,
 ) -> PyResult<ProjOut<'py, T>> {
-    let cam = camera(viewmat, intrinsics, width, height)?;
-    let ps = core::ProjectSettings {
-        near: settings.0,
-        far: settings.1,
-        eps2d: settings.2,
-        antialiased: settings.3,
-    };
-    let g = core::Gaussians {
-        means: flat(&means, "means")?,
-        quats: flat(&quats, "quats")?,
-        scales: flat(&scales, "scales")?,
-        opacities: flat(&opacities, "opacities")?,
-    };
+    let cam = cam.camera()?;
+    let ps = settings.0;
+    let g = arrs.gaussians()?;
     let n = g.len();
     let (m2, co, de, op, ra) = (
         zeros::<T>(py, 2 * n),
@@ -76,40 +129,18 @@ fn project_fwd<'py, T: Real + Element>(
     Ok((m2, co, de, op, ra, visible))
 }
 
-#[allow(clippy::too_many_arguments)]
 fn project_bwd<'py, T: Real + Element>(
     py: Python<'py>,
-    means: Arr<'py, T>,
-    quats: Arr<'py, T>,
-    scales: Arr<'py, T>,
-    opacities: Arr<'py, T>,
-    viewmat: Vec<f64>,
-    intrinsics: (f64, f64, f64, f64),
-    width: u32,
-    height: u32,
-    settings: (f64, f64, f64, bool),
-    grads: (Arr<'py, T>, Arr<'py, T>, Arr<'py, T>, Arr<'py, T>),
+    arrs: &GaussianArrs<'py, T>,
+    cam: &CameraArgs,
+    settings: &ProjectSettings,
+    grads: &ProjectionGradArrs<'py, T>,
     threads: usize,
 ) -> PyResult<Grads4<'py, T>> {
-    let cam = camera(viewmat, intrinsics, width, height)?;
-    let ps = core::ProjectSettings {
-        near: settings.0,
-        far: settings.1,
-        eps2d: settings.2,
-        antialiased: settings.3,
-    };
-    let g = core::Gaussians {
-        means: flat(&means, "means")?,
-        quats: flat(&quats, "quats")?,
-        scales: flat(&scales, "scales")?,
-        opacities: flat(&opacities, "opacities")?,
-    };
-    let v = core::ProjectionGrads {
-        means2d: flat(&grads.0, "grad_means2d")?,
-        conics: flat(&grads.1, "grad_conics")?,
-        depths: flat(&grads.2, "grad_depths")?,
-        opacities: flat(&grads.3, "grad_opacities")?,
-    };
+    let cam = cam.camera()?;
+    let ps = settings.0;
+    let g = arrs.gaussians()?;
+    let v = grads.grads()?;
     let n = g.len();
     let (gm, gq, gs, go) = (
         zeros::<T>(py, 3 * n),
@@ -129,9 +160,14 @@ fn project_bwd<'py, T: Real + Element>(
     Ok((gm, gq, gs, go))
 }
 
-/// Project Gaussians (float32: fast path; float64: for gradient checks). Returns (means2d,
-/// conics, depths, opacities, radii, visible) as flat arrays.
+/// Project Gaussians (float32: fast path; float64: for gradient checks) through the pinhole
+/// camera `viewmat` (row-major world-to-camera 4x4), `fx`, `fy`, `cx`, `cy`, `width` x `height`
+/// with `settings` (a `ProjectSettings`). Returns (means2d, conics, depths, opacities, radii,
+/// visible) as flat arrays.
 #[pyfunction]
+#[pyo3(signature = (
+    means, quats, scales, opacities, *, viewmat, fx, fy, cx, cy, width, height, settings, threads
+))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn project_forward<'py>(
     py: Python<'py>,
@@ -140,32 +176,39 @@ pub(crate) fn project_forward<'py>(
     scales: AnyArr<'py>,
     opacities: AnyArr<'py>,
     viewmat: Vec<f64>,
-    intrinsics: (f64, f64, f64, f64),
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
     width: u32,
     height: u32,
-    settings: (f64, f64, f64, bool),
+    settings: ProjectSettings,
     threads: usize,
 ) -> PyResult<PyObject> {
+    let cam = CameraArgs {
+        viewmat,
+        fx,
+        fy,
+        cx,
+        cy,
+        width,
+        height,
+    };
     with_float_type!(means, "means", |T| {
-        let out = project_fwd::<T>(
-            py,
-            means.extract()?,
-            quats.extract()?,
-            scales.extract()?,
-            opacities.extract()?,
-            viewmat,
-            intrinsics,
-            width,
-            height,
-            settings,
-            threads,
-        )?;
+        let arrs = GaussianArrs::<T>::extract(&means, &quats, &scales, &opacities)?;
+        let out = project_fwd::<T>(py, &arrs, &cam, &settings, threads)?;
         to_object(py, out)
     })
 }
 
-/// Backward of the projection: returns dL/d(means, quats, scales, opacities).
+/// Backward of the projection (the forward's arguments by the same names, plus the outputs'
+/// gradients `grad_means2d`, `grad_conics`, `grad_depths`, `grad_opacities`): returns
+/// dL/d(means, quats, scales, opacities).
 #[pyfunction]
+#[pyo3(signature = (
+    means, quats, scales, opacities, *, viewmat, fx, fy, cx, cy, width, height, settings,
+    grad_means2d, grad_conics, grad_depths, grad_opacities, threads
+))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn project_backward<'py>(
     py: Python<'py>,
@@ -174,34 +217,37 @@ pub(crate) fn project_backward<'py>(
     scales: AnyArr<'py>,
     opacities: AnyArr<'py>,
     viewmat: Vec<f64>,
-    intrinsics: (f64, f64, f64, f64),
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
     width: u32,
     height: u32,
-    settings: (f64, f64, f64, bool),
-    grads: (AnyArr<'py>, AnyArr<'py>, AnyArr<'py>, AnyArr<'py>),
+    settings: ProjectSettings,
+    grad_means2d: AnyArr<'py>,
+    grad_conics: AnyArr<'py>,
+    grad_depths: AnyArr<'py>,
+    grad_opacities: AnyArr<'py>,
     threads: usize,
 ) -> PyResult<PyObject> {
+    let cam = CameraArgs {
+        viewmat,
+        fx,
+        fy,
+        cx,
+        cy,
+        width,
+        height,
+    };
     with_float_type!(means, "means", |T| {
-        let g = (
-            grads.0.extract()?,
-            grads.1.extract()?,
-            grads.2.extract()?,
-            grads.3.extract()?,
-        );
-        let out = project_bwd::<T>(
-            py,
-            means.extract()?,
-            quats.extract()?,
-            scales.extract()?,
-            opacities.extract()?,
-            viewmat,
-            intrinsics,
-            width,
-            height,
-            settings,
-            g,
-            threads,
-        )?;
+        let grads = ProjectionGradArrs::<T> {
+            means2d: grad_means2d.extract()?,
+            conics: grad_conics.extract()?,
+            depths: grad_depths.extract()?,
+            opacities: grad_opacities.extract()?,
+        };
+        let arrs = GaussianArrs::<T>::extract(&means, &quats, &scales, &opacities)?;
+        let out = project_bwd::<T>(py, &arrs, &cam, &settings, &grads, threads)?;
         to_object(py, out)
     })
 }

@@ -7,8 +7,8 @@
 //! 3. [`blend::rasterize_forward`]: front-to-back compositing of any number of feature channels,
 //!    accumulated alpha and depth. Parallel per tile.
 //!
-//! [`sh`] evaluates view-dependent colour from spherical harmonics; [`loss`] is the training
-//! loss (L1 + DSSIM) on the rendered image with its gradient. [`reference`] is the plain
+//! [`sh`] evaluates view-dependent colour from spherical harmonics (the training loss on the
+//! rendered image is the sync4d-loss crate). [`reference`] is the plain
 //! f64 per-pixel compositor the fast path is tested against. The crate knows nothing of Python;
 //! all inputs are flat row-major slices and every bad input is a [`RasterError`] naming the
 //! argument.
@@ -22,7 +22,6 @@ pub mod camera;
 pub mod error;
 mod lanes;
 pub mod linalg;
-pub mod loss;
 pub mod project;
 pub mod real;
 pub mod reference;
@@ -30,12 +29,11 @@ pub mod sh;
 
 pub use blend::{
     rasterize_backward, rasterize_forward, BlendSettings, Composite, Counters, ImageGrads,
-    ImageMut, RasterState, SplatGradsMut, Splats,
+    ImageMut, RasterState, SplatGradsMut, Splats, ALPHA_MIN, T_MIN,
 };
 pub use camera::Camera;
 pub use error::{RasterError, Result};
 pub use lanes::fast_exp;
-pub use loss::{photometric_loss, LossTerms, LossWeights};
 pub use project::{
     project_backward, project_forward, GaussianGradsMut, Gaussians, ProjectSettings, Projection,
     ProjectionGrads, ProjectionMut,

@@ -20,16 +20,16 @@ use rayon::prelude::*;
 /// Extent factor of the screen radius, in standard deviations: `sqrt(2 ln 255)`, rounded up.
 pub const RADIUS_SIGMAS: f64 = 3.33;
 /// Quaternions shorter than this are treated like `F.normalize` does (divided by this instead).
-const QUAT_EPS: f64 = 1e-12;
+pub const QUAT_EPS: f64 = 1e-12;
 /// Lower bound on the blurred 2D covariance determinant.
-const DET_EPS: f64 = 1e-10;
+pub const DET_EPS: f64 = 1e-10;
 /// Largest screen radius stored, pixels (keeps tile arithmetic in range).
-const MAX_RADIUS: f64 = 1.0e7;
+pub const MAX_RADIUS: f64 = 1.0e7;
 /// Largest condition number of the blurred 2D covariance that is projected, measured as
 /// `(a + d)^2 / det` (between 1 and 4 times `lambda_max / lambda_min`). Rounding in the
 /// covariance products leaves an error of ~1e-16 `lambda_max` on the small eigenvalue, so this
 /// keeps the conic to ~1e-5 relative.
-const COND_MAX: f64 = 1.0e10;
+pub const COND_MAX: f64 = 1.0e10;
 
 /// Settings of the projection stage.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -320,7 +320,69 @@ impl GpuRasterizer {
 
 #[cfg(test)]
 mod tests {
-    use super::jumps_out;
+    use super::{jumps_out, BIN_WGSL, BLEND_WGSL, PROJECT_WGSL, SCAN_WGSL};
+    use crate::raster::params::{FIRST_WINDOW, LAST_WINDOW, SCAN_BLOCK, WG};
+    use sync4d_raster::project::{COND_MAX, DET_EPS, MAX_RADIUS, QUAT_EPS, RADIUS_SIGMAS};
+    use sync4d_raster::TILE_SIZE;
+
+    /// The value of `const name: ty = value;` in a WGSL source, parsed as f64 (a `u` suffix
+    /// dropped).
+    fn wgsl_const(src: &str, name: &str) -> f64 {
+        let head = format!("const {name}: ");
+        let line = src
+            .lines()
+            .find(|l| l.trim_start().starts_with(&head))
+            .unwrap_or_else(|| panic!("no `const {name}` in the shader"));
+        let value = line.split('=').nth(1).expect("a value").split(';').next();
+        let value = value.expect("a `;`").trim().trim_end_matches('u');
+        value
+            .parse()
+            .unwrap_or_else(|e| panic!("const {name} = {value}: {e}"))
+    }
+
+    /// The shaders' copies of host constants (WGSL has no way to import them) agree with their
+    /// one home: sync4d-raster for the rasterizer's geometry, `params` for the kernels'
+    /// interface. Floats are compared after rounding the home value to f32, as the kernels
+    /// read them.
+    #[test]
+    fn shader_constants_match_their_host_home() {
+        let f32_of = |v: f64| f64::from(v as f32);
+        assert_eq!(wgsl_const(BIN_WGSL, "TILE"), f64::from(TILE_SIZE));
+        for (name, home) in [
+            ("RADIUS_SIGMAS", RADIUS_SIGMAS),
+            ("QUAT_EPS", QUAT_EPS),
+            ("DET_EPS", DET_EPS),
+            ("MAX_RADIUS", MAX_RADIUS),
+            ("COND_MAX", COND_MAX),
+        ] {
+            assert_eq!(
+                f32_of(wgsl_const(PROJECT_WGSL, name)),
+                f32_of(home),
+                "{name}"
+            );
+        }
+        assert_eq!(wgsl_const(SCAN_WGSL, "WG"), f64::from(WG));
+        assert_eq!(wgsl_const(SCAN_WGSL, "BLOCK"), f64::from(SCAN_BLOCK));
+        assert_eq!(
+            wgsl_const(BLEND_WGSL, "FIRST_WINDOW"),
+            f64::from(FIRST_WINDOW)
+        );
+        assert_eq!(
+            wgsl_const(BLEND_WGSL, "LAST_WINDOW"),
+            f64::from(LAST_WINDOW)
+        );
+    }
+
+    /// The f32 compositing thresholds sent to the kernels are the values the GPU path used
+    /// before they had one home (`1.0 / 255.0` and `1e-4` as f32 literals).
+    #[test]
+    fn thresholds_round_to_the_former_f32_literals() {
+        assert_eq!(
+            (sync4d_raster::ALPHA_MIN as f32).to_bits(),
+            (1.0f32 / 255.0).to_bits()
+        );
+        assert_eq!((sync4d_raster::T_MIN as f32).to_bits(), 1e-4f32.to_bits());
+    }
 
     #[test]
     fn jumps_out_sees_only_the_bodys_own_jumps() {

@@ -36,9 +36,9 @@ const MIN_CHUNK: u32 = 256;
 /// after 65,535 trips in all; the rest is margin for the digit loop and the loop check).
 const CHUNK_TRIPS: u32 = 60_000;
 
-/// Compositing thresholds, as in sync4d-raster.
-const ALPHA_MIN: f32 = 1.0 / 255.0;
-const T_MIN: f32 = 1e-4;
+/// Compositing thresholds: sync4d-raster's, in f32 (the CPU kernels round them the same way).
+const ALPHA_MIN: f32 = sync4d_raster::ALPHA_MIN as f32;
+const T_MIN: f32 = sync4d_raster::T_MIN as f32;
 
 /// What a forward rasterization leaves on the device for its backward (tile lists, depth
 /// order, per-pixel last contributor and final transmittance, the splats and features), like
@@ -185,6 +185,80 @@ fn loops_completed(counters: &[u32], gpu: &GpuDevice) -> Result<()> {
     )))
 }
 
+/// The splats packed for the device ([`SPLAT_FLOATS`] floats each: mean, conic, opacity,
+/// depth, padding) and what the binning needs to know of them.
+struct PackedSplats {
+    packed: Vec<f32>,
+    /// Splats with both radii positive.
+    visible: u32,
+    /// The widest and the largest tile rectangle of a visible splat (in tiles), bounding the
+    /// tile scatter's trips per splat.
+    widest: u32,
+    largest: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+}
+
+/// Forward stage 0, on the host: pack `splats` for the device and measure their tile
+/// rectangles on a `tiles_x` x `tiles_y` grid.
+fn pack_splats(splats: &Splats<'_, f32>, tiles_x: u32, tiles_y: u32) -> PackedSplats {
+    let n = splats.len();
+    let mut packed = vec![0.0f32; n.max(1) * SPLAT_FLOATS];
+    let mut visible = 0u32;
+    let (mut widest, mut largest) = (0u32, 0u32);
+    for i in 0..n {
+        let s = &mut packed[SPLAT_FLOATS * i..SPLAT_FLOATS * (i + 1)];
+        s[0] = splats.means2d[2 * i];
+        s[1] = splats.means2d[2 * i + 1];
+        s[2..5].copy_from_slice(&splats.conics[3 * i..3 * i + 3]);
+        s[5] = splats.opacities[i];
+        s[6] = splats.depths[i];
+        let (rx, ry) = (splats.radii[2 * i], splats.radii[2 * i + 1]);
+        if rx > 0 && ry > 0 {
+            visible += 1;
+            let w = tile_span(s[0], rx, tiles_x);
+            widest = widest.max(w);
+            largest = largest.max(w * tile_span(s[1], ry, tiles_y));
+        }
+    }
+    PackedSplats {
+        packed,
+        visible,
+        widest,
+        largest,
+        tiles_x,
+        tiles_y,
+    }
+}
+
+/// A forward's device inputs and the state buffers it fills for the backward.
+struct ForwardInputs {
+    splats: wgpu::Buffer,
+    radii: wgpu::Buffer,
+    /// Features with the background appended.
+    features: wgpu::Buffer,
+    /// (depth key, index) pairs, depth-sorted by [`GpuRasterizer::depth_sort`].
+    keys: wgpu::Buffer,
+    keys_tmp: wgpu::Buffer,
+    /// Each tile's range of the tile lists (tiles + 1 entries).
+    tile_offsets: wgpu::Buffer,
+    pixel_state: wgpu::Buffer,
+}
+
+/// What tile binning leaves for the scatter: its choice of kernel and chunks, its
+/// parameters, the scanned (tile, chunk) counts and the visible splats' tile rectangles, and
+/// the tile lists' total length and longest list.
+struct TileBinning {
+    by_chunks: bool,
+    chunks: u32,
+    tiles_y: u32,
+    params: wgpu::Buffer,
+    cursors: wgpu::Buffer,
+    rects: wgpu::Buffer,
+    total: u32,
+    longest: u32,
+}
+
 impl GpuRasterizer {
     /// Compile the kernels on `gpu`.
     pub fn new(gpu: GpuDevice) -> Self {
@@ -271,6 +345,10 @@ impl GpuRasterizer {
     /// pixel, splat) pairs the kernel evaluated (the row-block kernels skip the splats whose
     /// support misses a block; the CPU path also skips row halves its support misses, so its
     /// count is lower).
+    ///
+    /// Stages, each its own function: [`pack_splats`] (host), [`Self::upload_inputs`],
+    /// [`Self::depth_sort`], [`Self::bin_tiles`] (which reads the tile ranges back),
+    /// [`Self::scatter_ids`] and [`Self::composite_forward`] (which reads the image back).
     #[allow(clippy::too_many_arguments)]
     pub fn rasterize_forward(
         &mut self,
@@ -296,55 +374,108 @@ impl GpuRasterizer {
         if let Some(p) = self.profile.as_mut() {
             p.since = Some(std::time::Instant::now());
         }
-        let dev = self.gpu.device.clone();
-        let gpu = &self.gpu;
-        let sp = &mut state.pool;
-
-        // Inputs: packed splats, radii, features with the background appended.
-        let mut packed = vec![0.0f32; n.max(1) * SPLAT_FLOATS];
-        let mut visible = 0u32;
-        // The widest and the largest tile rectangle (in tiles), bounding the tile scatter's
-        // trips per splat.
         let (tiles_x, tiles_y) = (width.div_ceil(TILE_SIZE), height.div_ceil(TILE_SIZE));
-        let (mut widest, mut largest) = (0u32, 0u32);
-        for i in 0..n {
-            let s = &mut packed[SPLAT_FLOATS * i..SPLAT_FLOATS * (i + 1)];
-            s[0] = splats.means2d[2 * i];
-            s[1] = splats.means2d[2 * i + 1];
-            s[2..5].copy_from_slice(&splats.conics[3 * i..3 * i + 3]);
-            s[5] = splats.opacities[i];
-            s[6] = splats.depths[i];
-            let (rx, ry) = (splats.radii[2 * i], splats.radii[2 * i + 1]);
-            if rx > 0 && ry > 0 {
-                visible += 1;
-                let w = tile_span(s[0], rx, tiles_x);
-                widest = widest.max(w);
-                largest = largest.max(w * tile_span(s[1], ry, tiles_y));
-            }
-        }
-        let cpu_threads = self.cpu_threads;
+        let packed = pack_splats(splats, tiles_x, tiles_y);
+        let inputs = self.upload_inputs(&mut state.pool, splats, background, &packed, npix)?;
+
+        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        self.mark(&mut enc, "upload");
+        self.depth_sort(&mut enc, n as u32, &inputs)?;
+        let bins = self.bin_tiles(enc, &inputs, &packed, tiles_x, tiles_y)?;
+        let (enc, ids, counters) = self.scatter_ids(&mut state.pool, &inputs, &bins)?;
+
+        let shape = ForwardShape {
+            n,
+            channels: ch,
+            width,
+            height,
+            tiles_x,
+            tiles_y,
+            alpha_max: settings.alpha_max as f32,
+            intersections: u64::from(bins.total),
+            visible: u64::from(packed.visible),
+        };
+        let buffers = ForwardBuffers {
+            splats: inputs.splats,
+            ids,
+            tile_offsets: inputs.tile_offsets,
+            features: inputs.features,
+            pixel_state: inputs.pixel_state,
+        };
+        let (img, cnt) = self.composite_forward(enc, &shape, &buffers, &counters, bins.longest)?;
+        out.features.copy_from_slice(&img[..npix * ch]);
+        out.alpha.copy_from_slice(&img[npix * ch..npix * (ch + 1)]);
+        out.depth
+            .copy_from_slice(&img[npix * (ch + 1)..npix * (ch + 2)]);
+        state.forward = Some(Forward {
+            shape,
+            buffers,
+            deepest: cnt[5],
+        });
+        let wide = |lo: u32, hi: u32| u64::from(lo) | (u64::from(hi) << 32);
+        Ok(Counters {
+            visible: u64::from(packed.visible),
+            intersections: u64::from(bins.total),
+            evaluated: wide(cnt[0], cnt[1]),
+            blended: wide(cnt[2], cnt[3]),
+        })
+    }
+
+    /// Forward stage: the device buffers of the inputs (packed splats, radii, features with
+    /// the background appended) and of the per-forward state the backward reads (depth keys,
+    /// tile offsets, per-pixel state), all from `pool` (the [`GpuRasterState`]'s).
+    fn upload_inputs(
+        &self,
+        pool: &mut Pool,
+        splats: &Splats<'_, f32>,
+        background: &[f32],
+        packed: &PackedSplats,
+        npix: usize,
+    ) -> Result<ForwardInputs> {
+        let (gpu, n, ch) = (&self.gpu, splats.len(), splats.channels);
         let mut feats = Vec::with_capacity(n * ch + ch);
         feats.extend_from_slice(splats.features);
         feats.extend_from_slice(background);
-        let splat_buf = upload_in(gpu, sp, "splats", &packed)?;
-        let radii_buf = upload_in(gpu, sp, "radii", if n > 0 { splats.radii } else { &[0, 0] })?;
-        let feat_buf = upload_in(gpu, sp, "features", &feats)?;
-        let keys = storage_in(gpu, sp, "keys", n.max(1) as u64 * 8)?;
-        let keys_tmp = storage_in(gpu, sp, "keys_tmp", n.max(1) as u64 * 8)?;
-        let num_tiles = tiles_x * tiles_y;
-        let tile_offsets = storage_in(gpu, sp, "tile_offsets", (u64::from(num_tiles) + 1) * 4)?;
-        let pixel_state = storage_in(gpu, sp, "pixel_state", npix as u64 * 8)?;
+        let splats_buf = upload_in(gpu, pool, "splats", &packed.packed)?;
+        let radii = upload_in(
+            gpu,
+            pool,
+            "radii",
+            if n > 0 { splats.radii } else { &[0, 0] },
+        )?;
+        let features = upload_in(gpu, pool, "features", &feats)?;
+        let keys = storage_in(gpu, pool, "keys", n.max(1) as u64 * 8)?;
+        let keys_tmp = storage_in(gpu, pool, "keys_tmp", n.max(1) as u64 * 8)?;
+        let num_tiles = u64::from(packed.tiles_x * packed.tiles_y);
+        let tile_offsets = storage_in(gpu, pool, "tile_offsets", (num_tiles + 1) * 4)?;
+        let pixel_state = storage_in(gpu, pool, "pixel_state", npix as u64 * 8)?;
+        Ok(ForwardInputs {
+            splats: splats_buf,
+            radii,
+            features,
+            keys,
+            keys_tmp,
+            tile_offsets,
+            pixel_state,
+        })
+    }
 
-        // 1. Depth order: radix sort of (depth key, index), 8 bits a pass, ping-ponging between
-        // `keys_tmp` and `keys` (four passes: the result lands in `keys`).
-        let mut enc = dev.create_command_encoder(&Default::default());
-        self.mark(&mut enc, "upload");
-        let sort_chunk = chunk_size(n as u32, 1, cpu_threads);
-        let sort_chunks = (n as u32).div_ceil(sort_chunk).max(1);
+    /// Forward stage 1, depth order: radix sort of the `n` splats' (depth key, index) pairs,
+    /// 8 bits a pass, ping-ponging between `keys_tmp` and `keys` (four passes: the result
+    /// lands in `inputs.keys`). Appended to `enc`.
+    fn depth_sort(
+        &mut self,
+        enc: &mut wgpu::CommandEncoder,
+        n: u32,
+        inputs: &ForwardInputs,
+    ) -> Result<()> {
+        let (keys, keys_tmp) = (&inputs.keys, &inputs.keys_tmp);
+        let sort_chunk = chunk_size(n, 1, self.cpu_threads);
+        let sort_chunks = n.div_ceil(sort_chunk).max(1);
         let digit_counts = self.storage("digit_counts", u64::from(256 * sort_chunks) * 4)?;
         let digit_cursors = self.storage("digit_cursors", u64::from(256 * sort_chunks + 1) * 4)?;
         let sort_params = |shift: u32| SortParams {
-            n: n as u32,
+            n,
             chunks: sort_chunks,
             chunk_size: sort_chunk,
             shift,
@@ -352,35 +483,48 @@ impl GpuRasterizer {
         let prm = self.uniform(&sort_params(0));
         let g = self.bind(
             &self.kernels.depth_keys,
-            &[(0, &prm), (2, &keys), (3, &splat_buf), (4, &radii_buf)],
+            &[
+                (0, &prm),
+                (2, keys),
+                (3, &inputs.splats),
+                (4, &inputs.radii),
+            ],
         );
-        Self::dispatch(
-            &mut enc,
-            &self.kernels.depth_keys,
-            &g,
-            grid((n as u32).div_ceil(WG)),
-        );
+        Self::dispatch(enc, &self.kernels.depth_keys, &g, grid(n.div_ceil(WG)));
         for pass in 0..4u32 {
             let (src, dst) = if pass % 2 == 0 {
-                (&keys, &keys_tmp)
+                (keys, keys_tmp)
             } else {
-                (&keys_tmp, &keys)
+                (keys_tmp, keys)
             };
             let prm = self.uniform(&sort_params(8 * pass));
             let count = &self.kernels.radix_count;
             let g = self.bind(count, &[(0, &prm), (1, src), (5, &digit_counts)]);
-            Self::dispatch(&mut enc, count, &g, (sort_chunks.div_ceil(CHUNK_WG), 1));
-            self.scan(&mut enc, &digit_counts, &digit_cursors, 256 * sort_chunks)?;
+            Self::dispatch(enc, count, &g, (sort_chunks.div_ceil(CHUNK_WG), 1));
+            self.scan(enc, &digit_counts, &digit_cursors, 256 * sort_chunks)?;
             let scatter = &self.kernels.radix_scatter;
             let g = self.bind(
                 scatter,
                 &[(0, &prm), (1, src), (2, dst), (6, &digit_cursors)],
             );
-            Self::dispatch(&mut enc, scatter, &g, (sort_chunks.div_ceil(CHUNK_WG), 1));
+            Self::dispatch(enc, scatter, &g, (sort_chunks.div_ceil(CHUNK_WG), 1));
         }
-        self.mark(&mut enc, "depth sort");
+        self.mark(enc, "depth sort");
+        Ok(())
+    }
 
-        // 2. Tile binning: per (tile, chunk) counts, their scan, tile ranges.
+    /// Forward stage 2, tile binning: per (tile, chunk) counts of the depth-sorted visible
+    /// splats, their scan, and each tile's range of the tile lists (`inputs.tile_offsets`).
+    /// Submits `enc` and reads the ranges back for the list total and the longest list.
+    fn bin_tiles(
+        &mut self,
+        mut enc: wgpu::CommandEncoder,
+        inputs: &ForwardInputs,
+        packed: &PackedSplats,
+        tiles_x: u32,
+        tiles_y: u32,
+    ) -> Result<TileBinning> {
+        let (cpu_threads, visible, largest) = (self.cpu_threads, packed.visible, packed.largest);
         // The tile scatter's invocations take a trip per splat of their chunk plus, per splat,
         // the tiles of its row (`scatter`) or of its whole rectangle (`scatter_chunks`) and one
         // more (an inner loop's last, masked on llvmpipe). CPU adapters use scatter_chunks
@@ -391,9 +535,10 @@ impl GpuRasterizer {
             && MIN_CHUNK * (largest + 2) <= CHUNK_TRIPS
             && 2 * chunk_size(visible, largest + 2, cpu_threads)
                 >= chunk_size(visible, 1, cpu_threads);
-        let trips = if by_chunks { largest } else { widest } + 2;
+        let trips = if by_chunks { largest } else { packed.widest } + 2;
         let chunk_size = chunk_size(visible, trips, cpu_threads);
         let chunks = visible.div_ceil(chunk_size).max(1);
+        let num_tiles = tiles_x * tiles_y;
         let table = u64::from(num_tiles) * u64::from(chunks);
         if table >= u64::from(u32::MAX) {
             return Err(GpuError::TooLarge(format!(
@@ -414,15 +559,15 @@ impl GpuRasterizer {
             axis: 0,
             canary: 2,
         };
-        let bin_params = self.uniform(&bin);
+        let params = self.uniform(&bin);
         // Auto layouts hold only the bindings an entry point uses.
         let g = self.bind(
             &self.kernels.count_corners,
             &[
-                (0, &bin_params),
-                (1, &keys),
-                (2, &splat_buf),
-                (3, &radii_buf),
+                (0, &params),
+                (1, &inputs.keys),
+                (2, &inputs.splats),
+                (3, &inputs.radii),
                 (4, &counts),
                 (9, &rects),
             ],
@@ -442,9 +587,10 @@ impl GpuRasterizer {
         self.mark(&mut enc, "tile counts");
         self.scan(&mut enc, &counts, &cursors, table as u32)?;
         self.mark(&mut enc, "tile scan");
+        let tile_offsets = &inputs.tile_offsets;
         let g = self.bind(
             &self.kernels.tile_ranges,
-            &[(0, &bin_params), (5, &cursors), (7, &tile_offsets)],
+            &[(0, &params), (5, &cursors), (7, tile_offsets)],
         );
         Self::dispatch(
             &mut enc,
@@ -454,76 +600,92 @@ impl GpuRasterizer {
         );
         self.mark(&mut enc, "tile ranges");
         self.gpu.queue.submit([enc.finish()]);
-        let offsets: Vec<u32> = bytemuck::pod_collect_to_vec(
-            &self.read(&tile_offsets, (u64::from(num_tiles) + 1) * 4)?,
-        );
+        let offsets: Vec<u32> =
+            bytemuck::pod_collect_to_vec(&self.read(tile_offsets, (u64::from(num_tiles) + 1) * 4)?);
         let total = offsets[num_tiles as usize];
         let longest = offsets.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
-
         self.mark_host("read total");
+        Ok(TileBinning {
+            by_chunks,
+            chunks,
+            tiles_y,
+            params,
+            cursors,
+            rects,
+            total,
+            longest,
+        })
+    }
 
-        // 3. Scatter splat indices into tile lists, then composite.
-        let ids = storage_in(&self.gpu, &mut state.pool, "ids", u64::from(total) * 4)?;
-        let mut enc = dev.create_command_encoder(&Default::default());
+    /// Forward stage 3, tile lists: scatter the splat indices into each tile's list (`ids`,
+    /// from `pool`), by chunks or by rows of tiles as [`Self::bin_tiles`] chose. Returns a
+    /// fresh encoder holding the scatter, the tile lists and the cleared counters buffer.
+    fn scatter_ids(
+        &mut self,
+        pool: &mut Pool,
+        inputs: &ForwardInputs,
+        bins: &TileBinning,
+    ) -> Result<(wgpu::CommandEncoder, wgpu::Buffer, wgpu::Buffer)> {
+        let ids = storage_in(&self.gpu, pool, "ids", u64::from(bins.total) * 4)?;
+        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
         let counters = self.storage("counters", COUNTERS_BYTES)?;
         enc.clear_buffer(&counters, 0, Some(COUNTERS_BYTES));
-        let (scatter, invocations) = if by_chunks {
-            (&self.kernels.scatter_chunks, chunks)
+        let (scatter, invocations) = if bins.by_chunks {
+            (&self.kernels.scatter_chunks, bins.chunks)
         } else {
-            (&self.kernels.scatter, chunks * tiles_y)
+            (&self.kernels.scatter, bins.chunks * bins.tiles_y)
         };
         let g = self.bind(
             scatter,
             &[
-                (0, &bin_params),
-                (1, &keys),
-                (5, &cursors),
+                (0, &bins.params),
+                (1, &inputs.keys),
+                (5, &bins.cursors),
                 (6, &ids),
                 (8, &counters),
-                (9, &rects),
+                (9, &bins.rects),
             ],
         );
         Self::dispatch(&mut enc, scatter, &g, grid(invocations.div_ceil(CHUNK_WG)));
-        let stage = if by_chunks {
+        let stage = if bins.by_chunks {
             "scatter by chunks"
         } else {
             "scatter by rows"
         };
         self.mark(&mut enc, stage);
+        Ok((enc, ids, counters))
+    }
+
+    /// Forward stage 4, compositing: every tile's list front to back (appended to `enc`, in
+    /// windows of at most `longest` entries), then the image read back: features, alpha and
+    /// accumulated depth planes, one after the other. Returns the image and the counters;
+    /// errors when the adapter cut a kernel's loops short.
+    fn composite_forward(
+        &mut self,
+        enc: wgpu::CommandEncoder,
+        shape: &ForwardShape,
+        buffers: &ForwardBuffers,
+        counters: &wgpu::Buffer,
+        longest: u32,
+    ) -> Result<(Vec<f32>, Vec<u32>)> {
+        let (ch, npix) = (shape.channels, (shape.width * shape.height) as usize);
         let image_len = npix * (ch + 2);
         let image = self.storage("image", image_len as u64 * 4)?;
-        let shape = ForwardShape {
-            n,
-            channels: ch,
-            width,
-            height,
-            tiles_x,
-            tiles_y,
-            alpha_max: settings.alpha_max as f32,
-            intersections: u64::from(total),
-            visible: u64::from(visible),
-        };
-        let buffers = ForwardBuffers {
-            splats: splat_buf,
-            ids,
-            tile_offsets,
-            features: feat_buf,
-            pixel_state,
-        };
         let halves = self
             .layout
             .column_halves
-            .applies(false, total.into(), visible.into());
+            .applies(false, shape.intersections, shape.visible);
+        let dev = self.gpu.device.clone();
         let pipe = self.kernels.blend(&dev, self.layout, ch, halves, true);
-        let mut bindings = vec![(6, &image), (8, &counters)];
+        let mut bindings = vec![(6, &image), (8, counters)];
         bindings.extend(buffers.bindings());
-        let clear = [(&counters, COMPOSITING_COUNTERS_BYTES)];
+        let clear = [(counters, COMPOSITING_COUNTERS_BYTES)];
         let pass = CompositePass {
             pipe: &pipe,
-            shape: &shape,
+            shape,
             longest,
             forward: true,
-            counters: &counters,
+            counters,
             bindings: &bindings,
             clear: &clear,
         };
@@ -531,22 +693,7 @@ impl GpuRasterizer {
         let img = self.read_f32(&image, image_len)?;
         self.mark_host("read image");
         loops_completed(&cnt, &self.gpu)?;
-        out.features.copy_from_slice(&img[..npix * ch]);
-        out.alpha.copy_from_slice(&img[npix * ch..npix * (ch + 1)]);
-        out.depth
-            .copy_from_slice(&img[npix * (ch + 1)..npix * (ch + 2)]);
-        state.forward = Some(Forward {
-            shape,
-            buffers,
-            deepest: cnt[5],
-        });
-        let wide = |lo: u32, hi: u32| u64::from(lo) | (u64::from(hi) << 32);
-        Ok(Counters {
-            visible: u64::from(visible),
-            intersections: u64::from(total),
-            evaluated: wide(cnt[0], cnt[1]),
-            blended: wide(cnt[2], cnt[3]),
-        })
+        Ok((img, cnt))
     }
 
     /// Backward of [`GpuRasterizer::rasterize_forward`] (as

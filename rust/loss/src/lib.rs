@@ -13,11 +13,14 @@
 //! `sum_p w(p, q) * (A_p + 2 x_q B_p + y_q C_p)` with `A = dS/d mean_x`, `B = dS/d mean_xx`,
 //! `C = dS/d mean_xy` and `w` the box weights; it is computed with the transpose of the
 //! separable box filter. Both passes are parallel over image rows.
+//!
+//! Its own crate: the loss reads images, not splats; it shares only sync4d-raster's element
+//! types ([`Real`]) and its error ([`RasterError`], so that the bindings map both the same way).
 
 use rayon::prelude::*;
 
-use crate::error::{RasterError, Result};
-use crate::real::Real;
+use sync4d_raster::error::{check_finite, check_len, RasterError, Result};
+use sync4d_raster::real::Real;
 
 const C1: f64 = 0.01 * 0.01;
 const C2: f64 = 0.03 * 0.03;
@@ -186,8 +189,8 @@ fn five_maps<F>(buf: &mut [F], row: usize) -> [&mut [F]; 5] {
 }
 
 fn check_image<F: Real>(arg: &'static str, v: &[F], len: usize) -> Result<()> {
-    crate::error::check_len(arg, v, len)?;
-    crate::error::check_finite(arg, v)
+    check_len(arg, v, len)?;
+    check_finite(arg, v)
 }
 
 /// Loss value of rendered image `pred` against `target` (both `[height, width, channels]`,
@@ -231,7 +234,7 @@ pub fn photometric_loss<F: Real>(
     check_image("pred", pred, len)?;
     check_image("target", target, len)?;
     if let Some(g) = grad.as_deref() {
-        crate::error::check_len("grad", g, len)?;
+        check_len("grad", g, len)?;
     }
 
     let row = width * channels;
