@@ -36,9 +36,7 @@ BENCH = DOCS / "bench"
 
 # Pages whose tables and headlines are not yet tied to records (issue 53, deliverable 2).
 # Each is checked only for the records it names existing; remove an entry once its page passes.
-PENDING: dict[str, str] = {
-    "docs/results/offline-encoder.md": "no record named (accuracy, cost, settings tables)",
-}
+PENDING: dict[str, str] = {}
 
 # Generated from the code by scripts/gen_docs.py: option and config defaults, not measurements.
 GENERATED = {"docs/cli.md", "docs/configs.md"}

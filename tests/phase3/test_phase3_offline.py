@@ -3,6 +3,12 @@ image-to-text map and its use on crops of real renders."""
 
 from __future__ import annotations
 
+import datetime
+import json
+import os
+import platform
+import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +49,7 @@ def encoder(cache: Path) -> off.OfflineEncoder:
 
 def test_minilm_matches_transformers(text: ml.MiniLM) -> None:
     import transformers
+
     ref = transformers.BertModel.from_pretrained(str(text.folder)).eval()
     texts = ["a red ball", "the green pillar stands still on a light plate", "", "Blue BOX!"]
     ids, mask = text.tokenize(texts)
@@ -243,6 +250,12 @@ def _ranking(encoder: off.OfflineEncoder, crops: list, queries: list[str]
     ``q + 1`` for query ``q``; a frame without that object is skipped), the smallest margin
     of the right crop over the best other one, and whether each query's top object is right
     when every object's crop embeddings are averaged."""
+    r = _ranking_counts(encoder, crops, queries)
+    return r["hits"] / r["queries"], r["smallest_margin"], r["per_object_right"]
+
+
+def _ranking_counts(encoder: off.OfflineEncoder, crops: list, queries: list[str]) -> dict:
+    """`_ranking`'s figures with the counts behind the share (docs/bench record)."""
     emb = encoder.encode_images([c for *_, c in crops])
     txt = encoder.encode_texts(queries)
     sim = emb @ txt.T
@@ -258,7 +271,9 @@ def _ranking(encoder: off.OfflineEncoder, crops: list, queries: list[str]
             margins.append(sim[own, q].max() - sim[idx[labels[idx] != q + 1], q].max())
     mean = np.stack([emb[labels == q + 1].mean(0) for q in range(len(queries))])
     per_object = bool(((mean @ txt.T).argmax(0) == np.arange(len(queries))).all())
-    return float(np.mean(hits)), float(np.min(margins)), per_object
+    return {"crops": len(crops), "frames": len({f for f, *_ in crops}), "queries": len(hits),
+            "hits": int(np.sum(hits)), "smallest_margin": float(np.min(margins)),
+            "per_object_right": per_object}  # fmt: skip
 
 
 def test_synthetic_scene_crops(encoder: off.OfflineEncoder, tmp_path: Path) -> None:
@@ -284,3 +299,121 @@ def test_bouncingballs_crops(encoder: off.OfflineEncoder) -> None:
     assert len(crops) >= 30
     share, margin, per_object = _ranking(encoder, crops, ["red ball", "green ball", "blue ball"])
     assert share == 1.0 and per_object, (share, margin)
+
+
+@pytest.mark.skipif(not os.environ.get("SYNC4D_OFFLINE_RECORD"), reason="record switch off")
+def test_record_offline_encoder(
+    encoder: off.OfflineEncoder, cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With SYNC4D_OFFLINE_RECORD=docs/bench/offline-encoder.json (and ../shared/data): every
+    figure of docs/results/offline-encoder.md's accuracy, crops and cost tables, measured on
+    this module's fit (one thread) and written as that record."""
+    from sync4d.data.synthetic import SyntheticConfig, write_synthetic_scene
+
+    assert encoder.fit_seconds, "the module's encoder came from a cache: no fit was timed"
+    monkeypatch.setenv("SYNC4D_CACHE", str(cache))  # the module's cache, which holds its map
+    torch.set_num_threads(1)
+    zero_shot = off.zero_shot_report(encoder)
+    # The held-out errors: which colour and which shape the top caption named instead.
+    held = shapes.heldout_pairs()
+    data = shapes.generate(held, 20, 1, encoder.settings.image_size)
+    caps = [f"a {c} {k}" for c in shapes.COLOURS for k in shapes.SHAPES]
+    best = (encoder.encode_images(list(data.images)) @ encoder.encode_texts(caps).T).argmax(1)
+    pc, pk = best // len(shapes.SHAPES), best % len(shapes.SHAPES)
+    wrong = (pc != data.colours) | (pk != data.shapes)
+    colour_err = Counter(f"{shapes.COLOURS[a]} -> {shapes.COLOURS[b]}"
+                         for a, b in zip(data.colours, pc, strict=True) if a != b)  # fmt: skip
+    shape_err = Counter(f"{shapes.SHAPES[a]} -> {shapes.SHAPES[b]}"
+                        for a, b in zip(data.shapes, pk, strict=True) if a != b)  # fmt: skip
+    # Loading the map from the cache (weight digests checked), three times.
+    loads = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        again = off.OfflineEncoder()
+        loads.append(time.perf_counter() - t0)
+        assert again.from_cache
+    # Encoding cost, process CPU time: a batch of 64 crops, then 64 texts one at a time.
+    crops64 = list(shapes.generate(held[:4], 16, 5, encoder.settings.image_size).images)
+    encoder.encode_images(crops64[:8])  # warm
+    t0 = time.process_time()
+    encoder.encode_images(crops64)
+    crop_cpu = (time.process_time() - t0) / len(crops64)
+    texts = [f"a {c} {k}" for c in shapes.COLOURS for k in shapes.SHAPES][:64]
+    encoder.encode_texts(texts[:1])
+    t0 = time.process_time()
+    for t in texts:
+        encoder.encode_texts([t])
+    text_cpu = (time.process_time() - t0) / len(texts)
+    # Crops of real renders.
+    crops = {}
+    balls = ["red ball", "green ball", "blue ball"]
+    if SHARED.is_dir():
+        root = SHARED / "dnerf" / "bouncingballs"
+        crops["bouncingballs train, every 10th frame"] = _ranking_counts(
+            encoder, _crops(root, "train", every=10), balls
+        )
+        crops["bouncingballs train, every frame"] = _ranking_counts(
+            encoder, _crops(root, "train", every=1), balls
+        )
+        for split in ("test", "val"):
+            crops[f"bouncingballs {split}"] = _ranking_counts(
+                encoder, _crops(root, split, every=1), balls
+            )
+    cfg = SyntheticConfig(size=128, frames=3, train_cameras=4, test_cameras=1, test_every=3)
+    scene = write_synthetic_scene(tmp_path / "scene", cfg)
+    crops["embedded synthetic scene, train"] = _ranking_counts(
+        encoder, _crops(scene, "train", every=1), ["red ball", "blue box", "green pillar"]
+    )
+    # The settings' validation score with today's defaults (fit on the 50 pairs "fit").
+    tuning = off.OfflineEncoder(off.OfflineSettings(pairs="fit"), use_cache=False)
+    validation = off.zero_shot_report(tuning, pairs=shapes.validation_pairs(), seen=False)
+    sims = encoder.encode_texts(["a red ball", "a blue ball", "a red box"])
+    with open("/proc/cpuinfo") as fh:
+        cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
+    fit = encoder.fit_seconds
+    doc = {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": "SYNC4D_OFFLINE_RECORD=docs/bench/offline-encoder.json OMP_NUM_THREADS=1 "
+        "python -m pytest -q tests/phase3/test_phase3_offline.py -p no:cacheprovider "
+        "-k record_offline_encoder",
+        "machine": {
+            "platform": platform.platform(),
+            "cpu": cpu,
+            "cpus": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "note": "2 cores shared with other jobs",
+            "load_average_1_5_15_min_at_end": list(os.getloadavg()),
+        },
+        "settings": encoder.settings.key(),
+        "features": int(encoder._map["weight"].shape[0]),
+        "fit_seconds": fit,
+        "fit_total_seconds": fit["generate"] + fit["features"] + fit["fit"],
+        "fit_total_cpu_seconds": fit["generate_cpu"] + fit["features_cpu"] + fit["fit_cpu"],
+        "zero_shot": zero_shot,
+        "images": {"heldout": 20 * len(held), "seen": 20 * len(off._pairs("train"))},
+        "heldout_errors": {
+            "images": int(wrong.sum()),
+            "colour": dict(colour_err),
+            "shape": dict(shape_err),
+        },
+        "cache_load_seconds": loads,
+        "cache_file_mb": encoder.cache_path.stat().st_size / 1e6,
+        "encode_cpu_seconds": {"crop_in_batch_of_64": crop_cpu, "text_one_at_a_time": text_cpu},
+        "crops": crops,
+        "validation_defaults": validation,
+        "minilm_cosine": {
+            "a red ball ~ a blue ball": float(sims[0] @ sims[1]),
+            "a red ball ~ a red box": float(sims[0] @ sims[2]),
+        },
+        "derived": {
+            "rule": "chance = 1 / captions (pair), 1 / colours, 1 / shapes",
+            "script": "tests/phase3/test_phase3_offline.py::test_record_offline_encoder",
+            "chance": {
+                "pair": 1 / len(caps),
+                "colour": 1 / len(shapes.COLOURS),
+                "shape": 1 / len(shapes.SHAPES),
+            },  # fmt: skip
+        },
+    }
+    path = Path(os.environ["SYNC4D_OFFLINE_RECORD"])
+    path.write_text(json.dumps(doc, indent=1) + "\n")
