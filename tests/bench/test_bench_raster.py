@@ -19,7 +19,7 @@ def test_cli_quick_run_writes_json(tmp_path: Path, capsys: pytest.CaptureFixture
     out = tmp_path / "bench.json"
     threads_before = torch.get_num_threads()
     argv = ["bench", "raster", "--quick", "--sizes", "2000", "--resolutions", "64x64"]
-    argv += ["--threads", "1", "--no-reference", "--out", str(out)]
+    argv += ["--thread-counts", "1", "--no-reference", "--out", str(out)]
     assert cli.main(argv) == 0
     assert torch.get_num_threads() == threads_before  # restored
 
