@@ -237,6 +237,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             from sync4d import _core
 
             print(f"sync4d: backend wgpu on {_core.wgpu_adapter()}", file=sys.stderr)
+        elif raster.auto_choice():
+            print(f"sync4d: {raster.auto_choice()}", file=sys.stderr)
     try:
         return _call(module, args)
     finally:

@@ -8,12 +8,19 @@ process sends messages that its command line and viewer each render.
   warnings; ``"out"``: results) and whether it is a `detail` (tables and "wrote ..." lines,
   which a terse front end such as ``bench fit`` leaves out).
 - `Started` / `Advanced` / `Finished`: a long loop (``task``: "fit", "phase2", "eval test",
-  "refine M_phi", "phase3 observe"), its length, how far it got and the statistics it shows.
-- `PhaseDone`: a stage ended ("phase1", "phase2", "phase3", "eval") with its summary.
+  "refine M_phi", "phase3 observe"), its length, how far it got and its statistics, as
+  numbers (``{"loss": 0.0123, "psnr": 24.51, "gaussians": 18000}``).
+- `Evaluated`: a periodic evaluation during training, its metrics as numbers.
+- `FitStarted`, `Resumed`, `Assigned`: what a fit trains on, where it resumed, Phase 2's
+  object assignment.
+- `PhaseDone`: a stage ended ("phase1", "phase2", "phase3", "eval", and "fit": the whole
+  run, with its test metrics) with its summary.
 
-The command line subscribes `sync4d.progress.TerminalRenderer`, which prints the notes and
-draws the bars exactly as the commands always did; the viewer of a later issue subscribes to
-the same stream.
+The library emits numbers; the words are the renderer's. The command line subscribes
+`sync4d.progress.TerminalRenderer`, which prints the notes, writes the typed events as lines
+and draws the bars. `EventLog` writes the same events as JSON lines into the run folder
+(``events.jsonl``, `sync4d.runs.EVENTS_FILE`), which another process follows with
+`read_events`: the viewer's status line of a run still training, a sweep's table.
 
 Without a subscriber an event is dropped: library use (tests, scripts, ``bench phase3``) is
 silent unless someone listens, so there is no `quiet` or `progress` switch to thread through.
@@ -26,21 +33,31 @@ reaches the emitter. This module is the lowest floor: every room may emit.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import threading
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 __all__ = [
     "Advanced",
+    "Assigned",
+    "Evaluated",
     "Event",
+    "EventLog",
     "Finished",
+    "FitStarted",
     "Note",
     "PhaseDone",
+    "Resumed",
     "Started",
     "Subscription",
     "emit",
     "note",
+    "read_events",
     "subscribe",
 ]
 
@@ -69,11 +86,12 @@ class Started:
 @dataclass(frozen=True)
 class Advanced:
     """`done` steps of `task` are done (counted from 0, not from `Started.start`); `stats`
-    are the loop's statistics as shown (``{"loss": "0.0123", "PSNR": "24.51"}``)."""
+    are the loop's statistics as numbers (``{"loss": 0.0123, "psnr": 24.51}``: a training
+    loop's moving averages; "gaussians" a count)."""
 
     task: str
     done: int
-    stats: Mapping[str, str] = field(default_factory=dict)
+    stats: Mapping[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -92,7 +110,55 @@ class PhaseDone:
     summary: Mapping[str, object] = field(default_factory=dict)
 
 
-Event = Note | Started | Advanced | Finished | PhaseDone
+@dataclass(frozen=True)
+class Evaluated:
+    """A periodic evaluation during `task` at `iteration`: mean test PSNR (dB), SSIM (None for
+    images too small for it), the frames evaluated, the Gaussian count and the training
+    seconds so far."""
+
+    task: str
+    iteration: int
+    psnr: float
+    ssim: float | None
+    frames: int
+    gaussians: int
+    train_seconds: float
+
+
+@dataclass(frozen=True)
+class FitStarted:
+    """A fit trains `iterations` Phase 1 iterations on scene `scene` (`train` / `test` frames
+    of `width` x `height` pixels) into the run folder `run_dir`."""
+
+    scene: str
+    train: int
+    test: int
+    width: int
+    height: int
+    iterations: int
+    run_dir: str
+
+
+@dataclass(frozen=True)
+class Resumed:
+    """Training continues the checkpoint `path` at `iteration`."""
+
+    path: str
+    iteration: int
+
+
+@dataclass(frozen=True)
+class Assigned:
+    """Phase 2 assigned the Gaussians to `num_objects` objects from `source` ("masks",
+    "trajectories"); `counts`: Gaussians per object name."""
+
+    source: str
+    num_objects: int
+    counts: Mapping[str, int] = field(default_factory=dict)
+
+
+Event = (Note | Started | Advanced | Finished | PhaseDone | Evaluated | FitStarted | Resumed
+         | Assigned)
 
 _lock = threading.Lock()
 _subscribers: tuple[Callable[[Event], None], ...] = ()
@@ -138,6 +204,56 @@ def emit(event: Event) -> None:
 
 
 def note(text: str, stream: Literal["err", "out"] = "err", detail: bool = False) -> None:
-    """Emit a `Note`: ``note(f"fit: resumed {path}")`` where a library used to print."""
+    """Emit a `Note`: ``note(f"fit: wrote {path}")`` where a library used to print."""
     if _subscribers:
         emit(Note(text, stream, detail))
+
+
+class EventLog:
+    """A subscriber writing each event as one JSON line (``{"event": "Advanced", "time": unix
+    seconds, ...fields}``) to `path`, appended and flushed per line, so another process can
+    follow a run. `Advanced` is written every `Started.log_every` steps of its task (and the
+    last), not every step; `Note` lines are left out unless `notes`."""
+
+    def __init__(self, path: Path, notes: bool = False) -> None:
+        self.path = Path(path)
+        self.notes = notes
+        self._every: dict[str, tuple[int, int]] = {}
+        self._file = self.path.open("a", encoding="utf-8")
+
+    def __call__(self, event: Event) -> None:
+        if isinstance(event, Note) and not self.notes:
+            return
+        if isinstance(event, Started):
+            self._every[event.task] = (max(1, event.log_every), event.total)
+        if isinstance(event, Advanced):
+            every, total = self._every.get(event.task, (1, 0))
+            if event.done % every and event.done != total:
+                return
+        record = {"event": type(event).__name__, "time": round(time.time(), 3),
+                  **dataclasses.asdict(event)}  # fmt: skip
+        self._file.write(json.dumps(record, default=str) + "\n")
+        self._file.flush()
+
+    def close(self) -> None:
+        """Close the file."""
+        self._file.close()
+
+
+def read_events(path: Path, kinds: tuple[str, ...] = ()) -> list[dict]:
+    """The events an `EventLog` wrote to `path` (only those of `kinds`, by class name, when
+    given), oldest first; [] when there is no such file. A line cut short by a writer still
+    at work is skipped."""
+    try:
+        lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return []
+    out = []
+    for line in lines:
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(record, dict) and (not kinds or record.get("event") in kinds):
+            out.append(record)
+    return out

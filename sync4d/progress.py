@@ -13,9 +13,23 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Mapping
 from typing import TextIO
 
-from sync4d.events import Advanced, Event, Finished, Note, Started, Subscription, subscribe
+from sync4d.events import (
+    Advanced,
+    Assigned,
+    Evaluated,
+    Event,
+    Finished,
+    FitStarted,
+    Note,
+    PhaseDone,
+    Resumed,
+    Started,
+    Subscription,
+    subscribe,
+)
 
 __all__ = ["Progress", "TerminalRenderer", "format_duration"]
 
@@ -115,12 +129,33 @@ class Progress:
             self.stream.flush()
 
 
+#: How the renderer shows a loop's statistics (`Advanced.stats`): label and format.
+STAT_FORMATS = {"loss": ("loss", ".4f"), "psnr": ("PSNR", ".2f"), "gaussians": ("#G", "d"),
+                "rho": ("rho", ".3f")}  # fmt: skip
+
+
+def format_stats(stats: Mapping[str, float]) -> dict[str, str]:
+    """A loop's statistics as the bar shows them (``{"PSNR": "24.51", "#G": "18000"}``)."""
+    out = {}
+    for key, value in stats.items():
+        label, spec = STAT_FORMATS.get(key, (key, ".4g"))
+        out[label] = format(int(value), spec) if spec == "d" else format(value, spec)
+    return out
+
+
+def _or_na(value: float | None, spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
 class TerminalRenderer:
     """Renders `sync4d.events` as the commands print them: a `Note` as its lines on its stream
     (sys.stdout or sys.stderr at that moment; on stderr through the open bar, so a terminal's
-    bar is not broken), `Started` / `Advanced` / `Finished` as a `Progress` bar on stderr;
-    `PhaseDone` adds nothing (the notes carry the text). With `details` False the notes marked
-    `detail` (tables, "wrote ..." lines) are left out, as ``bench fit`` shows its runs.
+    bar is not broken), `Started` / `Advanced` / `Finished` as a `Progress` bar on stderr with
+    the statistics formatted (`format_stats`), and the typed events (`Evaluated`,
+    `FitStarted`, `Resumed`, `Assigned`, `PhaseDone` of a whole fit) as the lines `fit`
+    prints: the library emits numbers, the words are written here. With `details` False the
+    notes marked `detail` (tables, "wrote ..." lines) and the results' lines on stdout are
+    left out, as ``bench fit`` shows its runs.
 
     ``with renderer.installed(): ...`` (or ``with subscribe(renderer)``) renders what the block
     emits."""
@@ -133,14 +168,17 @@ class TerminalRenderer:
         """Subscribe this renderer; the subscription ends it (a context manager)."""
         return subscribe(self)
 
+    def _line(self, text: str, stream: str = "err") -> None:
+        if stream == "err" and self.bars:
+            next(reversed(self.bars.values())).message(text)
+        else:
+            print(text, file=sys.stderr if stream == "err" else sys.stdout)
+
     def __call__(self, event: Event) -> None:
         if isinstance(event, Note):
             if event.detail and not self.details:
                 return
-            if event.stream == "err" and self.bars:
-                next(reversed(self.bars.values())).message(event.text)
-            else:
-                print(event.text, file=sys.stderr if event.stream == "err" else sys.stdout)
+            self._line(event.text, event.stream)
         elif isinstance(event, Started):
             self.bars[event.task] = Progress(
                 event.total, start=event.start, desc=event.task, log_every=event.log_every
@@ -148,8 +186,42 @@ class TerminalRenderer:
         elif isinstance(event, Advanced):
             bar = self.bars.get(event.task)
             if bar is not None:
-                bar.update(event.done, dict(event.stats))
+                bar.update(event.done, format_stats(event.stats))
         elif isinstance(event, Finished):
             bar = self.bars.pop(event.task, None)
             if bar is not None:
                 bar.close()
+        else:
+            text, stream = self.words(event)
+            if text and (self.details or stream == "err"):
+                self._line(text, stream)
+
+    @staticmethod
+    def words(event: Event) -> tuple[str, str]:
+        """The line (and its stream) `fit` prints for a typed event; "" for none."""
+        if isinstance(event, Evaluated):
+            return (f"[eval @ {event.iteration}] test PSNR {event.psnr:.2f} dB, SSIM "
+                    f"{_or_na(event.ssim, '.4f')} ({event.frames} frames, {event.gaussians} "
+                    f"Gaussians, {format_duration(event.train_seconds)} training)"), "err"
+        if isinstance(event, FitStarted):
+            return (f"fit: {event.scene}: {event.train} train / {event.test} test frames at "
+                    f"{event.width}x{event.height}, {event.iterations} iterations -> "
+                    f"{event.run_dir}"), "err"
+        if isinstance(event, Resumed):
+            return f"fit: resumed {event.path} at iteration {event.iteration}", "err"
+        if isinstance(event, Assigned):
+            counts = ", ".join(f"{name} {n}" for name, n in event.counts.items())
+            return f"fit: {event.source} assignment, K = {event.num_objects}: {counts}", "err"
+        if isinstance(event, PhaseDone) and event.phase == "fit":
+            s = event.summary
+            line = (f"fit: done in {format_duration(float(s['train_seconds']))} of training: "
+                    f"test PSNR {s['psnr']:.2f} dB, SSIM {_or_na(s['ssim'], '.4f')}, LPIPS "
+                    f"{_or_na(s['lpips'], '.4f')}, {s['gaussians']} Gaussians; run in "
+                    f"{s['run_dir']}")  # fmt: skip
+            d = s.get("phase2")
+            if d:
+                line += (f"\nfit: Phase 2: mean rigid share {d['rigid_share']:.3f}, shuffle "
+                         f"ratio {d['shuffle_ratio']:.2f}, {d['objects']} labels "
+                         f"({d['assignment']})")  # fmt: skip
+            return line, "out"
+        return "", "err"

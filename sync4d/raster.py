@@ -38,7 +38,6 @@ projection and spherical harmonics run on the CPU path in every case.
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -63,14 +62,15 @@ __all__ = [
 
 _default_backend = "cpu"
 _auto_choice: str | None = None
+_auto_message = ""
 
 
 def resolve_backend(backend: str | None = None) -> str:
     """The concrete backend (``"cpu"`` or ``"wgpu"``) for `backend` (None: the default).
     ``"wgpu"`` opens the adapter now, so a missing driver is a ``RuntimeError`` here that
-    says what to install; ``"auto"`` picks wgpu only for a discrete or integrated GPU and
-    reports its choice on stderr once."""
-    global _auto_choice
+    says what to install; ``"auto"`` picks wgpu only for a discrete or integrated GPU, once
+    per process, and says why in `auto_choice` (the command line prints it)."""
+    global _auto_choice, _auto_message
     b = _default_backend if backend is None else backend
     if b not in BACKENDS:
         raise ValueError(f"backend: expected one of {', '.join(BACKENDS)}, got {b!r}")
@@ -90,9 +90,15 @@ def resolve_backend(backend: str | None = None) -> str:
             else:
                 msg = "cpu (no discrete or integrated GPU adapter)"
                 _auto_choice = "cpu"
-            print(f"sync4d: backend auto -> {msg}", file=sys.stderr)
+            _auto_message = f"backend auto -> {msg}"
         return _auto_choice
     return "cpu"
+
+
+def auto_choice() -> str:
+    """Why ``backend="auto"`` resolved as it did ("backend auto -> cpu (no discrete or
+    integrated GPU adapter)"), "" before it was resolved."""
+    return _auto_message
 
 
 def set_default_backend(backend: str) -> str:

@@ -32,10 +32,11 @@ import tomllib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from sync4d.events import read_events
 from sync4d.files import write_text_atomic
 from sync4d.options import positive_int
 from sync4d.report import align_table
-from sync4d.runs.names import CHECKPOINT_NAME, EVAL_FILE, RUN_FILE
+from sync4d.runs.names import CHECKPOINT_NAME, EVAL_FILE, EVENTS_FILE, RUN_FILE
 
 __all__ = ["add_arguments", "expand", "Job", "main", "ManifestError", "read_manifest", "run_sweep"]
 
@@ -239,8 +240,8 @@ def _row(job: Job, out: Path, result: dict) -> dict:
     try:
         ev = json.loads((run / EVAL_FILE).read_text())
         rec = json.loads((run / RUN_FILE).read_text())
-        lines = (run / "metrics.jsonl").read_text().splitlines()
-        last = json.loads(lines[-1]) if lines else {}
+        done = [e for e in read_events(run / EVENTS_FILE, ("PhaseDone",)) if e["phase"] == "fit"]
+        last = done[-1]["summary"] if done else {}
         cfg = rec.get("config", {})
         row.update(iterations=cfg.get("phase1", {}).get("iterations"),
                    train_seconds=last.get("train_seconds"), psnr=ev["mean"].get("psnr"),

@@ -18,7 +18,7 @@ and EQUIRECTANGULAR are refused.
 
 from __future__ import annotations
 
-import sys
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -210,11 +210,9 @@ def _frame_times(path: Path, frames: list[dict]) -> list[float]:
     rank = {i: r for r, i in enumerate(order)}
     if path.resolve() not in _TIMES_NOTED:
         _TIMES_NOTED.add(path.resolve())
-        print(
-            f"{path}: no frame has a 'time'; reading the {len(frames)} frames, sorted by file "
-            "name, as one video evenly spaced over [0, 1]",
-            file=sys.stderr,
-        )
+        logging.getLogger("sync4d").warning(
+            "%s: no frame has a 'time'; reading the %d frames, sorted by file name, as one "
+            "video evenly spaced over [0, 1]", path, len(frames))
     return [float(rank[i]) for i in range(len(frames))]
 
 

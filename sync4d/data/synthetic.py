@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from sync4d.data.scene import DatasetError, as_number, as_number_array, cache_dir, check_pose
+from sync4d.events import note
 
 __all__ = [
     "SyntheticConfig",
@@ -676,10 +677,8 @@ def ensure_default_scene(config: SyntheticConfig | None = None) -> Path:
     root = default_scene_dir()
     cfg = config or SyntheticConfig()
     if not _is_complete(root, cfg):
-        import sys
-
         t0 = _time.perf_counter()
-        print(f"generating the synthetic scene in {root} ...", file=sys.stderr)
+        note(f"generating the synthetic scene in {root} ...")
         write_synthetic_scene(root, cfg)
-        print(f"  done in {_time.perf_counter() - t0:.1f}s", file=sys.stderr)
+        note(f"  done in {_time.perf_counter() - t0:.1f}s")
     return root

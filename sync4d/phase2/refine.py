@@ -162,7 +162,7 @@ def refine_motion(p2: MotionStrategy, config: MotionConfig | None = None) -> Non
     def advance(n: int, loss: float) -> None:
         nonlocal done
         done += n
-        emit(Advanced("refine M_phi", done, {"loss": f"{loss:.4f}"}))
+        emit(Advanced("refine M_phi", done, {"loss": loss}))
 
     poses: list[tuple[Tensor, Tensor]] = []
     scores: list[float] = []  # each tracked frame's mean loss over its views (restarts only)

@@ -248,7 +248,7 @@ def evaluate_run(
     emit(Started(task, len(frames), log_every=max(1, len(frames))))
     metrics = evaluate_frames(
         model, frames, tuple(background), threads, lpips=lpips,
-        on_frame=lambda i, m: emit(Advanced(task, i + 1, {"PSNR": f"{m.psnr:.2f}"})),
+        on_frame=lambda i, m: emit(Advanced(task, i + 1, {"psnr": m.psnr})),
         save_dir=run_dir / RENDERS_DIR / (tag or split) if renders else None,
     )  # fmt: skip
     emit(Finished(task))

@@ -6,6 +6,7 @@ nothing: it reports progress and results as `sync4d.events`, which the command l
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -13,6 +14,7 @@ import os
 import shutil
 import signal
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -20,7 +22,19 @@ import torch
 from sync4d import watchdog
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
 from sync4d.data import Scene
-from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
+from sync4d.events import (
+    Advanced,
+    Assigned,
+    Evaluated,
+    EventLog,
+    Finished,
+    PhaseDone,
+    Resumed,
+    Started,
+    emit,
+    note,
+    subscribe,
+)
 from sync4d.files import RunLock, write_atomic, write_text_atomic
 from sync4d.phase1.init import initial_model, scene_extent, with_initial_points
 from sync4d.phase1.trainer import Phase1Trainer
@@ -30,7 +44,6 @@ from sync4d.phase2.trainer import phase2_from_state, phase2_trainer
 from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
 from sync4d.pipeline.record import continue_command, dataset_fingerprint
 from sync4d.pipeline.stop import StopSignals
-from sync4d.progress import format_duration
 from sync4d.report import plot_object_trajectories
 from sync4d.runs.checkpoint import (
     camera_records,
@@ -43,6 +56,7 @@ from sync4d.runs.checkpoint import (
 )
 from sync4d.runs.names import (
     CHECKPOINT_NAME,
+    EVENTS_FILE,
     FIELD_DIR,
     METRICS_FILE,
     PHASE1_CHECKPOINT_NAME,
@@ -187,14 +201,10 @@ def _train_loop(
                     if v is not None and math.isfinite(v):
                         ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
                 it = trainer.iteration
-                shown = {
-                    "loss": f"{ema.get('loss', float('nan')):.4f}",
-                    "PSNR": f"{ema.get('psnr', float('nan')):.2f}",
-                    "#G": f"{trainer.model.num_gaussians}",
-                }
-                if "rho" in ema:
-                    shown["rho"] = f"{ema['rho']:.3f}"
-                emit(Advanced(desc, it, shown))
+                emit(Advanced(desc, it, {"loss": ema.get("loss", math.nan),
+                                         "psnr": ema.get("psnr", math.nan),
+                                         "gaussians": trainer.model.num_gaussians,
+                                         **({"rho": ema["rho"]} if "rho" in ema else {})}))
                 if it % log_every == 0:
                     log({"phase": desc, "iteration": it, "train_seconds": train_seconds,
                          **stats})  # fmt: skip
@@ -207,19 +217,13 @@ def _train_loop(
                     )
                     log({"phase": desc, "iteration": it, "train_seconds": train_seconds,
                          "test": res})  # fmt: skip
-                    note(
-                        f"[eval @ {it}] test PSNR {res['psnr']:.2f} dB, SSIM "
-                        f"{'n/a' if res['ssim'] is None else format(res['ssim'], '.4f')} "
-                        f"({res['frames']} frames, "
-                        f"{trainer.model.num_gaussians} Gaussians, "
-                        f"{format_duration(train_seconds)} training)"
-                    )
+                    emit(Evaluated(desc, it, res["psnr"], res["ssim"], res["frames"],
+                                   trainer.model.num_gaussians, train_seconds))
                 if cfg.checkpoint_every and it % cfg.checkpoint_every == 0 and it < total:
                     save()
         except KeyboardInterrupt:  # raised by a step itself, not by our handler
             stop.requested = stop.requested or int(signal.SIGINT)
         except watchdog.NonFinite as e:
-            emit(Finished(desc))
             raise _stopped(e, trainer, save, ckpt, initial, extra) from None
         finally:
             emit(Finished(desc))
@@ -283,7 +287,7 @@ def run_fit(
     p1 = cfg.phase1
     if not (math.isfinite(p1.near) and p1.near > 0):
         raise ConfigError(f"near: must be a finite distance > 0 (world units), got {p1.near}")
-    with RunLock(run_dir, "fit"), StopSignals() as stop:
+    with RunLock(run_dir, "fit"), StopSignals() as stop, _event_log(run_dir):
         try:
             return _run_fit(scene, cfg, phases, run_dir, data, resume, threads, log_every,
                             command or {}, stop)  # fmt: skip
@@ -294,6 +298,18 @@ def run_fit(
                 f"     continue with: {continue_command(run_dir, record)}"
             )
             raise FitInterrupted from None
+
+
+@contextlib.contextmanager
+def _event_log(run_dir: Path) -> Iterator[None]:
+    """The run's events as JSON lines in ``events.jsonl`` while the block runs (appended: a
+    resumed run continues the file)."""
+    log = EventLog(run_dir / EVENTS_FILE)
+    try:
+        with subscribe(log):
+            yield
+    finally:
+        log.close()
 
 
 def _run_fit(
@@ -332,7 +348,7 @@ def _run_fit(
     if resume and kind is not None:
         total = cfg.phase2.iterations if kind == "sync4d.phase2" else p1.iterations
         trainer = resume_trainer(ckpt, scene, p1, n_threads, total, cfg.phase2, near=p1.near)
-        note(f"fit: resumed {ckpt} at iteration {trainer.iteration}")
+        emit(Resumed(str(ckpt), trainer.iteration))
     elif 1 in phases:
         scene = with_initial_points(scene, p1, threads=torch.get_num_threads())
         model = initial_model(
@@ -413,9 +429,23 @@ def _run_fit(
         if (p2 := _motion(trainer)) is not None:
             summary["phase2_skipped"] = p2.skip_counts()
         log({"iteration": trainer.iteration, "train_seconds": train_seconds, "final": summary})
+        emit(PhaseDone("fit", _fit_summary(summary, run_dir)))
     finally:
         metrics_log.close()
     return summary
+
+
+def _fit_summary(summary: dict, run_dir: Path) -> dict:
+    """The numbers of the `PhaseDone("fit")` event: test metrics, Gaussians, iterations,
+    training seconds, and Phase 2's rigid share, shuffle ratio and assignment."""
+    out = {k: summary.get(k) for k in ("psnr", "ssim", "lpips", "gaussians", "iterations",
+                                       "train_seconds")}  # fmt: skip
+    out["run_dir"] = str(run_dir)
+    if "phase2" in summary:
+        d = summary["phase2"]
+        out["phase2"] = {"rigid_share": d["rigid_share"], "shuffle_ratio": d["shuffle_ratio"],
+                         "objects": len(d["objects"]), "assignment": d["assignment"]}
+    return out
 
 
 def _phase_summary(trainer: Phase1Trainer, train_seconds: float) -> dict:
@@ -515,12 +545,9 @@ def _start_phase2(
         p2 = phase2_trainer(model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads)
     except ValueError as e:  # bad assignment input
         raise ConfigError(str(e)) from None
-    counts = p2.assignment.counts()
     names = p2.assignment.names
-    note(
-        f"fit: {p2.assignment.source} assignment, K = {p2.assignment.num_objects}: "
-        + ", ".join(f"{names.get(k, k)} {n}" for k, n in counts.items())
-    )
+    emit(Assigned(p2.assignment.source, p2.assignment.num_objects,
+                  {str(names.get(k, k)): int(n) for k, n in p2.assignment.counts().items()}))
     return p2
 
 

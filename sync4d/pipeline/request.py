@@ -35,7 +35,7 @@ from sync4d.config import (
 )
 from sync4d.data import Scene, load_scene
 from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
-from sync4d.events import note
+from sync4d.events import FitStarted, emit, note
 from sync4d.pipeline.fit import restart_phase2, run_fit
 from sync4d.pipeline.phase3 import Phase3Build, build_phase3, phase3_config
 from sync4d.pipeline.record import (
@@ -45,7 +45,6 @@ from sync4d.pipeline.record import (
     read_record,
     recorded_config,
 )
-from sync4d.progress import format_duration
 from sync4d.runs import (
     CHECKPOINT_NAME,
     EVAL_FILE,
@@ -263,30 +262,14 @@ def fit_request(req: FitRequest, fresh: RunConfig | None = None) -> FitOutcome:
                        req.data is None)  # fmt: skip
         history = []
     command = {"embedded": data.embedded, "invocations": [*history, req.invocation()]}
-    scene = data.scene
-    note(f"fit: {scene.name}: {len(scene.train)} train / {len(scene.test)} test frames at "
-         f"{scene.train[0].camera.width}x{scene.train[0].camera.height}, "
-         f"{cfg.phase1.iterations} iterations -> {run_dir}")  # fmt: skip
+    scene, camera = data.scene, data.scene.train[0].camera
+    emit(FitStarted(scene.name, len(scene.train), len(scene.test), camera.width, camera.height,
+                    cfg.phase1.iterations, str(run_dir)))  # fmt: skip
     summary = run_fit(scene, cfg, run_dir, data.path, req.resume, req.threads, command=command)
-    _report(summary, run_dir)
     built = None
     if 3 in parse_phases(cfg.phases):
         built = _build_phase3(run_dir, cfg.phase3, req.threads, data.path)
     return FitOutcome(run_dir, summary, built)
-
-
-def _report(summary: dict, run_dir: Path) -> None:
-    """The training summary's lines (on stdout): test metrics, then Phase 2's diagnostics."""
-    ssim, lpips = summary["ssim"], summary["lpips"]
-    note(f"fit: done in {format_duration(summary['train_seconds'])} of training: test PSNR "
-         f"{summary['psnr']:.2f} dB, SSIM {'n/a' if ssim is None else format(ssim, '.4f')}, "
-         f"LPIPS {'n/a' if lpips is None else format(lpips, '.4f')}, "
-         f"{summary['gaussians']} Gaussians; run in {run_dir}", stream="out")  # fmt: skip
-    if "phase2" in summary:
-        d = summary["phase2"]
-        note(f"fit: Phase 2: mean rigid share {d['rigid_share']:.3f}, shuffle ratio "
-             f"{d['shuffle_ratio']:.2f}, {len(d['objects'])} labels ({d['assignment']})",
-             stream="out")  # fmt: skip
 
 
 def fit_phase3_only(req: FitRequest, kind: str | None) -> FitOutcome:

@@ -13,7 +13,8 @@ _EXPORTS = {
         ("CheckpointError", "camera_records", "checkpoint_kind", "load_model",
          "read_checkpoint", "save_checkpoint", "write_checkpoint"), "checkpoint"),
     **dict.fromkeys(
-        ("CHECKPOINT_NAME", "EVAL_FILE", "FIELD_DIR", "METRICS_FILE", "PHASE1_CHECKPOINT_NAME",
+        ("CHECKPOINT_NAME", "EVAL_FILE", "EVENTS_FILE", "FIELD_DIR", "METRICS_FILE",
+         "PHASE1_CHECKPOINT_NAME",
          "PHASE2_FILE", "RENDERS_DIR", "RUN_FILE", "TRAJECTORY_PLOT"), "names"),
     **dict.fromkeys(("Run", "RunError", "load_run"), "folder"),
 }  # fmt: skip

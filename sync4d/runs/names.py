@@ -12,6 +12,7 @@ __all__ = [
     "CHECKPOINT_NAME",
     "EMBEDDED_QUERIES_FILE",
     "EVAL_FILE",
+    "EVENTS_FILE",
     "FIELD_DIR",
     "FIELD_FILE",
     "FIELD_META",
@@ -43,6 +44,9 @@ TRAJECTORY_PLOT = "phase2-trajectories.png"
 RUN_FILE = "run.json"
 #: One JSON record per logged iteration, periodic evaluation and the final summary.
 METRICS_FILE = "metrics.jsonl"
+#: What the fit reported, as typed events, one JSON line each (`sync4d.events.EventLog`):
+#: what another process (the viewer, a sweep) follows.
+EVENTS_FILE = "events.jsonl"
 #: The last evaluation (`eval`, or the end of `fit`): per-frame and mean metrics, and what each
 #: metric is (docs/metrics.md).
 EVAL_FILE = "eval.json"

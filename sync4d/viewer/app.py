@@ -234,7 +234,10 @@ class Viewer:
                 with self._lock:
                     self.state.load()
                     self.answer = None
-                self.status.content = self._status_text() + " (reloaded: the run is training)"
+                training = self.state.training()
+                where = f": {training}" if training else ""
+                self.status.content = (self._status_text()
+                                       + f" (reloaded: the run is training{where})")  # fmt: skip
                 self.update()
             except (RunError, CheckpointError, OSError):
                 continue  # a save in progress: the next poll reads it

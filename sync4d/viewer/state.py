@@ -21,12 +21,13 @@ import torch
 from PIL import Image
 
 from sync4d.data.scene import Camera
+from sync4d.events import read_events
 from sync4d.export.splats import default_times, splats_at
 from sync4d.geometry import quat_to_matrix
 from sync4d.phase1.gaussians import SH_C0
 from sync4d.phase3.query import TextCache, answer
 from sync4d.phase3.store import Field, FieldError, load_field
-from sync4d.runs import CHECKPOINT_NAME, RENDERS_DIR, Run, load_run
+from sync4d.runs import CHECKPOINT_NAME, EVENTS_FILE, RENDERS_DIR, Run, load_run
 
 __all__ = ["HIGHLIGHT", "PALETTE", "ObjectInfo", "SplatArrays", "ViewerState"]
 
@@ -147,6 +148,21 @@ class ViewerState:
     def iteration(self) -> int:
         """The checkpoint's iteration (of its phase)."""
         return self.run.iteration
+
+    def training(self) -> str:
+        """Where the run's training is, from the events its fit writes (`read_events` on
+        ``events.jsonl``): "phase2 1200 / 2000, PSNR 31.20 dB" while a loop runs, "" when the
+        last loop finished or the run has no event log."""
+        events = read_events(self.run_dir / EVENTS_FILE, ("Started", "Advanced", "Finished"))
+        if not events or events[-1]["event"] == "Finished":
+            return ""
+        started = next((e for e in reversed(events) if e["event"] == "Started"), None)
+        last = events[-1]
+        if started is None or last["event"] != "Advanced" or last["task"] != started["task"]:
+            return ""
+        psnr = last["stats"].get("psnr")
+        shown = f", PSNR {psnr:.2f} dB" if isinstance(psnr, float) and math.isfinite(psnr) else ""
+        return f"{last['task']} {last['done']} / {started['total']}{shown}"
 
     @property
     def up(self) -> np.ndarray:

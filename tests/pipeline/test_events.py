@@ -10,9 +10,22 @@ import pytest
 from support.datasets import write_blender
 from sync4d.config import apply_overrides, load_config, with_budget
 from sync4d.data import load_scene
-from sync4d.events import Advanced, Finished, Note, PhaseDone, Started, emit, note, subscribe
+from sync4d.events import (
+    Advanced,
+    Evaluated,
+    EventLog,
+    Finished,
+    Note,
+    PhaseDone,
+    Started,
+    emit,
+    note,
+    read_events,
+    subscribe,
+)
 from sync4d.pipeline import run_fit
 from sync4d.progress import TerminalRenderer
+from sync4d.runs import EVENTS_FILE
 
 SMALL = ["phase1.init_points=300", "eval_frames=2", "phases=1", "eval_every=3",
          "checkpoint_every=0"]
@@ -33,13 +46,17 @@ def test_a_fit_reports_its_loop_phase_and_evaluation_as_events(tmp_path: Path, c
     out = capsys.readouterr()
     assert out.out == "" and out.err == ""  # a subscriber that prints nothing: nothing printed
 
-    fit = [e for e in seen if getattr(e, "task", None) == "fit"]
+    fit = [e for e in seen if getattr(e, "task", None) == "fit" and not isinstance(e, Evaluated)]
     assert fit[0] == Started("fit", 6, start=0, log_every=100)
     assert [e.done for e in fit[1:-1]] == [1, 2, 3, 4, 5, 6]
-    assert set(fit[1].stats) == {"loss", "PSNR", "#G"} and fit[-1] == Finished("fit")
+    assert set(fit[1].stats) == {"loss", "psnr", "gaussians"} and fit[-1] == Finished("fit")
+    assert all(isinstance(v, (int, float)) for v in fit[1].stats.values())  # numbers, not words
     kinds = [type(e).__name__ for e in seen]
-    i_eval = next(i for i, e in enumerate(seen) if isinstance(e, Note) and "[eval @ 3]" in e.text)
-    assert seen[i_eval - 1] == fit[3] and seen[i_eval].stream == "err"  # after step 3
+    i_eval = next(i for i, e in enumerate(seen) if isinstance(e, Evaluated))
+    assert seen[i_eval - 1] == fit[3]  # after step 3
+    ev = seen[i_eval]
+    assert (ev.task, ev.iteration, ev.frames, ev.gaussians) == ("fit", 3, 2, fit[3].stats[
+        "gaussians"]) and 0 < ev.psnr < 100 and ev.train_seconds > 0  # fmt: skip
     i_phase1 = kinds.index("PhaseDone")
     skip_lines = seen[seen.index(Finished("fit")) + 1:i_phase1]  # what Phase 1 skipped
     assert all(isinstance(e, Note) and e.text.startswith("fit: Phase 1") for e in skip_lines)
@@ -49,10 +66,39 @@ def test_a_fit_reports_its_loop_phase_and_evaluation_as_events(tmp_path: Path, c
     tail = [e for e in seen[i_phase1 + 1:] if not (isinstance(e, Note) and " n/a: " in e.text)]
     assert tail[0] == Started("eval test", 4, log_every=4)
     assert [e.done for e in tail[1:5]] == [1, 2, 3, 4] and tail[5] == Finished("eval test")
-    table, wrote, done = tail[6:]
+    table, wrote, done, whole = tail[6:]
     assert table.stream == wrote.stream == "out" and table.detail and wrote.detail
     assert "mean" in table.text and wrote.text.startswith("eval: wrote ")
     assert done.phase == "eval" and done.summary["psnr"] == pytest.approx(summary["psnr"])
+    assert whole.phase == "fit" and whole.summary["psnr"] == pytest.approx(summary["psnr"])
+    assert whole.summary["iterations"] == 6 and whole.summary["run_dir"] == str(tmp_path / "run")
+
+
+def test_the_run_folder_holds_the_events_another_process_follows(tmp_path: Path) -> None:
+    """`events.jsonl`: the typed events as JSON lines (the loop's every `log_every` steps and
+    its last), written by the fit whoever listens; `read_events` reads them back, and skips a
+    line a writer has not finished."""
+    summary = _fit(tmp_path, "run")
+    path = tmp_path / "run" / EVENTS_FILE
+    events = read_events(path)
+    kinds = [e["event"] for e in events]
+    assert kinds[0] == "Started" and "Evaluated" in kinds and kinds[-1] == "PhaseDone"
+    advanced = [e for e in events if e["event"] == "Advanced" and e["task"] == "fit"]
+    assert [e["done"] for e in advanced] == [6]  # log_every 100: only the loop's last step
+    assert isinstance(advanced[0]["stats"]["psnr"], float) and "Note" not in kinds
+    (done,) = [e for e in read_events(path, ("PhaseDone",)) if e["phase"] == "fit"]
+    assert done["summary"]["psnr"] == pytest.approx(summary["psnr"])
+    assert all(isinstance(e["time"], float) for e in events)
+    with path.open("a") as f:
+        f.write('{"event": "Advanced", "task": "fi')  # a writer cut short
+    assert read_events(path) == events
+    assert read_events(tmp_path / "nothing.jsonl") == []
+    log = EventLog(tmp_path / "notes.jsonl", notes=True)
+    log(Note("hello"))
+    log.close()
+    assert read_events(tmp_path / "notes.jsonl") == [
+        {"event": "Note", "time": pytest.approx(read_events(tmp_path / "notes.jsonl")[0]["time"]),
+         "text": "hello", "stream": "err", "detail": False}]  # fmt: skip
 
 
 def test_without_a_subscriber_the_pipeline_prints_nothing(tmp_path: Path, capsys) -> None:
@@ -67,9 +113,10 @@ def test_the_terminal_renderer_prints_the_commands_lines(tmp_path: Path, capsys)
     out = capsys.readouterr()
     err = out.err.splitlines()
     assert any(ln.startswith("fit 6/6 [") and "ETA" in ln for ln in err)
-    assert any(ln.startswith("[eval @ 3] test PSNR") for ln in err)
+    assert any(ln.startswith("[eval @ 3] test PSNR") and "Gaussians" in ln for ln in err)
     assert any(ln.startswith("eval test 4/4 [") for ln in err)
     assert "mean" in out.out and "eval: wrote " in out.out
+    assert "fit: done in " in out.out and "test PSNR" in out.out  # the fit's PhaseDone
     with TerminalRenderer(details=False).installed():  # bench fit: no tables
         _fit(tmp_path, "again")
     out = capsys.readouterr()
@@ -83,22 +130,23 @@ def test_subscriptions_end_with_their_block(capsys) -> None:
     with subscribe(first.append):
         emit(Started("loop", 2))
         with subscribe(second.append) as sub:
-            emit(Advanced("loop", 1, {"loss": "1.0"}))
+            emit(Advanced("loop", 1, {"loss": 1.0}))
             sub.close()  # closing twice is harmless
         note("done", "out", detail=True)
     emit(Finished("loop"))
-    assert first == [Started("loop", 2), Advanced("loop", 1, {"loss": "1.0"}),
+    assert first == [Started("loop", 2), Advanced("loop", 1, {"loss": 1.0}),
                      Note("done", "out", True)]  # fmt: skip
-    assert second == [Advanced("loop", 1, {"loss": "1.0"})]
+    assert second == [Advanced("loop", 1, {"loss": 1.0})]
     assert capsys.readouterr().err == ""
     renderer = TerminalRenderer()
     with renderer.installed():
         emit(Started("loop", 2, log_every=1))
-        emit(Advanced("loop", 1))
+        emit(Advanced("loop", 1, {"loss": 0.01234, "psnr": 24.5, "gaussians": 1800}))
         note("between")  # through the open bar: on its own line
         emit(Advanced("loop", 2))
         emit(Finished("loop"))
         emit(PhaseDone("phase1", {"iteration": 2}))  # the notes carry the text
     err = capsys.readouterr().err.splitlines()
     assert [ln.split(" [")[0] for ln in err] == ["loop 1/2", "between", "loop 2/2"]
+    assert "loss 0.0123" in err[0] and "PSNR 24.50" in err[0] and "#G 1800" in err[0]
     assert renderer.bars == {}

@@ -14,8 +14,9 @@ import torch
 
 from support.oracle import oracle_run_folder
 from sync4d.data.scene import Camera
+from sync4d.events import Advanced, EventLog, Finished, Started
 from sync4d.phase3.store import FieldError
-from sync4d.runs import CHECKPOINT_NAME, load_run
+from sync4d.runs import CHECKPOINT_NAME, EVENTS_FILE, load_run
 from sync4d.viewer.state import HIGHLIGHT, ViewerState
 
 QUERY = "the red ball rising"
@@ -116,3 +117,21 @@ def test_a_run_that_trains_is_reloaded(run_dir):
     assert st.changed()
     st.load()
     assert not st.changed() and st.iteration == load_run(run_dir).iteration
+
+
+def test_the_status_follows_the_fits_event_log(run_dir):
+    """While a fit runs, the viewer reads where it is from the run folder's `events.jsonl`
+    (the fit's own typed events), not from the terminal."""
+    st = ViewerState(run_dir)
+    path = run_dir / EVENTS_FILE
+    assert st.training() == ""  # no event log: nothing to say
+    log = EventLog(path)
+    try:
+        log(Started("phase2", 2000, start=1000, log_every=100))
+        log(Advanced("phase2", 1200, {"loss": 0.01, "psnr": 31.2, "gaussians": 900}))
+        assert st.training() == "phase2 1200 / 2000, PSNR 31.20 dB"
+        log(Finished("phase2"))
+        assert st.training() == ""
+    finally:
+        log.close()
+        path.unlink()

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -386,7 +387,7 @@ class OfflineEncoder(Encoder):
             self.cache_path.parent.mkdir(parents=True, exist_ok=True)
             write_atomic(self.cache_path, write)
         except (OSError, WriteFailed) as e:  # an unwritable cache only costs a refit
-            print(f"sync4d: could not cache the offline encoder map ({e})", file=sys.stderr)
+            logging.getLogger("sync4d").warning("could not cache the offline encoder map (%s)", e)
 
     def _fit(self) -> dict[str, np.ndarray]:
         st = self.settings
@@ -494,5 +495,6 @@ if __name__ == "__main__":  # python -m sync4d.phase3.encoders.offline: fit (or 
     torch.set_num_threads(1)
     t = time.perf_counter()
     e = OfflineEncoder()
-    print(json.dumps({"load_seconds": time.perf_counter() - t, "from_cache": e.from_cache,
-                      **zero_shot_report(e)}, indent=1))  # fmt: skip
+    report = {"load_seconds": time.perf_counter() - t, "from_cache": e.from_cache,
+              **zero_shot_report(e)}  # fmt: skip
+    sys.stdout.write(json.dumps(report, indent=1) + "\n")  # a script's output, not a print
