@@ -8,12 +8,12 @@ design of each is its function's docstring: ``full`` (the default), ``paper`` (E
 ``static`` (the static-only ablation), ``motion`` and ``names`` (both beyond the paper).
 
 Text embeddings are cached in ``RUN/phase3/texts.json`` under the encoder's fingerprint, so a
-repeated query loads no encoder and encodes nothing.
+repeated query loads no encoder and encodes nothing (`sync4d.phase3.texts`, which also says
+which object a text names, for these scorers and the relational planner alike).
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,13 +22,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sync4d.files import write_text_atomic
 from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.activation import activate, intervals
-from sync4d.phase3.encoders.encoder import Encoder, EncoderError, load_encoder
+from sync4d.phase3.encoders.encoder import Encoder
 from sync4d.phase3.field import query_scores
 from sync4d.phase3.store import Field, FieldError, load_field
-from sync4d.runs.names import FIELD_DIR, TEXT_CACHE
+from sync4d.phase3.texts import TextCache, identity, names_score, resolve_target
 
 if TYPE_CHECKING:
     from sync4d.phase3.config import Phase3Config
@@ -42,62 +41,6 @@ class QueryError(ValueError):
     """A query that cannot be answered (empty text, unknown scorer); the message says why."""
 
 
-class TextCache:
-    """Text embeddings of one run's field, keyed by text, stored in ``RUN/phase3/texts.json``;
-    the encoder is loaded only when a text is missing."""
-
-    def __init__(self, run_dir: str | Path, field: Field, encoder: Encoder | str | None = None):
-        self.path = Path(run_dir) / FIELD_DIR / TEXT_CACHE
-        self.field = field
-        self._encoder = encoder if isinstance(encoder, Encoder) else None
-        self._spec = None if isinstance(encoder, Encoder) else encoder
-        self.fingerprint = field.encoder.get("fingerprint", "")
-        self.texts: dict[str, list[float]] = {}
-        self.encoded = 0
-        try:
-            data = json.loads(self.path.read_text(encoding="utf-8"))
-            if data.get("fingerprint") == self.fingerprint:
-                self.texts = dict(data.get("texts", {}))
-        except (OSError, ValueError, AttributeError):
-            pass  # no cache, or an unreadable one: it is rebuilt
-
-    def encoder(self) -> Encoder:
-        """The field's encoder (loaded on first use); EncoderError when it is not the one the
-        field was built with."""
-        if self._encoder is None:
-            spec = self._spec or self.field.config.get("encoder") or None
-            self._encoder = load_encoder(spec)
-        if self._encoder.fingerprint != self.fingerprint:
-            raise EncoderError(
-                f"the field in {self.path.parent} was built with encoder "
-                f"{self.field.encoder.get('kind')} ({self.fingerprint[:12]}), not "
-                f"{self._encoder.kind} ({self._encoder.fingerprint[:12]}); give that encoder "
-                "with --encoder or rebuild the field (fit --out RUN --phases 3)"
-            )
-        return self._encoder
-
-    def get(self, texts: list[str]) -> np.ndarray:
-        """Unit embeddings [n, D] of `texts`, encoding only those not cached."""
-        missing = sorted({t for t in texts if t not in self.texts})
-        if missing:
-            emb = self.encoder().encode_texts(missing)
-            for t, e in zip(missing, emb, strict=True):
-                self.texts[t] = [float(x) for x in e]
-            self.encoded += len(missing)
-            self.save()
-        return np.asarray([self.texts[t] for t in texts], dtype=np.float64)
-
-    def similarity(self, a: list[str], b: list[str]) -> np.ndarray:
-        """Cosine similarities [len(a), len(b)] of two text lists."""
-        return self.get(a) @ self.get(b).T
-
-    def save(self) -> None:
-        """Write the cache atomically (beside the field)."""
-        if self.path.parent.is_dir():
-            write_text_atomic(self.path, json.dumps(
-                {"fingerprint": self.fingerprint, "texts": self.texts}) + "\n")
-
-
 @dataclass
 class _Scored:
     score: np.ndarray  # [K] ranking score
@@ -105,44 +48,6 @@ class _Scored:
     sims: np.ndarray  # [K, T] the per-frame curve the timeline plots
     identity: np.ndarray  # [K]
     motion: np.ndarray | None = None  # [K] fraction of frames the motion holds
-
-
-def _resolve_target(m: mp.MatchedPredicate, field: Field, cache: TextCache) -> None:
-    """Set `m.target` from its target text (background words, names, embeddings)."""
-    text = m.target_text
-    if not text or m.target is not None:
-        return
-    words = text.split()
-    if any(w in mp.BACKGROUND_WORDS for w in words):
-        m.target = 0
-        return
-    low = [n.lower() for n in field.names]
-    for j, n in enumerate(low):
-        if n and n in text:
-            m.target = field.labels[j]
-            return
-    q = cache.get([text])[0]
-    named = not all(n.startswith("object ") for n in field.names)
-    sims = cache.get(field.names) @ q if named else field.static @ q
-    m.target = field.labels[int(np.argmax(sims))]
-
-
-def _identity(field: Field, text: str, cache: TextCache, cfg: Phase3Config,
-              static_only: bool) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """(S [K], sims [K, T]): Eq. 15 of `text`, constant when it is empty."""
-    if not text.strip():
-        k, t = field.observed.shape
-        return np.zeros(k), np.zeros((k, t))
-    q = cache.get([text])[0]
-    return query_scores(field.static, field.temporal(static_only or cfg.static_only), q,
-                        cfg.w_static, cfg.w_temporal)  # fmt: skip
-
-
-def _names_score(field: Field, text: str, cache: TextCache) -> np.ndarray | None:
-    """Text-text similarity [K] of `text` to the object names; None when unnamed."""
-    if all(n.startswith("object ") for n in field.names) or not text.strip():
-        return None
-    return cache.get(field.names) @ cache.get([text])[0]
 
 
 _Result = tuple[_Scored, list[mp.MatchedPredicate], str]
@@ -188,10 +93,10 @@ def _motion(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCa
     the rest of the query, plus the names' when `with_names` (and the objects are named)."""
     k, t = field.observed.shape
     matched, rest = mp.match_predicates(text, cache.similarity, cfg.phrase_match)
-    s, sims = _identity(field, rest if matched else text, cache, cfg, False)
+    s, sims = identity(field, rest if matched else text, cache, cfg, False)
     ident = s.copy()
     if with_names:
-        ns = _names_score(field, rest if matched else text, cache)
+        ns = names_score(field, rest if matched else text, cache)
         if ns is not None:
             ident = ident + ns
     if not matched:
@@ -199,7 +104,7 @@ def _motion(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCa
         return _Scored(ident, act, sims, ident), [], text
     truth = np.ones((k, t), bool)
     for m in matched:
-        _resolve_target(m, field, cache)
+        resolve_target(m, field, cache)
         truth &= mp.evaluate(m, field.features, field.centroids, field.gaps, field.gap_labels,
                              field.labels, field.radius, field.up, field.right, field.times,
                              cfg)  # fmt: skip
@@ -222,14 +127,14 @@ def _full(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCach
 def _paper(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCache) -> _Result:
     """Eq. 15, S(k; q) = w_s <e_static_k, q> + w_t max_f <e_sync_k,f, q>; the top object's
     active frames by Appendix F's rule on <e_sync_k,f, q> (or 4D LangSplat's mean rule)."""
-    s, sims = _identity(field, text, cache, cfg, False)
+    s, sims = identity(field, text, cache, cfg, False)
     return _by_frames(field, text, rule, s, sims)
 
 
 @_scorer("static", "the static-only ablation")
 def _static(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCache) -> _Result:
     """`paper` with e_sync = e_static (the paper's static-only ablation)."""
-    s, sims = _identity(field, text, cache, cfg, True)
+    s, sims = identity(field, text, cache, cfg, True)
     return _by_frames(field, text, rule, s, sims)
 
 
@@ -260,8 +165,8 @@ def _names(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCac
     """Beyond the paper: identity by the text-text similarity of the query to each object's
     name (from the masks' labels.json), when the ranking of `paper` would need an
     open-vocabulary image encoder; frames as `paper`."""
-    _, sims = _identity(field, text, cache, cfg, False)
-    ns = _names_score(field, text, cache)
+    _, sims = identity(field, text, cache, cfg, False)
+    ns = names_score(field, text, cache)
     if ns is None:
         raise QueryError("the names scorer needs named objects (labels.json beside the "
                          "masks); this run's objects have no names")  # fmt: skip

@@ -79,9 +79,9 @@ import numpy as np
 
 from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.activation import intervals
+from sync4d.phase3.texts import TextCache, identity, names_score, resolve_target
 
 if TYPE_CHECKING:
-    from sync4d.phase3.query import TextCache
     from sync4d.phase3.store import Field
 
 __all__ = ["ATOMS", "EXTREMES", "FORMS", "ORDINALS", "RELATIONS", "Clause", "Plan",
@@ -390,10 +390,8 @@ def _sim(cache: TextCache, a: list[str], b: list[str]) -> np.ndarray:
 
 def _identity_scores(field: Field, text: str, cache: TextCache, cfg) -> np.ndarray:
     """The `full` scorer's identity of `text` per object: Eq. 15 plus the names' similarity."""
-    from sync4d.phase3.query import _identity, _names_score
-
-    s, _ = _identity(field, text, cache, cfg, False)
-    ns = _names_score(field, text, cache)
+    s, _ = identity(field, text, cache, cfg, False)
+    ns = names_score(field, text, cache)
     return s + ns if ns is not None else s
 
 
@@ -530,9 +528,7 @@ def _resolve(a: Atom, field: Field, cache: TextCache) -> None:
         return
     m = mp.MatchedPredicate(mp.Predicate(a.name, (), True), a.words, a.similarity,
                             target_text=a.target_text)  # fmt: skip
-    from sync4d.phase3.query import _resolve_target
-
-    _resolve_target(m, field, cache)
+    resolve_target(m, field, cache)
     a.target = m.target
     if a.target == 0:
         a.target_text = "background"
