@@ -8,9 +8,8 @@ gives the command its description and arguments (the shared ones from `sync4d.op
 (`scripts/gen_docs.py`) all come from the table, and so does the command list at the end of
 this docstring. Adding a command is a row here and its module.
 
-A command's module is imported only when its arguments are needed: `main` adds those of the
-command it runs alone, so ``sync4d --help`` imports no command module, ``sync4d query`` no
-torch, and a module missing from an install only affects its command.
+A command's module is imported only when its arguments are needed (`main` adds those of the
+command it runs alone): ``sync4d --help`` imports no command module, ``sync4d query`` no torch.
 """
 
 from __future__ import annotations
@@ -224,7 +223,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     from sync4d import raster  # torch too: a command that renders
 
     _bound_torch_threads(args)
-
     backend = getattr(args, "backend", None)
     previous = raster.resolve_backend()
     if backend not in (None, "cpu"):
@@ -234,9 +232,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"python -m sync4d {args.command}: {e}", file=sys.stderr)
             return 2
         if backend == "wgpu":
-            from sync4d import _core
-
-            print(f"sync4d: backend wgpu on {_core.wgpu_adapter()}", file=sys.stderr)
+            from sync4d._core import wgpu_adapter
+            print(f"sync4d: backend wgpu on {wgpu_adapter()}", file=sys.stderr)
         elif raster.auto_choice():
             print(f"sync4d: {raster.auto_choice()}", file=sys.stderr)
     try:
@@ -282,8 +279,7 @@ def _tolerate_undecodable_output() -> None:
 
 def _bound_torch_threads(args: argparse.Namespace) -> None:
     """`--threads T`: torch's intra-op threads before the command runs anything (an op before
-    `torch.set_num_threads` starts a second OpenMP pool: issue 51). Only where the command's
-    module imported torch: query, which does not, stays light."""
+    `torch.set_num_threads` starts a second OpenMP pool: issue 51), where torch is loaded."""
     threads = getattr(args, "threads", None)
     if type(threads) is int and "torch" in sys.modules:  # not bench raster's list
         import torch
