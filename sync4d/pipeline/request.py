@@ -48,6 +48,7 @@ from sync4d.pipeline.record import (
 from sync4d.runs import (
     CHECKPOINT_NAME,
     EVAL_FILE,
+    EVENTS_FILE,
     FIELD_DIR,
     METRICS_FILE,
     PHASE1_CHECKPOINT_NAME,
@@ -195,8 +196,8 @@ def continued_data(req: FitRequest, record: dict, run_dir: Path) -> tuple[Path, 
 
 def clear_run(run_dir: Path) -> None:
     """Remove a run's results (--force)."""
-    for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, PHASE2_FILE,
-                 TRAJECTORY_PLOT, EVAL_FILE, RUN_FILE):  # fmt: skip
+    for name in (CHECKPOINT_NAME, PHASE1_CHECKPOINT_NAME, METRICS_FILE, EVENTS_FILE,
+                 PHASE2_FILE, TRAJECTORY_PLOT, EVAL_FILE, RUN_FILE):  # fmt: skip
         (run_dir / name).unlink(missing_ok=True)
     for extra in run_dir.glob("eval-*.json"):
         extra.unlink()

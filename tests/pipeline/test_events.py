@@ -150,3 +150,18 @@ def test_subscriptions_end_with_their_block(capsys) -> None:
     assert [ln.split(" [")[0] for ln in err] == ["loop 1/2", "between", "loop 2/2"]
     assert "loss 0.0123" in err[0] and "PSNR 24.50" in err[0] and "#G 1800" in err[0]
     assert renderer.bars == {}
+
+
+def test_a_forced_restart_starts_a_new_event_log(tmp_path: Path, capsys) -> None:
+    """`fit --force` deletes the run's results, its event log too: the log holds one run."""
+    from sync4d.cli import main
+
+    root = tmp_path / "tiny"
+    write_blender(root, n=4, size=24)
+    args = ["fit", str(root), "--out", str(tmp_path / "run"), "--iters", "3", "--threads", "1",
+            "--phases", "1", "--set", "phase1.init_points=300", "--set", "eval_every=0"]
+    assert main(args) == 0
+    assert main([*args, "--force"]) == 0
+    capsys.readouterr()
+    done = read_events(tmp_path / "run" / EVENTS_FILE, ("PhaseDone",))
+    assert [e["phase"] for e in done] == ["phase1", "eval", "fit"]
