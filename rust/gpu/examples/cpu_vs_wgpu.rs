@@ -22,6 +22,8 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+// A benchmark script: argument parsing, the scene, and one table row per backend, in order.
+#[allow(clippy::too_many_lines)]
 fn main() {
     let args: Vec<usize> = std::env::args()
         .skip(1)
@@ -36,8 +38,7 @@ fn main() {
     // intersections, fewer saturated pixels).
     let scale_factor: f32 = std::env::var("SYNC4D_SCALE")
         .ok()
-        .map(|v| v.parse().expect("SYNC4D_SCALE"))
-        .unwrap_or(1.0);
+        .map_or(1.0, |v| v.parse().expect("SYNC4D_SCALE"));
     let sc: Vec<f32> = to_f32(&s.scales).iter().map(|v| v * scale_factor).collect();
     let (m, q, o) = (to_f32(&s.means), to_f32(&s.quats), to_f32(&s.opacities));
     let feats = to_f32(&s.features);
@@ -90,7 +91,7 @@ fn main() {
     let mut times: Vec<(Vec<f64>, Vec<f64>)> = vec![(Vec::new(), Vec::new()); 2];
     // The backends take turns call by call, so that a machine whose speed drifts (a shared one)
     // slows both alike.
-    for rep in 0..reps + 1 {
+    for rep in 0..=reps {
         for (bi, backend) in ["cpu", "wgpu"].into_iter().enumerate() {
             let (fwd, full) = &mut times[bi];
             let t0 = Instant::now();

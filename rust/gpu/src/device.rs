@@ -94,7 +94,7 @@ pub fn list_adapters() -> Vec<AdapterSummary> {
     let mut infos: Vec<wgpu::AdapterInfo> =
         pollster::block_on(instance().enumerate_adapters(wgpu::Backends::PRIMARY))
             .iter()
-            .map(|a| a.get_info())
+            .map(wgpu::Adapter::get_info)
             .collect();
     infos.sort_by_key(|i| rank(i.device_type));
     infos.iter().map(summary).collect()

@@ -16,7 +16,6 @@
 //! [`GpuDevice`] picks the adapter ([`AdapterChoice`]); [`GpuRasterizer`] owns the compiled
 //! kernels and reusable buffers. Inputs are validated exactly as on the CPU path and every
 //! failure is a [`GpuError`], never a panic.
-#![warn(missing_docs)]
 
 pub mod device;
 pub mod error;

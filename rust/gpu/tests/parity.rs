@@ -20,9 +20,10 @@ fn open_device() -> Option<GpuDevice> {
             Some(dev)
         }
         Err(e) => {
-            if std::env::var("SYNC4D_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("SYNC4D_REQUIRE_GPU=1 but {e}");
-            }
+            assert!(
+                !std::env::var("SYNC4D_REQUIRE_GPU").is_ok_and(|v| v == "1"),
+                "SYNC4D_REQUIRE_GPU=1 but {e}"
+            );
             eprintln!("skipping wgpu tests: {e}");
             None
         }
@@ -190,16 +191,13 @@ fn composite(
     let bg = to_f32(&s.background);
     let sp = splats(p, &feats, s.channels);
     let mut img = Image::zeros((w * h) as usize, s.channels);
-    let counters = match r {
-        Some(r) => {
-            let mut state = GpuRasterState::new();
-            r.rasterize_forward(&sp, w, h, &bg, bs, &mut state, img.as_mut())
-                .unwrap()
-        }
-        None => {
-            let mut state = RasterState::new();
-            rasterize_forward(&sp, w, h, &bg, bs, &mut state, img.as_mut()).unwrap()
-        }
+    let counters = if let Some(r) = r {
+        let mut state = GpuRasterState::new();
+        r.rasterize_forward(&sp, w, h, &bg, bs, &mut state, img.as_mut())
+            .unwrap()
+    } else {
+        let mut state = RasterState::new();
+        rasterize_forward(&sp, w, h, &bg, bs, &mut state, img.as_mut()).unwrap()
     };
     (img, counters)
 }
@@ -207,7 +205,9 @@ fn composite(
 #[test]
 fn projection_matches_the_cpu_path() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     for (seed, antialiased) in [(1u64, false), (2, true), (3, false)] {
         let s = random_scene(400, 96, 80, 3, seed);
         let ps = ProjectSettings {
@@ -277,7 +277,9 @@ fn assert_same_decisions(r: &mut GpuRasterizer, s: &Scene, seed: u64) -> Counter
 #[test]
 fn compositing_matches_the_cpu_path_exactly_in_decisions() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let default = r.blend_layout();
     for (layout, (seed, n, w, h, ch)) in layouts(&r).into_iter().flat_map(|l| {
         [
@@ -302,7 +304,9 @@ fn compositing_matches_the_cpu_path_exactly_in_decisions() {
 #[test]
 fn needle_splats_are_composited_exactly() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let default = r.blend_layout();
     for (layout, seed) in layouts(&r)
         .into_iter()
@@ -325,7 +329,9 @@ fn needle_splats_are_composited_exactly() {
 #[test]
 fn full_forward_matches_the_cpu_path() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     for seed in [7u64, 8, 9] {
         let s = random_scene(500, 80, 72, 3, seed);
         let ps = ProjectSettings::default();
@@ -342,7 +348,9 @@ fn full_forward_matches_the_cpu_path() {
 #[test]
 fn empty_and_fully_culled_scenes() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let mut s = random_scene(0, 20, 20, 2, 1);
     let bs = BlendSettings::default();
     let (img, c) = composite(
@@ -367,7 +375,9 @@ fn empty_and_fully_culled_scenes() {
 #[test]
 fn bad_input_is_an_error_not_a_panic() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let s = random_scene(10, 16, 16, 3, 1);
     let mut p = cpu_project(&s, &ProjectSettings::default());
     p.opacities[3] = f32::NAN;
@@ -528,7 +538,9 @@ fn check_splat_gradients(
 #[test]
 fn compositing_gradients_match_the_cpu_path() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let default = r.blend_layout();
     for (layout, (seed, n, w, h, ch)) in layouts(&r).into_iter().flat_map(|l| {
         [
@@ -547,7 +559,9 @@ fn compositing_gradients_match_the_cpu_path() {
 #[test]
 fn projection_gradients_match_the_cpu_path() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     for (seed, antialiased) in [(21u64, false), (22, true)] {
         let s = random_scene(300, 80, 64, 3, seed);
         let ps = ProjectSettings {
@@ -644,7 +658,9 @@ fn float_atomics_need_a_device_that_has_them() {
 #[test]
 fn backward_without_its_forward_is_an_error() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let s = random_scene(10, 16, 16, 3, 1);
     let p = cpu_project(&s, &ProjectSettings::default());
     let feats = to_f32(&s.features);
@@ -672,7 +688,9 @@ fn backward_without_its_forward_is_an_error() {
 #[test]
 fn large_scenes_match_the_cpu_path() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let s = random_scene(20_000, 448, 448, 3, 21);
     let bs = BlendSettings::default();
     let p = cpu_project(&s, &ProjectSettings::default());
@@ -692,12 +710,14 @@ fn large_scenes_match_the_cpu_path() {
 #[test]
 fn both_tile_scatters_match_the_cpu_path() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let cpu_adapter = r.device().adapter.kind == "cpu";
     let mut seen = Vec::new();
     for (n, size, grow, seed) in [(3000, 160, 1.0, 31u64), (300, 448, 12.0, 32)] {
         let mut s = random_scene(n, size, size, 3, seed);
-        for sc in s.scales.iter_mut() {
+        for sc in &mut s.scales {
             *sc *= grow;
         }
         let bs = BlendSettings::default();
@@ -734,7 +754,9 @@ fn both_tile_scatters_match_the_cpu_path() {
 #[test]
 fn long_tile_lists_are_composited_in_windows() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let n = 70_000;
     let p = Proj {
         means2d: (0..n)
@@ -783,7 +805,9 @@ fn long_tile_lists_are_composited_in_windows() {
 #[test]
 fn windowed_compositing_matches_the_cpu_path() {
     let Some(gpu) = gpu() else { return };
-    let mut r = gpu.lock().unwrap_or_else(|e| e.into_inner());
+    let mut r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let default = r.blend_layout();
     r.set_compositing_window(CompositingWindow::Fixed(7))
         .unwrap();

@@ -123,7 +123,7 @@ impl Taps {
                 continue;
             }
             let d = &mut dst[j * stride..(j + 1) * stride];
-            d.iter_mut().for_each(|v| *v = F::zero());
+            d.fill(F::zero());
             for &(i, m) in list {
                 let m = F::from_f64(m as f64);
                 for (dv, &sv) in d.iter_mut().zip(&src[i * stride..(i + 1) * stride]) {
@@ -145,7 +145,7 @@ impl Taps {
 
     /// `dst = sum_taps(j) rows of src` for output row `j` (vertical pass).
     fn gather_rows<F: Real>(&self, j: usize, rows: &[&[F]], dst: &mut [F]) {
-        dst.iter_mut().for_each(|v| *v = F::zero());
+        dst.fill(F::zero());
         for &(i, m) in &self.lists[j] {
             let m = F::from_f64(m as f64);
             for (dv, &sv) in dst.iter_mut().zip(rows[i]) {
@@ -198,6 +198,9 @@ fn check_image<F: Real>(arg: &'static str, v: &[F], len: usize) -> Result<()> {
 ///
 /// Errors (naming the argument) on mismatched lengths, non-finite values, an even or zero
 /// window, or an image smaller than the window's reflect padding allows.
+// One fused pass (box sums, SSIM map and its adjoint); split, the row buffers it shares
+// between the stages would have to travel through every function.
+#[allow(clippy::too_many_lines)]
 pub fn photometric_loss<F: Real>(
     pred: &[F],
     target: &[F],

@@ -66,7 +66,7 @@ fn main() {
                 inv_r2: &mut gr,
                 table: &mut gt,
             };
-            node_weighted_sum_backward(&blend, &gb, grads).unwrap()
+            node_weighted_sum_backward(&blend, &gb, grads).unwrap();
         })
     });
     println!(

@@ -164,7 +164,7 @@ impl<T: Real, I: NodeIndex> NodeBlend<'_, T, I> {
             max = if a > max { a } else { max };
         }
         let mut sum = T::zero();
-        for a in s.w.iter_mut() {
+        for a in &mut s.w {
             // exp(0) = 1 exactly; also keeps a row of all -inf finite (equal weights).
             let e = if *a == max {
                 T::one()
@@ -174,7 +174,7 @@ impl<T: Real, I: NodeIndex> NodeBlend<'_, T, I> {
             *a = e;
             sum = sum + e;
         }
-        for a in s.w.iter_mut() {
+        for a in &mut s.w {
             *a = *a / sum;
         }
     }
@@ -331,7 +331,7 @@ fn forward<T: Real, I: NodeIndex>(
         check_len("weights", w, n * k)?;
     }
     let task = |(chunk, out): (usize, &mut [T]), w: Option<&mut [T]>| {
-        by_channels!(c, forward_run(avx2, blend, chunk * ROWS, out, w))
+        by_channels!(c, forward_run(avx2, blend, chunk * ROWS, out, w));
     };
     let chunks = out.par_chunks_mut(ROWS * c).enumerate();
     match weights {
@@ -447,7 +447,7 @@ fn backward<T: Real, I: NodeIndex>(
             by_channels!(
                 c,
                 backward_run(avx2, blend, grad_out, task * rows, gx, sums)
-            )
+            );
         });
 
     // Per node: the tasks' sums added in task order.

@@ -166,6 +166,9 @@ pub fn linear_epilogue_forward<T: Real>(
 
 /// The exact gradients of [`linear_epilogue_forward`] given dL/d(means, quats, scales)
 /// `grad_means` [N, 3], `grad_quats` [N, 4], `grad_scales` [N, 3].
+///
+/// # Panics
+/// Never for f32 or f64: the only fallible step is converting the norm floor (1e-12) to `T`.
 pub fn linear_epilogue_backward<T: Real>(
     e: &LinearEpilogue<'_, T>,
     grad_means: &[T],

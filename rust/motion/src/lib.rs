@@ -10,7 +10,6 @@
 //!
 //! The crate knows nothing of Python: inputs are flat row-major slices and every bad input is a
 //! [`MotionError`] naming the argument.
-#![warn(missing_docs)]
 
 pub mod blend;
 pub mod epilogue;

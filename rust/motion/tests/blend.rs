@@ -114,7 +114,7 @@ fn reference(p: &Problem, gb: &[f64]) -> (Vec<f64>, [Vec<f64>; 4]) {
             .collect();
         let d2: Vec<f64> = d.iter().map(|d| d.iter().map(|v| v * v).sum()).collect();
         let a: Vec<f64> = (0..k).map(|s| -0.5 * d2[s] * p.inv_r2[js[s]]).collect();
-        let max = a.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let max = a.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         let e: Vec<f64> = a.iter().map(|a| (a - max).exp()).collect();
         let sum: f64 = e.iter().sum();
         let w: Vec<f64> = e.iter().map(|e| e / sum).collect();
@@ -265,7 +265,7 @@ fn backward_matches_finite_differences() {
     for (a, name) in NAMES.iter().enumerate() {
         let mut fd = vec![0.0; inputs[a].len()];
         for (idx, fd) in fd.iter_mut().enumerate() {
-            let mut args: Vec<Vec<f64>> = inputs.iter().map(|v| v.to_vec()).collect();
+            let mut args: Vec<Vec<f64>> = inputs.iter().map(|v| (*v).clone()).collect();
             args[a][idx] += h;
             let up = loss(&args[0], &args[1], &args[2], &args[3]);
             args[a][idx] -= 2.0 * h;

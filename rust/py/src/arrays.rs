@@ -53,7 +53,7 @@ pub(crate) fn flat<'a, T: Element>(
 }
 
 /// A new 1-D array of `len` zeros.
-pub(crate) fn zeros<'py, T: Element>(py: Python<'py>, len: usize) -> Bound<'py, PyArray1<T>> {
+pub(crate) fn zeros<T: Element>(py: Python<'_>, len: usize) -> Bound<'_, PyArray1<T>> {
     PyArray1::zeros(py, len, false)
 }
 
@@ -84,10 +84,7 @@ pub(crate) fn splats_of<'a, T: Element>(
     })
 }
 
-pub(crate) fn counters_dict<'py>(
-    py: Python<'py>,
-    c: core::Counters,
-) -> PyResult<Bound<'py, PyDict>> {
+pub(crate) fn counters_dict(py: Python<'_>, c: core::Counters) -> PyResult<Bound<'_, PyDict>> {
     let d = PyDict::new(py);
     d.set_item("visible", c.visible)?;
     d.set_item("intersections", c.intersections)?;
@@ -113,11 +110,11 @@ pub(crate) type SplatGradOut<'py, T> = (
     Out<'py, T>,
 );
 
-pub(crate) fn alloc_splat_grads<'py, T: Element>(
-    py: Python<'py>,
+pub(crate) fn alloc_splat_grads<T: Element>(
+    py: Python<'_>,
     n: usize,
     ch: usize,
-) -> SplatGradOut<'py, T> {
+) -> SplatGradOut<'_, T> {
     (
         zeros(py, 2 * n),
         zeros(py, 3 * n),
@@ -142,11 +139,7 @@ pub(crate) fn splat_grads_mut<'a, T: Element>(
 /// Output images of one forward: features [H*W*C], alpha [H*W], depth [H*W], zeroed.
 pub(crate) type ImageOut<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>);
 
-pub(crate) fn alloc_image<'py, T: Element>(
-    py: Python<'py>,
-    npix: usize,
-    ch: usize,
-) -> ImageOut<'py, T> {
+pub(crate) fn alloc_image<T: Element>(py: Python<'_>, npix: usize, ch: usize) -> ImageOut<'_, T> {
     (zeros(py, npix * ch), zeros(py, npix), zeros(py, npix))
 }
 

@@ -37,7 +37,9 @@ fn run_wgpu<T: Send>(
     let gpu = wgpu_rasterizer()?;
     let out = py.allow_threads(move || {
         catch_unwind(AssertUnwindSafe(move || {
-            let mut r = gpu.lock().unwrap_or_else(|p| p.into_inner());
+            let mut r = gpu
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
             f(&mut r)
         }))
     });
@@ -56,7 +58,9 @@ fn run_wgpu<T: Send>(
 #[pyfunction]
 pub(crate) fn wgpu_adapter() -> PyResult<String> {
     let gpu = wgpu_rasterizer()?;
-    let r = gpu.lock().unwrap_or_else(|p| p.into_inner());
+    let r = gpu
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     Ok(r.device().adapter.to_string())
 }
 
@@ -126,7 +130,9 @@ impl WgpuContext {
         let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         let counters = run_wgpu(py, |r| {
-            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            let mut st = state
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
             r.rasterize_forward(&sp, width, height, bg, &bs, &mut st, out)
         })?;
         to_object(py, (img.0, img.1, img.2, counters_dict(py, counters)?))
@@ -180,7 +186,9 @@ impl WgpuContext {
         let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         run_wgpu(py, |r| {
-            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            let mut st = state
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
             r.rasterize_backward(&sp, width, height, bg, &bs, &mut st, &v, gm)
         })?;
         to_object(py, out)

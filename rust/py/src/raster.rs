@@ -122,7 +122,7 @@ impl RasterContext {
 
     /// Bytes held by this context's reusable buffers.
     fn nbytes(&self) -> usize {
-        self.state.lock().map(|s| s.bytes()).unwrap_or(0)
+        self.state.lock().map_or(0, |s| s.bytes())
     }
 }
 
@@ -143,7 +143,9 @@ impl RasterContext {
         let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         let counters = run(py, threads, || {
-            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            let mut st = state
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
             T::composite_forward(&sp, width, height, bg, &bs, &mut st, out)
         })?;
         Ok((img.0, img.1, img.2, counters_dict(py, counters)?))
@@ -168,7 +170,9 @@ impl RasterContext {
         let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         run(py, threads, || {
-            let mut st = state.lock().unwrap_or_else(|p| p.into_inner());
+            let mut st = state
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
             T::composite_backward(&sp, width, height, bg, &bs, &mut st, &v, g)
         })?;
         Ok(out)

@@ -85,7 +85,7 @@ pub(crate) fn run<T: Send>(
             let msg = panic
                 .downcast_ref::<String>()
                 .cloned()
-                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                .or_else(|| panic.downcast_ref::<&str>().map(ToString::to_string))
                 .unwrap_or_else(|| "unknown panic".into());
             Err(PyRuntimeError::new_err(format!(
                 "sync4d rasterizer internal error (please report with the inputs that caused it): {msg}"

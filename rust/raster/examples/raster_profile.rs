@@ -32,6 +32,8 @@ impl Rng {
     }
 }
 
+// A profiling script: scene, timed stages and the report, in order.
+#[allow(clippy::too_many_lines)]
 fn run(n: usize, w: u32, h: u32, iters: usize) {
     let mut r = Rng(0x1234_5678_9abc_def1);
     let f = 0.8 * w as f64;

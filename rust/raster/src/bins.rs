@@ -64,7 +64,11 @@ impl<T> SharedMut<T> {
     #[inline(always)]
     pub(crate) unsafe fn write(&self, i: usize, v: T) {
         debug_assert!(i < self.len);
-        *self.ptr.add(i) = v;
+        // SAFETY: `i` is in bounds (the callers index their own tile's or splat's range) and
+        // no other task touches it (this function's contract).
+        unsafe {
+            *self.ptr.add(i) = v;
+        }
     }
 }
 
@@ -115,6 +119,8 @@ impl TileBins {
         )
     }
 
+    // The counting sort's passes (count, scan, scatter, per-splat index) share their buffers.
+    #[allow(clippy::too_many_lines)]
     fn build_generic(
         &mut self,
         mean_of: impl Fn(usize) -> [f64; 2] + Sync,

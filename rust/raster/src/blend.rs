@@ -835,12 +835,12 @@ fn backward_tile<const K: usize, const AVX: bool>(
                 unsafe {
                     lanes::avx2::backward_splat::<K>(
                         c1, &rs, &lim, k, &lane_x, geom.py0, &rows, f, &mut px, &mut gfl, o,
-                    )
+                    );
                 }
             } else {
                 lanes::portable::backward_splat::<K>(
                     c1, &rs, &lim, k, &lane_x, geom.py0, &rows, f, &mut px, &mut gfl, o,
-                )
+                );
             }
             let base_slot = (base + k as usize) * stride;
             for (q, v) in o.iter().enumerate() {
@@ -868,7 +868,7 @@ unsafe fn backward_tile_avx2<const K: usize>(
     c1: usize,
     slots: &SharedMut<f32>,
 ) {
-    backward_tile::<K, true>(s, inp, t, geom, c1, slots)
+    backward_tile::<K, true>(s, inp, t, geom, c1, slots);
 }
 
 /// Everything one backward needs, shared by all tile tasks.
@@ -924,13 +924,13 @@ impl BackwardJob<'_> {
                     #[cfg(target_arch = "x86_64")]
                     // SAFETY: AVX2 and FMA were detected at run time.
                     unsafe {
-                        backward_tile_avx2::<K>(s, self.inp, t, geom, c1, self.slots)
+                        backward_tile_avx2::<K>(s, self.inp, t, geom, c1, self.slots);
                     }
                 } else {
-                    backward_tile::<K, false>(s, self.inp, t, geom, c1, self.slots)
+                    backward_tile::<K, false>(s, self.inp, t, geom, c1, self.slots);
                 }
             },
-        )
+        );
     }
 }
 
@@ -947,6 +947,8 @@ pub fn rasterize_backward(
     v: &ImageGrads<'_, f32>,
     grads: SplatGradsMut<'_, f32>,
 ) -> Result<()> {
+    /// Splats a task of the final per-splat reduction sums.
+    const CH: usize = 1024;
     splats.validate(background)?;
     settings.validate()?;
     if !state.forward_done
@@ -995,7 +997,6 @@ pub fn rasterize_backward(
     let slots = &state.slots;
     let offs = &bins.splat_offsets;
     let isects = &bins.splat_isects;
-    const CH: usize = 1024;
     grads
         .means2d
         .par_chunks_mut(2 * CH)

@@ -4,6 +4,9 @@
 //! the order of every floating-point operation identical makes the two bit-identical, which a
 //! test checks. Explicit intrinsics avoid what auto-vectorisation produced here: masked stores
 //! (`vmaskmovps`), which are microcoded and slow on AMD cores.
+// The portable kernels combine per-lane conditions with `&` as the AVX2 ones combine masks:
+// branch-free, and the same operations in the same order on both paths.
+#![allow(clippy::needless_bitwise_bool)]
 
 use crate::TILE_SIZE;
 
@@ -198,7 +201,7 @@ pub(crate) mod portable {
         let c1 = if K > 0 { K } else { c1_dyn };
         px.check(c1, f, out);
         let mut gl = [[0.0f32; LANES]; 6];
-        for a in gfl[..c1].iter_mut() {
+        for a in &mut gfl[..c1] {
             *a = [0.0; LANES];
         }
         for (py, &mask) in rows.iter().enumerate() {
@@ -336,28 +339,36 @@ pub(crate) mod avx2 {
     #[target_feature(enable = "avx2")]
     unsafe fn store_blended(p: *mut u8, old: __m256, v: __m256, mask: __m256) {
         let out = _mm256_blendv_ps(old, v, mask);
-        std::arch::asm!(
-            "vmovups ymmword ptr [{p}], {v}",
-            p = in(reg) p,
-            v = in(ymm_reg) out,
-            options(nostack, preserves_flags),
-        );
+        // SAFETY: `p` is valid for 32 bytes (this function's contract); the store touches
+        // nothing else (no stack, flags preserved).
+        unsafe {
+            std::arch::asm!(
+                "vmovups ymmword ptr [{p}], {v}",
+                p = in(reg) p,
+                v = in(ymm_reg) out,
+                options(nostack, preserves_flags),
+            );
+        }
     }
 
     #[inline]
     #[target_feature(enable = "avx2")]
+    // `_mm256_loadu_si256` takes a `__m256i` pointer but needs no alignment.
+    #[allow(clippy::cast_ptr_alignment)]
     fn load_u(s: &[u32], i: usize) -> __m256i {
         debug_assert!(i + 8 <= s.len());
         // SAFETY: as for `load`; unaligned load.
-        unsafe { _mm256_loadu_si256(s.as_ptr().add(i) as *const __m256i) }
+        unsafe { _mm256_loadu_si256(s.as_ptr().add(i).cast::<__m256i>()) }
     }
 
     #[inline]
     #[target_feature(enable = "avx2")]
+    // `_mm256_storeu_si256` takes a `__m256i` pointer but needs no alignment.
+    #[allow(clippy::cast_ptr_alignment)]
     fn store_u(s: &mut [u32], i: usize, v: __m256i) {
         debug_assert!(i + 8 <= s.len());
         // SAFETY: as for `load`; unaligned store.
-        unsafe { _mm256_storeu_si256(s.as_mut_ptr().add(i) as *mut __m256i, v) }
+        unsafe { _mm256_storeu_si256(s.as_mut_ptr().add(i).cast::<__m256i>(), v) }
     }
 
     /// Sum of the 8 lanes.
@@ -474,7 +485,7 @@ pub(crate) mod avx2 {
         let lx = [load(lane_x, 0), load(lane_x, 8)];
         // Per-lane accumulators, [quantity][half], kept in registers across rows.
         let mut gl = [[zero; 2]; 6];
-        for a in gfl[..c1].iter_mut() {
+        for a in &mut gfl[..c1] {
             *a = [0.0; LANES];
         }
         let kv = _mm256_set1_epi32(k as i32);

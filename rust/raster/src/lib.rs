@@ -12,7 +12,6 @@
 //! f64 per-pixel compositor the fast path is tested against. The crate knows nothing of Python;
 //! all inputs are flat row-major slices and every bad input is a [`RasterError`] naming the
 //! argument.
-#![warn(missing_docs)]
 // Index loops mirror the maths (row/column indices) in the small fixed-size kernels.
 #![allow(clippy::needless_range_loop)]
 

@@ -9,6 +9,9 @@ pub type Mat3<F> = [[F; 3]; 3];
 pub type Mat23<F> = [[F; 3]; 2];
 
 /// Convert an f64 to `F`.
+///
+/// # Panics
+/// If `F` cannot represent `v` (never for f32 or f64, which convert every f64).
 #[inline(always)]
 pub fn c<F: Float>(v: f64) -> F {
     F::from(v).unwrap()

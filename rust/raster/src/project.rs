@@ -328,7 +328,7 @@ fn project_one<F: Real>(
     let rotmat = quat_to_rotmat(qu);
     // M = R diag(s); Sigma = M M^T; Sigma_cam = W Sigma W^T.
     let mut m = rotmat;
-    for row in m.iter_mut() {
+    for row in &mut m {
         for j in 0..3 {
             row[j] *= scale[j];
         }
@@ -430,7 +430,8 @@ fn project_cov(j: &[f64; 4], s: &Mat3<f64>) -> [f64; 3] {
 /// Gradients of one Gaussian's parameters given the gradients of its projection outputs.
 /// Returns (d mean, d quat, d scale, d opacity).
 #[inline]
-#[allow(clippy::too_many_arguments)]
+// The chain rule through one projection, step for step against `project_one`.
+#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
 fn project_one_vjp(
     k: &CameraConsts,
     s: &ProjectSettings,
@@ -549,7 +550,7 @@ fn project_one_vjp(
     let v_cov = mul33(&mul33(&transpose(&k.rot), &v_cov_cam), &k.rot);
     // Sigma = M M^T, M = R diag(s)  =>  v_M = (v_Sigma + v_Sigma^T) M.
     let mut m = p.rotmat;
-    for row in m.iter_mut() {
+    for row in &mut m {
         for c in 0..3 {
             row[c] *= scale[c];
         }
@@ -638,26 +639,23 @@ pub fn project_forward<F: Real>(
                     get3(g.scales, i),
                     g.opacities[i].to_f64(),
                 );
-                match proj {
-                    Some(p) => {
-                        m2[2 * l] = F::from_f64(p.mean2d[0]);
-                        m2[2 * l + 1] = F::from_f64(p.mean2d[1]);
-                        for c in 0..3 {
-                            co[3 * l + c] = F::from_f64(p.conic[c]);
-                        }
-                        de[l] = F::from_f64(p.depth);
-                        op[l] = F::from_f64(p.opacity);
-                        ra[2 * l] = p.radius[0];
-                        ra[2 * l + 1] = p.radius[1];
-                        visible += usize::from(p.radius[0] > 0 && p.radius[1] > 0);
+                if let Some(p) = proj {
+                    m2[2 * l] = F::from_f64(p.mean2d[0]);
+                    m2[2 * l + 1] = F::from_f64(p.mean2d[1]);
+                    for c in 0..3 {
+                        co[3 * l + c] = F::from_f64(p.conic[c]);
                     }
-                    None => {
-                        m2[2 * l..2 * l + 2].fill(F::zero());
-                        co[3 * l..3 * l + 3].fill(F::zero());
-                        de[l] = F::zero();
-                        op[l] = F::zero();
-                        ra[2 * l..2 * l + 2].fill(0);
-                    }
+                    de[l] = F::from_f64(p.depth);
+                    op[l] = F::from_f64(p.opacity);
+                    ra[2 * l] = p.radius[0];
+                    ra[2 * l + 1] = p.radius[1];
+                    visible += usize::from(p.radius[0] > 0 && p.radius[1] > 0);
+                } else {
+                    m2[2 * l..2 * l + 2].fill(F::zero());
+                    co[3 * l..3 * l + 3].fill(F::zero());
+                    de[l] = F::zero();
+                    op[l] = F::zero();
+                    ra[2 * l..2 * l + 2].fill(0);
                 }
             }
             visible

@@ -125,6 +125,10 @@ pub fn rasterize_forward_reference(
 
 /// Reference backward of [`rasterize_forward_reference`], in f64: recomputes each pixel's
 /// contributors and differentiates the composite directly (forward products, no division).
+///
+/// # Panics
+/// Only on an internal inconsistency: a pixel's recorded contributor no longer passing the
+/// alpha test with the same inputs.
 pub fn rasterize_backward_reference(
     sp: &Splats<'_, f64>,
     width: u32,

@@ -309,7 +309,7 @@ fn camera_record(v: &Value, path: &Path) -> Result<CameraRecord, CheckpointError
 }
 
 /// The error for a tensor a node checkpoint lacks: `expected` names its dtype and shape.
-fn node_tensor_missing(t: &Tensors, name: &str, expected: &str) -> CheckpointError {
+fn node_tensor_missing(t: &Tensors<'_>, name: &str, expected: &str) -> CheckpointError {
     err(
         t.path,
         format!("tensor '{name}' is missing (expected {expected}; \"motion\": \"nodes\" needs it)"),
@@ -317,21 +317,21 @@ fn node_tensor_missing(t: &Tensors, name: &str, expected: &str) -> CheckpointErr
 }
 
 /// The shape of tensor `name` of a node checkpoint (`expected` for the error when missing).
-fn node_shape(t: &Tensors, name: &str, expected: &str) -> Result<Vec<usize>, CheckpointError> {
+fn node_shape(t: &Tensors<'_>, name: &str, expected: &str) -> Result<Vec<usize>, CheckpointError> {
     t.st.tensor(name)
         .map(|v| v.shape().to_vec())
         .map_err(|_| node_tensor_missing(t, name, expected))
 }
 
 /// The F32 tensor `name` of a node checkpoint, which must have `shape`.
-fn node_f32(t: &Tensors, name: &str, shape: &[usize]) -> Result<Vec<f32>, CheckpointError> {
+fn node_f32(t: &Tensors<'_>, name: &str, shape: &[usize]) -> Result<Vec<f32>, CheckpointError> {
     node_shape(t, name, &format!("F32 of shape {shape:?}"))?;
     t.get(name, shape)
 }
 
 /// The `nodes.*` tensors and `gaussians.node_index` of a node checkpoint with `n` Gaussians.
 fn read_nodes(
-    t: &Tensors,
+    t: &Tensors<'_>,
     n: usize,
     embed_dim: usize,
     blend: Blend,
@@ -372,6 +372,8 @@ fn read_nodes(
 }
 
 /// Parse checkpoint `bytes` (errors name `path`).
+// One check per field of the format, in the order they are read.
+#[allow(clippy::too_many_lines)]
 pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, CheckpointError> {
     let (_, header) = SafeTensors::read_metadata(bytes)
         .map_err(|e| err(path, format!("not a readable safetensors file ({e})")))?;
@@ -433,33 +435,31 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         ));
     }
     // Absent in checkpoints written before the option existed: the raw position.
-    let position_bands = match dc.get("position_bands") {
-        None => 0,
-        Some(_) => {
-            let v = num(dc, "position_bands", path)?;
-            if !((0.0..=30.0).contains(&v) && v.fract() == 0.0) {
-                return Err(err(
-                    path,
-                    format!("deform_config.position_bands must be an integer in 0..=30, got {v}"),
-                ));
-            }
-            v as usize
+    let position_bands = if dc.get("position_bands").is_none() {
+        0
+    } else {
+        let v = num(dc, "position_bands", path)?;
+        if !((0.0..=30.0).contains(&v) && v.fract() == 0.0) {
+            return Err(err(
+                path,
+                format!("deform_config.position_bands must be an integer in 0..=30, got {v}"),
+            ));
         }
+        v as usize
     };
 
     // Absent in checkpoints written before the setting existed: the raw position.
-    let position_unit = match dc.get("position_unit") {
-        None => 1.0,
-        Some(_) => {
-            let v = num(dc, "position_unit", path)?;
-            if !(v.is_finite() && v > 0.0) {
-                return Err(err(
-                    path,
-                    format!("deform_config.position_unit must be finite and > 0, got {v}"),
-                ));
-            }
-            v as f32
+    let position_unit = if dc.get("position_unit").is_none() {
+        1.0
+    } else {
+        let v = num(dc, "position_unit", path)?;
+        if !(v.is_finite() && v > 0.0) {
+            return Err(err(
+                path,
+                format!("deform_config.position_unit must be finite and > 0, got {v}"),
+            ));
         }
+        v as f32
     };
     // Absent in checkpoints written before node motion existed: D_theta moves each Gaussian.
     let motion = match meta.get("motion") {
@@ -568,8 +568,10 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
     let bg: Vec<f64> = meta
         .get("background")
         .and_then(Value::as_array)
-        .map(|a| a.iter().filter_map(Value::as_f64).collect())
-        .unwrap_or_else(|| vec![1.0, 1.0, 1.0]);
+        .map_or_else(
+            || vec![1.0, 1.0, 1.0],
+            |a| a.iter().filter_map(Value::as_f64).collect(),
+        );
     if bg.len() != 3 || bg.iter().any(|v| !v.is_finite()) {
         return Err(err(path, "background must be 3 finite numbers"));
     }

@@ -179,6 +179,8 @@ fn mlp_input(
 /// The checkpoint's Gaussians deformed to time `t` (parallel over Gaussians; a node
 /// checkpoint evaluates D_theta once per node, then blends per Gaussian).
 pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
+    /// Gaussians a parallel task deforms.
+    const CHUNK: usize = 256;
     if let Some(nodes) = &ck.nodes {
         let offsets = node_offsets(ck, nodes, t);
         return blend_nodes(ck, nodes, &offsets);
@@ -192,7 +194,6 @@ pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
         quats: vec![0.0; 4 * n],
         scales: vec![0.0; 3 * n],
     };
-    const CHUNK: usize = 256;
     d.means
         .par_chunks_mut(3 * CHUNK)
         .zip(d.quats.par_chunks_mut(4 * CHUNK))
@@ -327,6 +328,8 @@ fn add_scaled<const L: usize>(acc: &mut [f32; L], w: f32, v: &[f32; L]) {
 /// The checkpoint's Gaussians moved by the nodes, whose D_theta outputs are `offsets` (M rows
 /// of (dx, dw, dl), as [`node_offsets`] gives): parallel over Gaussians.
 pub fn blend_nodes(ck: &Checkpoint, nodes: &Nodes, offsets: &[[f32; 9]]) -> Deformed {
+    /// Gaussians a parallel task deforms.
+    const CHUNK: usize = 256;
     let n = ck.n;
     let k = nodes.k;
     let motions: Vec<NodeMotion> = offsets
@@ -342,7 +345,6 @@ pub fn blend_nodes(ck: &Checkpoint, nodes: &Nodes, offsets: &[[f32; 9]]) -> Defo
         quats: vec![0.0; 4 * n],
         scales: vec![0.0; 3 * n],
     };
-    const CHUNK: usize = 256;
     d.means
         .par_chunks_mut(3 * CHUNK)
         .zip(d.quats.par_chunks_mut(4 * CHUNK))

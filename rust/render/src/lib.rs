@@ -3,7 +3,6 @@
 //! evaluates the deformation MLP at any time (per Gaussian, or per node and then blended),
 //! [`render`] draws a camera's view with the CPU or wgpu rasterizer. The `sync4d-render`
 //! binary wraps them in a command line (one view, a time sweep or an orbit, as PNGs).
-#![warn(missing_docs)]
 
 pub mod checkpoint;
 pub mod deform;

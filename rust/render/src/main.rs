@@ -225,6 +225,8 @@ fn backend(choice: BackendArg) -> Result<Backend, String> {
     }
 }
 
+// The command, in order: threads, checkpoint, camera, backend, then one PNG per frame.
+#[allow(clippy::too_many_lines)]
 fn run(args: Args) -> Result<(), String> {
     if let Some(t) = args.threads {
         rayon::ThreadPoolBuilder::new()

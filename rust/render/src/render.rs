@@ -42,7 +42,7 @@ pub fn render(
     let bases = ((ck.sh_degree + 1) * (ck.sh_degree + 1)) as usize;
     let mut colors = vec![0.0f32; 3 * n];
     sh_forward(ck.sh_degree, &dirs, &ck.sh, bases, 3, &mut colors).map_err(|e| e.to_string())?;
-    for c in colors.iter_mut() {
+    for c in &mut colors {
         *c = (*c + 0.5).max(0.0);
     }
     let gaussians = Gaussians {

@@ -96,7 +96,7 @@ fn build(
         let bytes = v.iter().flat_map(|x| x.to_le_bytes()).collect();
         data.push((name, shape, Dtype::I32, bytes));
     }
-    let views: Vec<(String, TensorView)> = data
+    let views: Vec<(String, TensorView<'_>)> = data
         .iter()
         .map(|(name, shape, dtype, d)| {
             (

@@ -3,6 +3,9 @@
 //! A crate of its own (dev-dependency of sync4d-raster and sync4d-gpu, not published) so that
 //! the CPU tests, the wgpu parity tests and the cpu_vs_wgpu example share one copy instead of
 //! including a test module by path.
+// Test helpers, named for what they build; they panic (unwrap) on a failed call as the tests
+// using them would. Documenting every field and panic would repeat the signatures.
+#![allow(missing_docs, clippy::missing_panics_doc)]
 
 use sync4d_raster::*;
 

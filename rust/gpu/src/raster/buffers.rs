@@ -101,7 +101,7 @@ pub(super) fn upload_in<T: bytemuck::Pod>(
     name: &'static str,
     data: &[T],
 ) -> Result<wgpu::Buffer> {
-    let bytes = std::mem::size_of_val(data) as u64;
+    let bytes = size_of_val(data) as u64;
     let buf = storage_in(gpu, pool, name, bytes)?;
     if bytes > 0 {
         gpu.queue.write_buffer(&buf, 0, bytemuck::cast_slice(data));
@@ -143,7 +143,10 @@ impl GpuRasterizer {
             bytes,
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         );
-        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
         enc.copy_buffer_to_buffer(src, 0, &staging, 0, bytes);
         self.gpu.queue.submit([enc.finish()]);
         let (tx, rx) = std::sync::mpsc::channel();

@@ -5,6 +5,7 @@
 //! own.
 
 use std::collections::HashMap;
+use std::fmt::Write as _;
 
 use super::layout::BlendLayout;
 use super::rasterizer::GpuRasterizer;
@@ -50,7 +51,7 @@ fn pipeline(dev: &wgpu::Device, m: &wgpu::ShaderModule, entry: &str) -> wgpu::Co
         layout: None,
         module: m,
         entry_point: Some(entry),
-        compilation_options: Default::default(),
+        compilation_options: wgpu::PipelineCompilationOptions::default(),
         cache: None,
     })
 }
@@ -215,11 +216,12 @@ fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> 
         let jumps = jumps_out(body);
         for k in 0..count {
             if jumps {
-                out.push_str(&format!(
-                    "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ const {var} = {k}u;{body}}}\n"
-                ));
+                let _ = writeln!(
+                    out,
+                    "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ const {var} = {k}u;{body}}}"
+                );
             } else {
-                out.push_str(&format!("{{ const {var} = {k}u;{body}}}\n"));
+                let _ = writeln!(out, "{{ const {var} = {k}u;{body}}}");
             }
         }
         rest = &rest[end + 1..];
@@ -289,7 +291,7 @@ impl GpuRasterizer {
         pipe: &wgpu::ComputePipeline,
         buffers: &[(u32, &wgpu::Buffer)],
     ) -> wgpu::BindGroup {
-        let entries: Vec<wgpu::BindGroupEntry> = buffers
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
             .iter()
             .map(|(b, buf)| wgpu::BindGroupEntry {
                 binding: *b,
@@ -311,7 +313,7 @@ impl GpuRasterizer {
         group: &wgpu::BindGroup,
         groups: (u32, u32),
     ) {
-        let mut pass = enc.begin_compute_pass(&Default::default());
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
         pass.set_pipeline(pipe);
         pass.set_bind_group(0, group, &[]);
         pass.dispatch_workgroups(groups.0, groups.1, 1);

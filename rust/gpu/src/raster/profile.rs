@@ -36,7 +36,9 @@ impl GpuRasterizer {
         };
         let done = std::mem::replace(
             enc,
-            self.gpu.device.create_command_encoder(&Default::default()),
+            self.gpu
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor::default()),
         );
         self.gpu.queue.submit([done.finish()]);
         let _ = self.gpu.device.poll(wgpu::PollType::wait_indefinitely());

@@ -70,7 +70,10 @@ impl GpuRasterizer {
                 (6, &radii),
             ],
         );
-        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
         Self::dispatch(
             &mut enc,
             &self.kernels.project,
@@ -138,7 +141,10 @@ impl GpuRasterizer {
                 (8, &out),
             ],
         );
-        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
         Self::dispatch(
             &mut enc,
             &self.kernels.project_backward,

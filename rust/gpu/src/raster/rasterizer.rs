@@ -265,7 +265,7 @@ impl GpuRasterizer {
         let kernels = Kernels::new(&gpu.device);
         let layout = BlendLayout::for_device(&gpu);
         let cpu_threads = (gpu.adapter.kind == "cpu")
-            .then(|| std::thread::available_parallelism().map_or(1, |t| t.get()) as u32);
+            .then(|| std::thread::available_parallelism().map_or(1, std::num::NonZero::get) as u32);
         GpuRasterizer {
             gpu,
             kernels,
@@ -378,7 +378,10 @@ impl GpuRasterizer {
         let packed = pack_splats(splats, tiles_x, tiles_y);
         let inputs = self.upload_inputs(&mut state.pool, splats, background, &packed, npix)?;
 
-        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
         self.mark(&mut enc, "upload");
         self.depth_sort(&mut enc, n as u32, &inputs)?;
         let bins = self.bin_tiles(enc, &inputs, &packed, tiles_x, tiles_y)?;
@@ -627,7 +630,10 @@ impl GpuRasterizer {
         bins: &TileBinning,
     ) -> Result<(wgpu::CommandEncoder, wgpu::Buffer, wgpu::Buffer)> {
         let ids = storage_in(&self.gpu, pool, "ids", u64::from(bins.total) * 4)?;
-        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
         let counters = self.storage("counters", COUNTERS_BYTES)?;
         enc.clear_buffer(&counters, 0, Some(COUNTERS_BYTES));
         let (scatter, invocations) = if bins.by_chunks {
@@ -750,7 +756,7 @@ impl GpuRasterizer {
         vimg.extend_from_slice(v.depth);
         let v_buf = self.upload("v_image", &vimg)?;
         let out = self.storage("splat_grads", (n * stride * 4) as u64)?;
-        let mut enc = dev.create_command_encoder(&Default::default());
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
         self.mark(&mut enc, "upload v_image");
         let (isects, visible) = (forward.shape.intersections, forward.shape.visible);
         let halves = self.layout.column_halves.applies(true, isects, visible);
@@ -825,7 +831,7 @@ mod tests {
         assert_eq!(chunk_size(100_000, 50, None), 256);
         assert_eq!(chunk_size(10_000_000, 1, None), 9766);
         // CPU adapters: fewer, larger chunks, each within CHUNK_TRIPS trips.
-        let threads = std::thread::available_parallelism().map_or(1, |t| t.get()) as u32;
+        let threads = std::thread::available_parallelism().map_or(1, std::num::NonZero::get) as u32;
         let small = chunk_size(100_000, 5, Some(threads));
         assert_eq!(small, 100_000u32.div_ceil(16 * threads).clamp(256, 12_000));
         for trips in [1, 5, 52, 1000] {

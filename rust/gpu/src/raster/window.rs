@@ -164,7 +164,10 @@ impl GpuRasterizer {
             if !self.shrink_window(&cnt, longest, forward) {
                 return Ok(cnt);
             }
-            enc = self.gpu.device.create_command_encoder(&Default::default());
+            enc = self
+                .gpu
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
         }
     }
 }
