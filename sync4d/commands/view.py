@@ -13,6 +13,7 @@ import errno
 import signal
 import socket
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -86,11 +87,13 @@ def _check_run(run_dir: Path) -> str | None:
     return None
 
 
-def _serve(viewer, server, keep_open: bool) -> None:
-    """Wait for Ctrl-C, SIGTERM, or (unless `keep_open`) the last browser to leave."""
+def _serve(viewer, server, keep_open: bool, stop: threading.Event) -> None:
+    """Wait for `stop` (Ctrl-C, SIGTERM) or (unless `keep_open`) the last browser to leave."""
     seen, empty_since = False, None
     while True:
-        time.sleep(0.25)
+        if stop.wait(0.25):
+            print("view: stopped", file=sys.stderr)
+            return
         if keep_open:
             continue
         clients = len(server.get_clients())
@@ -102,11 +105,6 @@ def _serve(viewer, server, keep_open: bool) -> None:
             if time.monotonic() - empty_since > LINGER_SECONDS:
                 print("view: the last browser tab closed; stopping", file=sys.stderr)
                 return
-
-
-def _interrupt(signum: int, frame: object) -> None:
-    """SIGTERM ends the server as Ctrl-C does."""
-    raise KeyboardInterrupt
 
 
 def main(args: argparse.Namespace) -> int:
@@ -140,7 +138,12 @@ def main(args: argparse.Namespace) -> int:
     if state.field is None:
         print(f"view: queries are off: {state.field_message}", file=sys.stderr)
     server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    # Ctrl-C and SIGTERM set a flag the serving loop reads, rather than raising wherever the
+    # main thread is: raised inside viser's client bookkeeping, the stop that followed could
+    # hang past a test's 30 s on a loaded machine.
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}  # fmt: skip
     viewer = None
     try:
         viewer = Viewer(server, state, threads=args.threads)
@@ -148,12 +151,13 @@ def main(args: argparse.Namespace) -> int:
         print(f"view: {state.run_dir} at http://{shown}:{server.get_port()} "
               f"(Ctrl-C stops it{'' if args.keep_open else '; so does closing the last tab'})",
               flush=True)  # fmt: skip
-        _serve(viewer, server, args.keep_open)
-    except KeyboardInterrupt:
+        _serve(viewer, server, args.keep_open, stop)
+    except KeyboardInterrupt:  # a signal before the handlers were in place
         print("view: stopped", file=sys.stderr)
     finally:
         if viewer is not None:
             viewer.stop()
         server.stop()
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return 0
