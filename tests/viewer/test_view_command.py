@@ -40,6 +40,17 @@ def _start(args: list[str]) -> tuple[subprocess.Popen, str]:
     raise AssertionError(f"view never printed its address: {proc.stderr.read()}")
 
 
+def _ended(proc: subprocess.Popen) -> tuple[str, str]:
+    """The output of `proc` once it ended; a server still up after 60 s is killed (never left
+    behind holding its port) and fails the test."""
+    try:
+        return proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+        raise AssertionError(f"view did not stop 60 s after the signal: {err[-2000:]}") from None
+
+
 def test_a_missing_run_and_a_run_without_a_checkpoint(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope")]) == 2
     assert "no such run folder" in capsys.readouterr().err
@@ -70,7 +81,7 @@ def test_the_server_stops_cleanly_on_a_signal(run_dir, tmp_path, sig):
     with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as page:
         assert page.status == 200 and b"<html" in page.read().lower()  # it serves the page
     proc.send_signal(sig)
-    out, err = proc.communicate(timeout=30)
+    out, err = _ended(proc)
     assert proc.returncode == 0, err
     assert "queries are off" in err and "--phases 3" in err and "view: stopped" in err
     assert "Traceback" not in err
@@ -81,6 +92,6 @@ def test_a_run_being_trained_is_served_with_a_note(run_dir):
     with RunLock(run_dir, "fit"):
         proc, _ = _start([str(run_dir), "--port", str(port), "--threads", "1"])
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=30)
+        _, err = _ended(proc)
     assert proc.returncode == 0
     assert "is being written by 'fit'" in err and "reloaded as it saves" in err
