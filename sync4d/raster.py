@@ -109,6 +109,7 @@ def set_default_backend(backend: str) -> str:
     _default_backend = concrete
     return concrete
 
+
 _FLOATS = (torch.float32, torch.float64)
 
 
@@ -532,7 +533,7 @@ class _ShFn(torch.autograd.Function):
     def forward(ctx, degree, dirs, coeffs, threads):  # type: ignore[override]
         n, k, c = coeffs.shape
         fn = _core.sh_forward
-        out = fn(degree, _np(dirs), _np(coeffs), k, c, threads)
+        out = fn(degree, _np(dirs), _np(coeffs), bases=k, channels=c, threads=threads)
         ctx.save_for_backward(dirs, coeffs)
         ctx.degree, ctx.threads = degree, threads
         return torch.from_numpy(out).reshape(n, c)
@@ -543,8 +544,9 @@ class _ShFn(torch.autograd.Function):
         n, k, c = coeffs.shape
         fn = _core.sh_backward
         vd, vc = fn(
-            ctx.degree, _np(dirs), _np(coeffs), k, c, _np(v_out.to(dirs.dtype)), ctx.threads
-        )
+            ctx.degree, _np(dirs), _np(coeffs), bases=k, channels=c,
+            grad_out=_np(v_out.to(dirs.dtype)), threads=ctx.threads,
+        )  # fmt: skip
         return None, torch.from_numpy(vd).reshape(n, 3), torch.from_numpy(vc).reshape(n, k, c), None
 
 

@@ -62,7 +62,9 @@ class _NodeWeightedSum(torch.autograd.Function):
     def forward(ctx, x0, positions, inv_r2, table, index, threads):  # type: ignore[override]
         arrays = tuple(_np(t) for t in (x0, positions, inv_r2, table, index))
         k, c = index.shape[1], table.shape[1]
-        b, _ = _core.node_weighted_sum_forward(*arrays, k, c, False, threads)
+        b, _ = _core.node_weighted_sum_forward(
+            *arrays, neighbours=k, channels=c, want_weights=False, threads=threads
+        )
         ctx.save_for_backward(x0, positions, inv_r2, table, index)
         ctx.threads = threads
         return torch.from_numpy(b).reshape(x0.shape[0], c)
@@ -74,7 +76,7 @@ class _NodeWeightedSum(torch.autograd.Function):
         (m, c), k = table.shape, index.shape[1]
         arrays = tuple(_np(t) for t in (x0, positions, inv_r2, table, index))
         gx, gp, gr, gt = _core.node_weighted_sum_backward(
-            *arrays, k, c, _np(grad.to(x0.dtype)), ctx.threads
+            *arrays, neighbours=k, channels=c, grad_out=_np(grad.to(x0.dtype)), threads=ctx.threads
         )
         grads = (
             torch.from_numpy(gx).reshape(-1, 3),
@@ -116,7 +118,7 @@ class _LinearEpilogue(torch.autograd.Function):
     @staticmethod
     def forward(ctx, blended, x0, q0, log_s0, threads):  # type: ignore[override]
         arrays = tuple(_np(t) for t in (blended, x0, q0, log_s0))
-        means, quats, scales = _core.linear_epilogue_forward(*arrays, threads)
+        means, quats, scales = _core.linear_epilogue_forward(*arrays, threads=threads)
         ctx.save_for_backward(blended, x0, q0, log_s0)
         ctx.threads = threads
         n = x0.shape[0]
@@ -129,7 +131,10 @@ class _LinearEpilogue(torch.autograd.Function):
         blended, x0, q0, log_s0 = ctx.saved_tensors
         arrays = tuple(_np(t) for t in (blended, x0, q0, log_s0))
         grads = tuple(grad_or_zeros(g, t) for g, t in ((gm, x0), (gq, q0), (gs, log_s0)))
-        out = _core.linear_epilogue_backward(*arrays, *grads, ctx.threads)
+        out = _core.linear_epilogue_backward(
+            *arrays, grad_means=grads[0], grad_quats=grads[1], grad_scales=grads[2],
+            threads=ctx.threads,
+        )  # fmt: skip
         shapes = (blended.shape, x0.shape, q0.shape, log_s0.shape)
         need = ctx.needs_input_grad
         return (*(torch.from_numpy(g).reshape(s) if need[a] else None

@@ -7,8 +7,8 @@
 //! GIL release, error and panic mapping), `settings` (the settings objects the bindings take by
 //! name), `project`, `raster` (CPU compositing), `gpu` (the wgpu backend), `sh` and `loss` (the
 //! bindings; the loss itself is the sync4d-loss crate), `motion` (the node motion kernels of
-//! sync4d-motion), and here the module's registration. Beyond the arrays themselves, the
-//! projection, compositing and loss bindings take their arguments by keyword.
+//! sync4d-motion), and here the module's registration. Every binding takes its settings, sizes,
+//! flags and `threads` by keyword (the compositing bindings their arrays too).
 
 mod arrays;
 mod gpu;

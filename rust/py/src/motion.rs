@@ -147,6 +147,9 @@ where
 /// flat x0 [N*3], positions [M*3], inv_r2 [M], table [M*C] (float32 or float64, one type),
 /// index [N*K] (int32 or int64). Returns (b [N*C], the weights [N*K] or None).
 #[pyfunction]
+#[pyo3(signature = (
+    x0, positions, inv_r2, table, index, *, neighbours, channels, want_weights, threads
+))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn node_weighted_sum_forward<'py>(
     py: Python<'py>,
@@ -171,6 +174,9 @@ pub(crate) fn node_weighted_sum_forward<'py>(
 /// Backward of `node_weighted_sum_forward` given grad_out = dL/db [N*C]: returns
 /// (dL/dx0 [N*3], dL/dpositions [M*3], dL/dinv_r2 [M], dL/dtable [M*C]).
 #[pyfunction]
+#[pyo3(signature = (
+    x0, positions, inv_r2, table, index, *, neighbours, channels, grad_out, threads
+))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn node_weighted_sum_backward<'py>(
     py: Python<'py>,
@@ -288,6 +294,7 @@ fn epilogue_backward_typed<'py, T: Real + Element>(
 /// The linear blend's epilogue: flat blended [N*19], x0 [N*3], q0 [N*4], log_s0 [N*3]
 /// (float32 or float64, one type). Returns (means [N*3], unit quaternions [N*4], scales [N*3]).
 #[pyfunction]
+#[pyo3(signature = (blended, x0, q0, log_s0, *, threads))]
 pub(crate) fn linear_epilogue_forward<'py>(
     py: Python<'py>,
     blended: AnyArr<'py>,
@@ -305,6 +312,9 @@ pub(crate) fn linear_epilogue_forward<'py>(
 /// Backward of `linear_epilogue_forward` given dL/d(means [N*3], quats [N*4], scales [N*3]):
 /// returns (dL/dblended [N*19], dL/dx0 [N*3], dL/dq0 [N*4], dL/dlog_s0 [N*3]).
 #[pyfunction]
+#[pyo3(signature = (
+    blended, x0, q0, log_s0, *, grad_means, grad_quats, grad_scales, threads
+))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn linear_epilogue_backward<'py>(
     py: Python<'py>,

@@ -51,6 +51,7 @@ fn sh_bwd<'py, T: Real + Element>(
 
 /// Spherical-harmonics colours: dirs N*3, coeffs N*K*C (float32 or float64) → N*C.
 #[pyfunction]
+#[pyo3(signature = (degree, dirs, coeffs, *, bases, channels, threads))]
 pub(crate) fn sh_forward<'py>(
     py: Python<'py>,
     degree: u32,
@@ -76,6 +77,7 @@ pub(crate) fn sh_forward<'py>(
 
 /// Backward of the SH evaluation: returns (dL/d dirs, dL/d coeffs).
 #[pyfunction]
+#[pyo3(signature = (degree, dirs, coeffs, *, bases, channels, grad_out, threads))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn sh_backward<'py>(
     py: Python<'py>,
