@@ -54,7 +54,7 @@ def main() -> None:
             seconds.append(time.perf_counter() - t0)
 
     record = {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "command": " ".join(["python", *sys.argv]),
         "machine": {
             "platform": platform.platform(),
@@ -67,9 +67,9 @@ def main() -> None:
         "installed_total_bytes": total,
         "installed_total_gib": total / 2**30,
         "synthetic_scene_seconds": seconds,
-        "note": "installed size on disk (files under site-packages/torch and site-packages/nvidia), "
-        "not the download; the scene written into a temporary folder with the default "
-        "SyntheticConfig, as ensure_default_scene does on first use",
+        "note": "installed size on disk (files under site-packages/torch and "
+        "site-packages/nvidia), not the download; the scene written into a temporary folder "
+        "with the default SyntheticConfig, as ensure_default_scene does on first use",
     }
     Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
     print(json.dumps({k: record[k] for k in ("installed_total_gib", "synthetic_scene_seconds")}))
