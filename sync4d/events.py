@@ -11,8 +11,8 @@ process sends messages that its command line and viewer each render.
   "refine M_phi", "phase3 observe"), its length, how far it got and its statistics, as
   numbers (``{"loss": 0.0123, "psnr": 24.51, "gaussians": 18000}``).
 - `Evaluated`: a periodic evaluation during training, its metrics as numbers.
-- `FitStarted`, `Resumed`, `Assigned`: what a fit trains on, where it resumed, Phase 2's
-  object assignment.
+- `FitStarted`, `Resumed`, `Assigned`, `Skipped`: what a fit trains on, where it resumed,
+  Phase 2's object assignment, what each phase skipped (counts).
 - `PhaseDone`: a stage ended ("phase1", "phase2", "phase3", "eval", and "fit": the whole
   run, with its test metrics) with its summary.
 
@@ -53,6 +53,7 @@ __all__ = [
     "Note",
     "PhaseDone",
     "Resumed",
+    "Skipped",
     "Started",
     "Subscription",
     "emit",
@@ -157,8 +158,18 @@ class Assigned:
     counts: Mapping[str, int] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Skipped:
+    """What `phase` ("phase1", "phase2") skipped in this process, as counts (`phase1_skips`,
+    `MotionStrategy.skip_counts` in the pipeline: D_theta rows, node counts, coarse pixels,
+    pruned Gaussians; held objects, M_phi updates, refinement visits, loop iterations)."""
+
+    phase: str
+    counts: Mapping[str, float] = field(default_factory=dict)
+
+
 Event = (Note | Started | Advanced | Finished | PhaseDone | Evaluated | FitStarted | Resumed
-         | Assigned)
+         | Assigned | Skipped)
 
 _lock = threading.Lock()
 _subscribers: tuple[Callable[[Event], None], ...] = ()

@@ -26,6 +26,7 @@ from sync4d.events import (
     Note,
     PhaseDone,
     Resumed,
+    Skipped,
     Started,
     Subscription,
     subscribe,
@@ -212,6 +213,8 @@ class TerminalRenderer:
         if isinstance(event, Assigned):
             counts = ", ".join(f"{name} {n}" for name, n in event.counts.items())
             return f"fit: {event.source} assignment, K = {event.num_objects}: {counts}", "err"
+        if isinstance(event, Skipped):
+            return _skipped_words(event), "err"
         if isinstance(event, PhaseDone) and event.phase == "fit":
             s = event.summary
             line = (f"fit: done in {format_duration(float(s['train_seconds']))} of training: "
@@ -225,3 +228,40 @@ class TerminalRenderer:
                          f"({d['assignment']})")  # fmt: skip
             return line, "out"
         return "", "err"
+
+
+def _skipped_words(event: Skipped) -> str:
+    """The lines `fit` prints for what a phase skipped (one per switch that is on)."""
+    c = event.counts
+    if event.phase == "phase2":
+        updates = c["motion_updates"] + c["motion_updates_skipped"]
+        visits = c["refine_visits"] + c["refine_visits_skipped"]
+        line = (f"fit: Phase 2 held {c['held']} of {c['objects']} objects at a constant "
+                f"transform: skipped {c['motion_updates_skipped']} of {updates} M_phi object "
+                f"updates and {c['refine_visits_skipped']} of {visits} refinement visits "
+                "(static objects)")  # fmt: skip
+        if c["loop_skipped"]:
+            line += f"; its loop of {c['loop_skipped']} iterations skipped: no object moves"
+        return line
+    lines = []
+    if "nodes" in c:
+        lines.append(f"fit: Phase 1 moved {c['gaussians']} Gaussians by {c['nodes']} control "
+                     f"nodes from iteration {c['nodes_from']} (D_theta on the nodes, not the "
+                     f"Gaussians; nodes added {c['nodes_added']}, removed "
+                     f"{c['nodes_removed']})")  # fmt: skip
+    elif "deform_rows" in c:
+        evaluations = c["deform_rows"] + c["deform_rows_skipped"]
+        line = (f"fit: Phase 1 skipped D_theta on {c['share']:.0%} of the Gaussian evaluations "
+                f"({c['deform_rows_skipped']} of {evaluations}); static at the end: "
+                f"{c['static']} of {c['gaussians']} Gaussians")  # fmt: skip
+        if c["static"] == c["gaussians"]:
+            line += "; no Gaussian moves: a static scene, D_theta no longer evaluated"
+        lines.append(line)
+    if "coarse_iterations" in c:
+        lines.append(f"fit: Phase 1 trained its first {c['coarse_iterations']} iterations at "
+                     f"{c['coarse_scale']:g}x resolution: {c['pixels_saved']:.0%} fewer pixels "
+                     "rendered in all")  # fmt: skip
+    if "pruned" in c:
+        lines.append(f"fit: Phase 1 pruned {c['pruned']} transparent Gaussians (opacity < "
+                     f"{c['prune_opacity']:g}) after densification")  # fmt: skip
+    return "\n".join(lines)

@@ -30,6 +30,7 @@ from sync4d.events import (
     Finished,
     PhaseDone,
     Resumed,
+    Skipped,
     Started,
     emit,
     note,
@@ -393,8 +394,7 @@ def _run_fit(
             train_seconds, interrupted = _train_loop(
                 trainer, p1.iterations, desc="fit", train_seconds=train_seconds, **loop
             )
-            for line in phase1_skip_lines(trainer):
-                note(line)
+            emit(Skipped("phase1", phase1_skips(trainer)))
             if not interrupted:
                 emit(PhaseDone("phase1", _phase_summary(trainer, train_seconds)))
         if not interrupted and 2 in phases:
@@ -411,7 +411,7 @@ def _run_fit(
                 trainer, cfg.phase2.iterations, desc="phase2", train_seconds=train_seconds,
                 **loop,
             )  # fmt: skip
-            note(phase2_skip_report(p2))
+            emit(Skipped("phase2", p2.skip_counts()))
             if not interrupted:
                 emit(PhaseDone("phase2", _phase_summary(trainer, train_seconds)))
         if interrupted:
@@ -461,69 +461,35 @@ def skip_counts(model) -> dict[str, int | float]:
             "share": skipped / max(1, rows + skipped), "static": int(model.static.sum())}
 
 
-def skip_report(model, phase: str) -> str:
-    """One line: what D_theta skipped on static Gaussians during `phase` in this process
-    (`sync4d.phase1.static`), from `skip_counts`."""
-    c = skip_counts(model)
-    evaluations = c["deform_rows"] + c["deform_rows_skipped"]
-    line = (f"fit: {phase} skipped D_theta on {c['share']:.0%} of the Gaussian evaluations "
-            f"({c['deform_rows_skipped']} of {evaluations}); static at the end: {c['static']} "
-            f"of {model.num_gaussians} Gaussians")
-    if c["static"] == model.num_gaussians:
-        line += "; no Gaussian moves: a static scene, D_theta no longer evaluated"
-    return line  # fmt: skip
-
-
 def _motion(trainer: Phase1Trainer | None) -> MotionStrategy | None:
     """The Phase 2 motion strategy plugged into `trainer` (None: a Phase 1 trainer)."""
     plugins = [] if trainer is None else trainer.plugins
     return next((p for p in plugins if isinstance(p, MotionStrategy)), None)
 
 
-def phase2_skip_report(p2: MotionStrategy) -> str:
-    """One line: what Phase 2 skipped in this process on objects that do not move
-    (`MotionStrategy.skip_counts`): held objects, M_phi object-row updates, refinement
-    visits, and whether its loop was skipped."""
-    c = p2.skip_counts()
-    updates = c["motion_updates"] + c["motion_updates_skipped"]
-    visits = c["refine_visits"] + c["refine_visits_skipped"]
-    line = (
-        f"fit: Phase 2 held {c['held']} of {c['objects']} objects at a constant transform: "
-        f"skipped {c['motion_updates_skipped']} of {updates} M_phi object updates and "
-        f"{c['refine_visits_skipped']} of {visits} refinement visits (static objects)"
-    )
-    if c["loop_skipped"]:
-        line += f"; its loop of {c['loop_skipped']} iterations skipped: no object moves"
-    return line
-
-
-def phase1_skip_lines(trainer: Phase1Trainer) -> list[str]:
-    """What Phase 1 skipped in this process, one line per switch that is on: D_theta on the
-    Gaussians (control nodes carry the motion) or on static Gaussians (`skip_report`), pixels
-    of the coarse iterations, transparent Gaussians pruned after densification."""
+def phase1_skips(trainer: Phase1Trainer) -> dict[str, int | float]:
+    """What Phase 1 skipped in this process, for each switch that is on (the `Skipped` event's
+    counts): D_theta on the Gaussians (control nodes carry the motion: ``nodes``,
+    ``nodes_from``, ``nodes_added``, ``nodes_removed``) or on static Gaussians
+    (`skip_counts`), pixels of the coarse iterations (``coarse_iterations``,
+    ``coarse_scale``, ``pixels_saved``: a fraction), transparent Gaussians pruned after
+    densification (``pruned``, ``prune_opacity``); ``gaussians`` the count now."""
     c = trainer.config
-    lines = []
+    out: dict[str, int | float] = {"gaussians": trainer.model.num_gaussians}
     nodes = trainer.model.nodes
     if nodes is not None:
-        lines.append(
-            f"fit: Phase 1 moved {trainer.model.num_gaussians} Gaussians by {nodes.count} "
-            f"control nodes from iteration {c.nodes.init_after + 1} (D_theta on the nodes, "
-            f"not the Gaussians; nodes added {nodes.added}, removed {nodes.removed})"
-        )
+        out.update(nodes=nodes.count, nodes_from=c.nodes.init_after + 1, nodes_added=nodes.added,
+                   nodes_removed=nodes.removed)  # fmt: skip
     elif c.static.enabled:
-        lines.append(skip_report(trainer.model, "Phase 1"))
+        out.update(skip_counts(trainer.model))
     if c.coarse_iterations > 0 and c.coarse_scale < 1.0 and trainer.pixels:
-        saved = (trainer.coarse_full_pixels - trainer.coarse_pixels) / trainer.pixels
-        lines.append(
-            f"fit: Phase 1 trained its first {c.coarse_iterations} iterations at "
-            f"{c.coarse_scale:g}x resolution: {saved:.0%} fewer pixels rendered in all"
-        )
+        out.update(coarse_iterations=c.coarse_iterations, coarse_scale=c.coarse_scale,
+                   pixels_saved=(trainer.coarse_full_pixels - trainer.coarse_pixels)
+                   / trainer.pixels)  # fmt: skip
     if c.densify.prune_after_stop:
-        lines.append(
-            f"fit: Phase 1 pruned {trainer.densifier.pruned_transparent} transparent Gaussians "
-            f"(opacity < {c.densify.prune_opacity:g}) after densification"
-        )
-    return lines
+        out.update(pruned=trainer.densifier.pruned_transparent,
+                   prune_opacity=c.densify.prune_opacity)  # fmt: skip
+    return out
 
 
 def _start_phase2(
