@@ -11,9 +11,7 @@ docs/bench/README.md; in short:
 - each number of a table or headline must be one of its records' values, printed rounded
   (any unit among ms/s/min, MB/GB, fraction/percent: see SCALES), or listed in the record's
   derived values. Integers 0..10 and numbers in backticks (settings, code) are not checked.
-
-Pages still to be given their records are listed in PENDING, each with what is missing; an
-entry there is a debt, not a convention.
+Every page is checked; none is exempt (the pages that were pending in issue 53 all pass).
 """
 
 from __future__ import annotations
@@ -33,10 +31,6 @@ from support import ROOT
 
 DOCS = ROOT / "docs"
 BENCH = DOCS / "bench"
-
-# Pages whose tables and headlines are not yet tied to records (issue 53, deliverable 2).
-# Each is checked only for the records it names existing; remove an entry once its page passes.
-PENDING: dict[str, str] = {}
 
 # Generated from the code by scripts/gen_docs.py: option and config defaults, not measurements.
 GENERATED = {"docs/cli.md", "docs/configs.md"}
@@ -68,9 +62,6 @@ RECORD_METADATA_GAPS: dict[str, str] = {
     "docs/bench/bench-phase3.json": OLD_BENCH,
     "docs/bench/eval-black-nodes-full.json": OLD_BENCH,
 }
-
-# README headlines not yet tied to records, with what is missing.
-PENDING_HEADLINES: dict[str, str] = {}
 
 TABLE_LINE = re.compile(r"^\s*\|")
 HEADING = re.compile(r"^#{1,6}\s")
@@ -250,7 +241,7 @@ def test_named_records_exist_and_hold_date_command_machine() -> None:
         for f in files:
             if not f.exists():
                 missing.append(f"{block.page}:{block.line}: {rel(f)}")
-            elif block.page not in PENDING:
+            else:
                 bare += _metadata_gaps(f)
     assert not missing, "records named but not committed:\n" + "\n".join(missing)
     assert not bare, "records without date, command or machine:\n" + "\n".join(sorted(set(bare)))
@@ -276,22 +267,10 @@ def _check(block: Block) -> list[str]:
 def test_every_number_comes_from_its_record(page: str) -> None:
     if page in GENERATED:
         return
-    if page in PENDING:
-        pytest.skip(f"pending (issue 53): {PENDING[page]}")
     problems = []
     for block in blocks(ROOT / page):
-        if block.kind == "headline" and any(block.title.startswith(t) for t in PENDING_HEADLINES):
-            continue
         problems += _check(block)
     assert not problems, "\n".join(problems)
-
-
-def test_pending_lists_only_real_pages_and_headlines() -> None:
-    names = {rel(p) for p in pages()}
-    assert set(PENDING) <= names, set(PENDING) - names
-    titles = [b.title for b in blocks(ROOT / "README.md") if b.kind == "headline"]
-    for t in PENDING_HEADLINES:
-        assert any(x.startswith(t) for x in titles), t
 
 
 def test_the_checker_rounds_and_converts_units() -> None:
