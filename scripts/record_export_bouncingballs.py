@@ -23,14 +23,13 @@ import datetime
 import hashlib
 import io
 import json
-import os
-import platform
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from sync4d.bench.measure import machine_info
 from sync4d.cli import main as cli
 from sync4d.export import load
 from sync4d.export.prompt import count_tokens
@@ -41,12 +40,6 @@ OUT = ROOT / "docs" / "bench" / "export-bouncingballs.json"
 VOCAB = ROOT / "examples" / "bouncingballs-vocab.txt"
 EXAMPLE = ROOT / "examples" / "bouncingballs-prompt.txt"
 QUERY = "a ball touching the floor"
-
-
-def machine() -> dict:
-    with open("/proc/cpuinfo") as fh:
-        cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
-    return {"platform": platform.platform(), "cpu": cpu, "cpus": os.cpu_count()}
 
 
 def run_facts(run: Path) -> dict:
@@ -116,7 +109,7 @@ def main() -> int:
         "command": "OMP_NUM_THREADS=1 python scripts/record_export_bouncingballs.py RUN "
         f"(RUN: {run}; export: sync4d {' '.join(argv[:1])} RUN --vocab "
         f'examples/bouncingballs-vocab.txt --query "{QUERY}" --scene ... --prompt ...)',
-        "machine": machine(),
+        "machine": machine_info(),
         "run": run_facts(run),
         "objects": [
             {

@@ -12,11 +12,12 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from sync4d.bench.measure import machine_info
 
 
 def tree_bytes(path: Path) -> int:
@@ -57,8 +58,7 @@ def main() -> None:
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "command": " ".join(["python", *sys.argv]),
         "machine": {
-            "platform": platform.platform(),
-            "cpus": os.cpu_count(),
+            **machine_info(),
             "threads": os.environ.get("OMP_NUM_THREADS"),
             "note": "the 2-core machine, shared with other sessions' jobs; nice -n 10",
         },

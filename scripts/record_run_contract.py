@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import datetime
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -29,19 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
+from sync4d.bench.measure import machine_info
 from sync4d.data import load_scene
 from sync4d.data.scene import POSE_TOLERANCE, check_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "bench" / "run-contract.json"
 DNERF_SCENES = ("bouncingballs", "hellwarrior", "hook", "lego")
-
-
-def machine() -> dict:
-    with open("/proc/cpuinfo") as fh:
-        cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
-    return {"platform": platform.platform(), "cpu": cpu, "cpus": os.cpu_count(),
-            "note": "2 cores shared with other jobs"}  # fmt: skip
 
 
 def fit_iters30() -> dict:
@@ -137,7 +129,7 @@ def main() -> int:
     record = {
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "command": "OMP_NUM_THREADS=1 RAYON_NUM_THREADS=1 python scripts/record_run_contract.py",
-        "machine": machine(),
+        "machine": {**machine_info(), "note": "2 cores shared with other jobs"},
         "iters30": fit_iters30(),
         "load_scene": {
             "dnerf/bouncingballs": load_timing(data / "dnerf" / "bouncingballs"),

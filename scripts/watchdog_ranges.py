@@ -14,12 +14,11 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import platform
 import sys
 from pathlib import Path
 
-import numpy as np
-import safetensors.numpy
+from sync4d.bench.measure import machine_info
+from sync4d.runs import CHECKPOINT_NAME, RUN_FILE, read_checkpoint
 
 #: Checkpoint entries that are not trained values (optimizer state, counters, caches).
 SKIP = ("optim", "adam", "densify.", "exp_avg")
@@ -27,13 +26,10 @@ SKIP = ("optim", "adam", "densify.", "exp_avg")
 
 def ranges(run: Path) -> dict:
     """The run's dataset, iteration and max |value| per floating parameter."""
-    tensors = safetensors.numpy.load_file(str(run / "checkpoint.safetensors"))
-    with open(run / "checkpoint.safetensors", "rb") as f:
-        header = json.loads(f.read(int.from_bytes(f.read(8), "little")))
-    meta = json.loads(header.get("__metadata__", {}).get("sync4d", "{}") or "{}")
-    info = json.loads((run / "run.json").read_text()) if (run / "run.json").exists() else {}
-    values = {k: float(np.abs(v).max()) for k, v in sorted(tensors.items())
-              if v.dtype.kind == "f" and v.size and not any(s in k for s in SKIP)}  # fmt: skip
+    tensors, meta = read_checkpoint(run / CHECKPOINT_NAME)
+    info = json.loads((run / RUN_FILE).read_text()) if (run / RUN_FILE).exists() else {}
+    values = {k: float(v.abs().max()) for k, v in sorted(tensors.items())
+              if v.is_floating_point() and v.numel() and not any(s in k for s in SKIP)}  # fmt: skip
     return {"run": str(run), "data": info.get("data"), "iteration": meta.get("iteration"),
             "max_abs": values}  # fmt: skip
 
@@ -51,8 +47,7 @@ def main() -> int:
     record = {
         "date": datetime.date.today().isoformat(),
         "command": "python " + " ".join(sys.argv),
-        "machine": f"{platform.node()} {platform.machine()} {platform.processor() or ''}".strip(),
-        "python": platform.python_version(),
+        "machine": machine_info(),
         "max_abs_over_runs": overall,
         "largest": max(overall.values()),
         "runs": runs,
