@@ -40,6 +40,7 @@ Tests inject a NaN with `injected(phase, iteration, target)`: target ``"loss"``,
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Iterator, Mapping
 
 import numpy as np
@@ -197,7 +198,13 @@ def _ends(present: Mapping[str, Tensor]) -> Tensor:
 def limits(names: list[str], kind: str, scale: float | None) -> Tensor:
     """[T, 2]: the (low, high) range each watched tensor of `kind` ("param" or "input"; others
     unbounded) must stay in: +-`DIVERGED`, +-`DIVERGED_WORLD` * `scale` for `WORLD` tensors
-    (unbounded without a scale), and an `EXPONENTIATED` one below `_EXP_MAX`."""
+    (unbounded without a scale), and an `EXPONENTIATED` one below `_EXP_MAX`. Built once per
+    (names, kind, scale): every step asks the same (read-only: do not write into it)."""
+    return _limits(tuple(names), kind, scale)
+
+
+@functools.lru_cache(maxsize=64)
+def _limits(names: tuple[str, ...], kind: str, scale: float | None) -> Tensor:
     inf = float("inf")
     if kind not in ("param", "input"):
         return torch.tensor([[-inf, inf]] * len(names))
