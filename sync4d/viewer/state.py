@@ -158,11 +158,12 @@ class ViewerState:
             return ""
         started = next((e for e in reversed(events) if e["event"] == "Started"), None)
         last = events[-1]
-        if started is None or last["event"] != "Advanced" or last["task"] != started["task"]:
-            return ""
+        if started is None or last["event"] != "Advanced" or last.get("task") != started.get(
+                "task") or not isinstance(last.get("stats"), dict):  # fmt: skip
+            return ""  # not a loop under way, or lines this version did not write
         psnr = last["stats"].get("psnr")
         shown = f", PSNR {psnr:.2f} dB" if isinstance(psnr, float) and math.isfinite(psnr) else ""
-        return f"{last['task']} {last['done']} / {started['total']}{shown}"
+        return f"{last['task']} {last.get('done', '?')} / {started.get('total', '?')}{shown}"
 
     @property
     def up(self) -> np.ndarray:
