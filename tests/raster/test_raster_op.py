@@ -3,13 +3,14 @@ argument errors, counters, thread safety and determinism."""
 
 from __future__ import annotations
 
+import inspect
 import threading
 
 import pytest
 import torch
 
 from support.scenes import raster_scene
-from sync4d import raster
+from sync4d import _core, raster
 
 GAUSSIAN_ARGS = ("means", "quats", "scales", "opacities", "features")
 
@@ -233,6 +234,28 @@ def test_nan_camera_and_bad_ranges_are_rejected(small_scene) -> None:
         render(small_scene, background=torch.zeros(2))
     with pytest.raises(ValueError, match="threads"):
         render(small_scene, threads=0)
+
+
+def test_keyword_defaults_come_from_the_rust_core() -> None:
+    """The wrapper's defaults are the core's `Default` settings, exported by `_core`; the
+    literal values pin them, so a change on the Rust side is noticed."""
+    core = {
+        "near": _core.DEFAULT_NEAR,
+        "far": _core.DEFAULT_FAR,
+        "eps2d": _core.DEFAULT_EPS2D,
+        "alpha_max": _core.DEFAULT_ALPHA_MAX,
+    }
+    assert core == {"near": 0.01, "far": 1e10, "eps2d": 0.3, "alpha_max": 0.99}
+    assert all(type(v) is float for v in core.values())
+    wrappers = {
+        raster.project_gaussians: ("near", "far", "eps2d"),
+        raster.rasterize_to_pixels: ("alpha_max",),
+        raster.rasterize: ("near", "far", "eps2d", "alpha_max"),
+    }
+    for fn, names in wrappers.items():
+        params = inspect.signature(fn).parameters
+        for name in names:
+            assert params[name].default == core[name], f"{fn.__name__}({name}=...)"
 
 
 def test_wrong_device_is_named(small_scene) -> None:

@@ -12,7 +12,7 @@ use crate::arrays::{
     image_grads, image_mut, splat_grads_mut, splats_of, to_object, AnyArr, Arr, ImageGradAny,
     SplatAny,
 };
-use crate::runtime::to_py;
+use crate::runtime::{lock_recover, to_py};
 use crate::settings::CompositeSettings;
 
 /// The process-wide wgpu rasterizer (kernels compiled once), opened on first use on the adapter
@@ -37,9 +37,7 @@ fn run_wgpu<T: Send>(
     let gpu = wgpu_rasterizer()?;
     let out = py.allow_threads(move || {
         catch_unwind(AssertUnwindSafe(move || {
-            let mut r = gpu
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            let mut r = lock_recover(gpu);
             f(&mut r)
         }))
     });
@@ -58,9 +56,7 @@ fn run_wgpu<T: Send>(
 #[pyfunction]
 pub(crate) fn wgpu_adapter() -> PyResult<String> {
     let gpu = wgpu_rasterizer()?;
-    let r = gpu
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let r = lock_recover(gpu);
     Ok(r.device().adapter.to_string())
 }
 
@@ -130,9 +126,7 @@ impl WgpuContext {
         let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         let counters = run_wgpu(py, |r| {
-            let mut st = state
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            let mut st = lock_recover(state);
             r.rasterize_forward(&sp, width, height, bg, &bs, &mut st, out)
         })?;
         to_object(py, (img.0, img.1, img.2, counters_dict(py, counters)?))
@@ -186,9 +180,7 @@ impl WgpuContext {
         let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         run_wgpu(py, |r| {
-            let mut st = state
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            let mut st = lock_recover(state);
             r.rasterize_backward(&sp, width, height, bg, &bs, &mut st, &v, gm)
         })?;
         to_object(py, out)

@@ -57,5 +57,12 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("TILE_SIZE", core::TILE_SIZE)?;
     m.add("ALPHA_MIN", core::ALPHA_MIN)?;
     m.add("T_MIN", core::T_MIN)?;
+    // The defaults of `sync4d.raster`'s keyword arguments, read from the core's settings.
+    let project = core::ProjectSettings::default();
+    m.add("DEFAULT_NEAR", project.near)?;
+    m.add("DEFAULT_FAR", project.far)?;
+    m.add("DEFAULT_EPS2D", project.eps2d)?;
+    let blend = core::BlendSettings::default();
+    m.add("DEFAULT_ALPHA_MAX", blend.alpha_max)?;
     Ok(())
 }

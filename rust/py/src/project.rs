@@ -10,32 +10,6 @@ use crate::arrays::{flat, slice_mut, to_object, with_float_type, zeros, AnyArr, 
 use crate::runtime::{run, to_py};
 use crate::settings::ProjectSettings;
 
-/// The pinhole camera of a projection call, by name.
-struct CameraArgs {
-    viewmat: Vec<f64>,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    width: u32,
-    height: u32,
-}
-
-impl CameraArgs {
-    fn camera(&self) -> PyResult<core::Camera> {
-        core::Camera::new(
-            &self.viewmat,
-            self.fx,
-            self.fy,
-            self.cx,
-            self.cy,
-            self.width,
-            self.height,
-        )
-        .map_err(to_py)
-    }
-}
-
 /// The Gaussians of a projection call, as element type `T`.
 struct GaussianArrs<'py, T: Element> {
     means: Arr<'py, T>,
@@ -103,11 +77,10 @@ type Grads4<'py, T> = (Out<'py, T>, Out<'py, T>, Out<'py, T>, Out<'py, T>);
 fn project_fwd<'py, T: Real + Element>(
     py: Python<'py>,
     arrs: &GaussianArrs<'py, T>,
-    cam: &CameraArgs,
+    cam: &core::Camera,
     settings: &ProjectSettings,
     threads: usize,
 ) -> PyResult<ProjOut<'py, T>> {
-    let cam = cam.camera()?;
     let ps = settings.0;
     let g = arrs.gaussians()?;
     let n = g.len();
@@ -125,19 +98,18 @@ fn project_fwd<'py, T: Real + Element>(
         opacities: slice_mut(&op),
         radii: slice_mut(&ra),
     };
-    let visible = run(py, threads, || core::project_forward(&g, &cam, &ps, out))?;
+    let visible = run(py, threads, || core::project_forward(&g, cam, &ps, out))?;
     Ok((m2, co, de, op, ra, visible))
 }
 
 fn project_bwd<'py, T: Real + Element>(
     py: Python<'py>,
     arrs: &GaussianArrs<'py, T>,
-    cam: &CameraArgs,
+    cam: &core::Camera,
     settings: &ProjectSettings,
     grads: &ProjectionGradArrs<'py, T>,
     threads: usize,
 ) -> PyResult<Grads4<'py, T>> {
-    let cam = cam.camera()?;
     let ps = settings.0;
     let g = arrs.gaussians()?;
     let v = grads.grads()?;
@@ -155,7 +127,7 @@ fn project_bwd<'py, T: Real + Element>(
         opacities: slice_mut(&go),
     };
     run(py, threads, || {
-        core::project_backward(&g, &cam, &ps, &v, out)
+        core::project_backward(&g, cam, &ps, &v, out)
     })?;
     Ok((gm, gq, gs, go))
 }
@@ -185,17 +157,11 @@ pub(crate) fn project_forward<'py>(
     settings: ProjectSettings,
     threads: usize,
 ) -> PyResult<PyObject> {
-    let cam = CameraArgs {
-        viewmat,
-        fx,
-        fy,
-        cx,
-        cy,
-        width,
-        height,
-    };
     with_float_type!(means, "means", |T| {
         let arrs = GaussianArrs::<T>::extract(&means, &quats, &scales, &opacities)?;
+        // Built after the arrays are extracted, as before: the same error wins when several
+        // arguments are wrong.
+        let cam = core::Camera::new(&viewmat, fx, fy, cx, cy, width, height).map_err(to_py)?;
         let out = project_fwd::<T>(py, &arrs, &cam, &settings, threads)?;
         to_object(py, out)
     })
@@ -230,15 +196,6 @@ pub(crate) fn project_backward<'py>(
     grad_opacities: AnyArr<'py>,
     threads: usize,
 ) -> PyResult<PyObject> {
-    let cam = CameraArgs {
-        viewmat,
-        fx,
-        fy,
-        cx,
-        cy,
-        width,
-        height,
-    };
     with_float_type!(means, "means", |T| {
         let grads = ProjectionGradArrs::<T> {
             means2d: grad_means2d.extract()?,
@@ -247,6 +204,7 @@ pub(crate) fn project_backward<'py>(
             opacities: grad_opacities.extract()?,
         };
         let arrs = GaussianArrs::<T>::extract(&means, &quats, &scales, &opacities)?;
+        let cam = core::Camera::new(&viewmat, fx, fy, cx, cy, width, height).map_err(to_py)?;
         let out = project_bwd::<T>(py, &arrs, &cam, &settings, &grads, threads)?;
         to_object(py, out)
     })

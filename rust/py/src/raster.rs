@@ -12,7 +12,7 @@ use crate::arrays::{
     image_grads, image_mut, splat_grads_mut, splats_of, to_object, with_float_type, AnyArr, Arr,
     ImageGradAny, ImageGradArrs, Out, SplatAny, SplatArrs, SplatGradOut,
 };
-use crate::runtime::run;
+use crate::runtime::{lock_recover, run};
 use crate::settings::CompositeSettings;
 
 /// (features, alpha, depth_accum, counters).
@@ -143,9 +143,7 @@ impl RasterContext {
         let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         let counters = run(py, threads, || {
-            let mut st = state
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            let mut st = lock_recover(state);
             T::composite_forward(&sp, width, height, bg, &bs, &mut st, out)
         })?;
         Ok((img.0, img.1, img.2, counters_dict(py, counters)?))
@@ -170,9 +168,7 @@ impl RasterContext {
         let (width, height, bs) = (settings.width, settings.height, settings.blend());
         let state = &self.state;
         run(py, threads, || {
-            let mut st = state
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            let mut st = lock_recover(state);
             T::composite_backward(&sp, width, height, bg, &bs, &mut st, &v, g)
         })?;
         Ok(out)

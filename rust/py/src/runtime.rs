@@ -16,7 +16,7 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use std::collections::HashMap;
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock, PoisonError};
 use sync4d_raster::{self as core, RasterError};
 
 /// Rayon pools by thread count, built once and reused (0: rayon's default count). Not rayon's
@@ -24,10 +24,10 @@ use sync4d_raster::{self as core, RasterError};
 /// pool (`SERIAL`), where a bare `par_iter` would stay on that thread.
 fn pool(threads: usize) -> PyResult<Arc<rayon::ThreadPool>> {
     static POOLS: OnceLock<Mutex<HashMap<usize, Arc<rayon::ThreadPool>>>> = OnceLock::new();
-    let mut pools = POOLS
-        .get_or_init(|| Mutex::new(HashMap::new()))
-        .lock()
-        .map_err(|_| PyRuntimeError::new_err("sync4d: thread-pool registry poisoned"))?;
+    let mut pools = lock(
+        POOLS.get_or_init(|| Mutex::new(HashMap::new())),
+        "thread-pool registry",
+    )?;
     if let Some(p) = pools.get(&threads) {
         return Ok(p.clone());
     }
@@ -92,6 +92,20 @@ pub(crate) fn run<T: Send>(
             )))
         }
     }
+}
+
+/// Lock `m`, a poisoned lock (a panic while another call held it) being a `RuntimeError`
+/// "sync4d: {what} poisoned": for state that a half-finished update may leave inconsistent.
+pub(crate) fn lock<'a, T>(m: &'a Mutex<T>, what: &str) -> PyResult<MutexGuard<'a, T>> {
+    m.lock()
+        .map_err(|_| PyRuntimeError::new_err(format!("sync4d: {what} poisoned")))
+}
+
+/// Lock `m`, recovering a poisoned lock (`PoisonError::into_inner`) instead of erroring: for
+/// state that every call overwrites or that stays usable after a panic (the rasterizers and
+/// their reusable buffers; the panic itself was already reported as a `RuntimeError`).
+pub(crate) fn lock_recover<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 pub(crate) fn to_py(e: RasterError) -> PyErr {
