@@ -42,10 +42,9 @@ from pathlib import Path
 import numpy as np, safetensors.numpy
 from sync4d.config import load_config, repo_configs
 from sync4d.data import synthetic as syn
-from sync4d.data.detect import load_scene
 from sync4d.runs import CHECKPOINT_NAME, PHASE2_FILE
-from sync4d.pipeline import run_fit
-from sync4d.progress import TerminalRenderer
+from sync4d.pipeline import FitData, run_fit
+from sync4d.terminal import TerminalRenderer
 
 TerminalRenderer(details=False).installed()  # stderr as before: notes and bars, no tables
 
@@ -55,14 +54,14 @@ root = syn.write_synthetic_scene(out / "scene", syn.SyntheticConfig(frames=int(s
 sets = ["eval_every=0", "checkpoint_every=0", f"phase1.seed={seed}"]
 cfg = load_config(repo_configs() / "synthetic.toml", sets)
 if phase1 is None:
-    summary = run_fit(load_scene(root), cfg, out / "run", root, threads=threads)
+    summary = run_fit(FitData.load(root, cfg), cfg, out / "run", threads=threads)
 else:  # fit's two halves: Phase 1 once into the cache, then --phases 2 on a copy of it
     if not (phase1 / CHECKPOINT_NAME).exists():
         cfg1 = load_config(repo_configs() / "synthetic.toml", sets + ["phases=1"])
-        run_fit(load_scene(root), cfg1, phase1, root, threads=threads)
+        run_fit(FitData.load(root, cfg1), cfg1, phase1, threads=threads)
     shutil.copytree(phase1, out / "run")
     cfg2 = load_config(repo_configs() / "synthetic.toml", sets + ["phases=2"])
-    summary = run_fit(load_scene(root), cfg2, out / "run", root, threads=threads)
+    summary = run_fit(FitData.load(root, cfg2), cfg2, out / "run", threads=threads)
 tensors = safetensors.numpy.load_file(str(out / "run" / CHECKPOINT_NAME))
 export = {k.removeprefix("export."): v.astype(np.float64)
           for k, v in tensors.items() if k.startswith("export.")}

@@ -4,9 +4,9 @@ Design. The library rooms (pipeline, phases) neither print nor build progress ba
 `emit` small frozen events and front ends `subscribe` to them, the way brush's training
 process sends messages that its command line and viewer each render.
 
-- `Note`: a line meant for people, with the stream it belongs on (``"err"``: status,
-  warnings; ``"out"``: results) and whether it is a `detail` (tables and "wrote ..." lines,
-  which a terse front end such as ``bench fit`` leaves out).
+- `Note`: a script's own line for people, with the stream it belongs on (``"err"``: status,
+  warnings; ``"out"``: results) and whether it is a `detail` that a terse front end leaves
+  out. The library emits none: its events carry numbers.
 - `Started` / `Advanced` / `Finished`: a long loop (``task``: "fit", "phase2", "eval test",
   "refine M_phi", "phase3 observe"), its length, how far it got and its statistics, as
   numbers (``{"loss": 0.0123, "psnr": 24.51, "gaussians": 18000}``).
@@ -15,12 +15,19 @@ process sends messages that its command line and viewer each render.
   Phase 2's object assignment, what each phase skipped (counts).
 - `PhaseDone`: a stage ended ("phase1", "phase2", "phase3", "eval", and "fit": the whole
   run, with its test metrics) with its summary.
+- What a fit meets on its way, each with its numbers: `DatasetChosen`, `GeneratingScene`,
+  `SettingChanged` (a resumed run's free setting), `Triangulating` / `InitialPoints`,
+  `ScaleAdvice`, `Phase2Starting`, `NothingMoves`, `MotionDiagnosed` (Phase 2's table),
+  `Phase3Started` / `FieldBuilt`, `FramesEvaluated` (the evaluation's table),
+  `MetricUnavailable`, `Wrote` (result files) and `Interrupted` (with the command that
+  continues the run).
 
 The library emits numbers; the words are the renderer's. The command line subscribes
-`sync4d.progress.TerminalRenderer`, which prints the notes, writes the typed events as lines
-and draws the bars. `EventLog` writes the same events as JSON lines into the run folder
-(``events.jsonl``, `sync4d.runs.EVENTS_FILE`), which another process follows with
-`read_events`: the viewer's status line of a run still training, a sweep's table.
+`sync4d.terminal.TerminalRenderer`, which writes each typed event as its lines and draws the
+bars. `Note` is for scripts' own text: the library emits none. `EventLog` writes the same
+events as JSON lines into the run folder (``events.jsonl``, `sync4d.runs.EVENTS_FILE`), which
+another process follows with `read_events`: the viewer's status line of a run still training,
+a sweep's table.
 
 Without a subscriber an event is dropped: library use (tests, scripts, ``bench phase3``) is
 silent unless someone listens, so there is no `quiet` or `progress` switch to thread through.
@@ -45,17 +52,32 @@ from typing import Literal
 __all__ = [
     "Advanced",
     "Assigned",
+    "DatasetChosen",
     "Evaluated",
     "Event",
     "EventLog",
     "Finished",
     "FitStarted",
+    "FramesEvaluated",
+    "GeneratingScene",
+    "InitialPoints",
+    "Interrupted",
+    "MetricUnavailable",
+    "MotionDiagnosed",
+    "NothingMoves",
     "Note",
+    "FieldBuilt",
     "PhaseDone",
+    "Phase2Starting",
+    "Phase3Started",
     "Resumed",
+    "ScaleAdvice",
+    "SettingChanged",
     "Skipped",
     "Started",
     "Subscription",
+    "Triangulating",
+    "Wrote",
     "emit",
     "note",
     "read_events",
@@ -160,16 +182,166 @@ class Assigned:
 
 @dataclass(frozen=True)
 class Skipped:
-    """What `phase` ("phase1", "phase2") skipped in this process, as counts (`phase1_skips`,
-    `MotionStrategy.skip_counts` in the pipeline: D_theta rows, node counts, coarse pixels,
-    pruned Gaussians; held objects, M_phi updates, refinement visits, loop iterations)."""
+    """What `phase` ("phase1", "phase2", "phase3") skipped in this process, as counts
+    (`phase1_skips`, `MotionStrategy.skip_counts` in the pipeline: D_theta rows, node counts,
+    coarse pixels, pruned Gaussians; held objects, M_phi updates, refinement visits, loop
+    iterations; Phase 3's `Field.counts`: crops encoded and skipped, encoder calls, relational
+    features)."""
 
     phase: str
     counts: Mapping[str, float] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class DatasetChosen:
+    """A fit trains on the dataset folder `path`; `embedded`: the embedded synthetic scene,
+    taken because no dataset was given."""
+
+    path: str
+    embedded: bool
+
+
+@dataclass(frozen=True)
+class GeneratingScene:
+    """The embedded synthetic scene is being written into `path` (`seconds` None), or was,
+    in `seconds`."""
+
+    path: str
+    seconds: float | None = None
+
+
+@dataclass(frozen=True)
+class SettingChanged:
+    """A resumed run's free setting `key` (a phase's length, a cadence) goes from `old` to
+    `new`."""
+
+    key: str
+    old: object
+    new: object
+
+
+@dataclass(frozen=True)
+class Triangulating:
+    """Phase 1's initial points of scene `scene` are being triangulated (fixed poses)."""
+
+    scene: str
+
+
+@dataclass(frozen=True)
+class InitialPoints:
+    """`count` initial points came from `source`: "triangulation" (from `views` views at time
+    `time`, in `seconds`, or read from its cache: `cached`) or "dome" (on the capture dome's
+    wall)."""
+
+    source: str
+    count: int
+    views: int = 0
+    time: float = 0.0
+    seconds: float = 0.0
+    cached: bool = False
+
+
+@dataclass(frozen=True)
+class ScaleAdvice:
+    """The scene's extent (world units) is `ratio` times the `reference` extent the absolute
+    lengths' defaults are for; `settings`: the overrides that scale them with it."""
+
+    ratio: float
+    extent: float
+    reference: float
+    settings: Mapping[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Phase2Starting:
+    """Phase 2 (`iterations` iterations) starts from the Phase 1 checkpoint kept in `kept`:
+    the assignment of Gaussians to objects comes first."""
+
+    iterations: int
+    kept: str
+
+
+@dataclass(frozen=True)
+class NothingMoves:
+    """Phase 2's loop is skipped: each of its `objects` objects is static."""
+
+    objects: int
+
+
+@dataclass(frozen=True)
+class MotionDiagnosed:
+    """Phase 2's diagnostics (Appendix C; `sync4d.phase2.diagnostics.diagnostics`, as written
+    to ``phase2.json`` without the trajectories): per object and overall."""
+
+    diagnostics: Mapping[str, object] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Phase3Started:
+    """Phase 3 builds the language field with encoder `kind` (`dim`-dimensional; a
+    closed-vocabulary one scores only its own labels)."""
+
+    kind: str
+    dim: int
+    closed_vocabulary: bool
+
+
+@dataclass(frozen=True)
+class FieldBuilt:
+    """The language field of `objects` objects x `frames` frames is in `folder`: `crops`
+    crops, `observed` the share (0-1) of object-frames observed, and its build's seconds
+    (`total_s`, `observe_s`, `encode_s`)."""
+
+    objects: int
+    frames: int
+    crops: int
+    observed: float
+    total_s: float
+    observe_s: float
+    encode_s: float
+    folder: str
+
+
+@dataclass(frozen=True)
+class FramesEvaluated:
+    """The per-frame test metrics of an evaluation (`frames`: name, time, psnr, ssim, lpips;
+    None where a metric could not run) and their mean (`mean`)."""
+
+    frames: tuple[Mapping[str, object], ...]
+    mean: Mapping[str, object] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class MetricUnavailable:
+    """The metric `metric` ("SSIM", "LPIPS") cannot run on this evaluation, for `reason`."""
+
+    metric: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class Wrote:
+    """`stage` ("fit", "eval") wrote its results to `paths` (a folder ends with "/")."""
+
+    stage: str
+    paths: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Interrupted:
+    """A fit stopped on Ctrl-C, SIGTERM or SIGHUP at `iteration` (None: between its loops)
+    with its state in `checkpoint`; `resume`: the command that continues it."""
+
+    checkpoint: str
+    resume: str
+    iteration: int | None = None
+
+
 Event = (Note | Started | Advanced | Finished | PhaseDone | Evaluated | FitStarted | Resumed
-         | Assigned | Skipped)
+         | Assigned | Skipped | DatasetChosen | GeneratingScene | SettingChanged | Triangulating
+         | InitialPoints | ScaleAdvice | Phase2Starting | NothingMoves | MotionDiagnosed
+         | Phase3Started | FieldBuilt | FramesEvaluated | MetricUnavailable | Wrote
+         | Interrupted)
 
 _lock = threading.Lock()
 _subscribers: tuple[Callable[[Event], None], ...] = ()
@@ -215,7 +387,7 @@ def emit(event: Event) -> None:
 
 
 def note(text: str, stream: Literal["err", "out"] = "err", detail: bool = False) -> None:
-    """Emit a `Note`: ``note(f"fit: wrote {path}")`` where a library used to print."""
+    """Emit a `Note`: a script's own line for people (the library emits typed events)."""
     if _subscribers:
         emit(Note(text, stream, detail))
 

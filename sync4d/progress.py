@@ -2,10 +2,8 @@
 statistics (loss, PSNR, #Gaussians, ...), seconds per iteration and ETA.
 
 On a terminal it redraws one line; when stderr is not a terminal (logs, CI) it prints a full
-line every `log_every` updates so logs stay readable.
-
-`TerminalRenderer` is the command line's subscriber to `sync4d.events`: it prints the
-pipeline's notes and draws its loops as `Progress` bars.
+line every `log_every` updates so logs stay readable. `sync4d.terminal.TerminalRenderer` draws
+the library's loops (`sync4d.events.Started` / `Advanced` / `Finished`) with it.
 """
 
 from __future__ import annotations
@@ -13,26 +11,9 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Mapping
 from typing import TextIO
 
-from sync4d.events import (
-    Advanced,
-    Assigned,
-    Evaluated,
-    Event,
-    Finished,
-    FitStarted,
-    Note,
-    PhaseDone,
-    Resumed,
-    Skipped,
-    Started,
-    Subscription,
-    subscribe,
-)
-
-__all__ = ["Progress", "TerminalRenderer", "format_duration"]
+__all__ = ["Progress", "format_duration"]
 
 
 def format_duration(seconds: float) -> str:
@@ -128,140 +109,3 @@ class Progress:
         if self.tty:
             self.stream.write("\n")
             self.stream.flush()
-
-
-#: How the renderer shows a loop's statistics (`Advanced.stats`): label and format.
-STAT_FORMATS = {"loss": ("loss", ".4f"), "psnr": ("PSNR", ".2f"), "gaussians": ("#G", "d"),
-                "rho": ("rho", ".3f")}  # fmt: skip
-
-
-def format_stats(stats: Mapping[str, float]) -> dict[str, str]:
-    """A loop's statistics as the bar shows them (``{"PSNR": "24.51", "#G": "18000"}``)."""
-    out = {}
-    for key, value in stats.items():
-        label, spec = STAT_FORMATS.get(key, (key, ".4g"))
-        out[label] = format(int(value), spec) if spec == "d" else format(value, spec)
-    return out
-
-
-def _or_na(value: float | None, spec: str) -> str:
-    return "n/a" if value is None else format(value, spec)
-
-
-class TerminalRenderer:
-    """Renders `sync4d.events` as the commands print them: a `Note` as its lines on its stream
-    (sys.stdout or sys.stderr at that moment; on stderr through the open bar, so a terminal's
-    bar is not broken), `Started` / `Advanced` / `Finished` as a `Progress` bar on stderr with
-    the statistics formatted (`format_stats`), and the typed events (`Evaluated`,
-    `FitStarted`, `Resumed`, `Assigned`, `PhaseDone` of a whole fit) as the lines `fit`
-    prints: the library emits numbers, the words are written here. With `details` False the
-    notes marked `detail` (tables, "wrote ..." lines) and the results' lines on stdout are
-    left out, as ``bench fit`` shows its runs.
-
-    ``with renderer.installed(): ...`` (or ``with subscribe(renderer)``) renders what the block
-    emits."""
-
-    def __init__(self, details: bool = True) -> None:
-        self.details = details
-        self.bars: dict[str, Progress] = {}
-
-    def installed(self) -> Subscription:
-        """Subscribe this renderer; the subscription ends it (a context manager)."""
-        return subscribe(self)
-
-    def _line(self, text: str, stream: str = "err") -> None:
-        if stream == "err" and self.bars:
-            next(reversed(self.bars.values())).message(text)
-        else:
-            print(text, file=sys.stderr if stream == "err" else sys.stdout)
-
-    def __call__(self, event: Event) -> None:
-        if isinstance(event, Note):
-            if event.detail and not self.details:
-                return
-            self._line(event.text, event.stream)
-        elif isinstance(event, Started):
-            self.bars[event.task] = Progress(
-                event.total, start=event.start, desc=event.task, log_every=event.log_every
-            )
-        elif isinstance(event, Advanced):
-            bar = self.bars.get(event.task)
-            if bar is not None:
-                bar.update(event.done, format_stats(event.stats))
-        elif isinstance(event, Finished):
-            bar = self.bars.pop(event.task, None)
-            if bar is not None:
-                bar.close()
-        else:
-            text, stream = self.words(event)
-            if text and (self.details or stream == "err"):
-                self._line(text, stream)
-
-    @staticmethod
-    def words(event: Event) -> tuple[str, str]:
-        """The line (and its stream) `fit` prints for a typed event; "" for none."""
-        if isinstance(event, Evaluated):
-            return (f"[eval @ {event.iteration}] test PSNR {event.psnr:.2f} dB, SSIM "
-                    f"{_or_na(event.ssim, '.4f')} ({event.frames} frames, {event.gaussians} "
-                    f"Gaussians, {format_duration(event.train_seconds)} training)"), "err"
-        if isinstance(event, FitStarted):
-            return (f"fit: {event.scene}: {event.train} train / {event.test} test frames at "
-                    f"{event.width}x{event.height}, {event.iterations} iterations -> "
-                    f"{event.run_dir}"), "err"
-        if isinstance(event, Resumed):
-            return f"fit: resumed {event.path} at iteration {event.iteration}", "err"
-        if isinstance(event, Assigned):
-            counts = ", ".join(f"{name} {n}" for name, n in event.counts.items())
-            return f"fit: {event.source} assignment, K = {event.num_objects}: {counts}", "err"
-        if isinstance(event, Skipped):
-            return _skipped_words(event), "err"
-        if isinstance(event, PhaseDone) and event.phase == "fit":
-            s = event.summary
-            line = (f"fit: done in {format_duration(float(s['train_seconds']))} of training: "
-                    f"test PSNR {s['psnr']:.2f} dB, SSIM {_or_na(s['ssim'], '.4f')}, LPIPS "
-                    f"{_or_na(s['lpips'], '.4f')}, {s['gaussians']} Gaussians; run in "
-                    f"{s['run_dir']}")  # fmt: skip
-            d = s.get("phase2")
-            if d:
-                line += (f"\nfit: Phase 2: mean rigid share {d['rigid_share']:.3f}, shuffle "
-                         f"ratio {d['shuffle_ratio']:.2f}, {d['objects']} labels "
-                         f"({d['assignment']})")  # fmt: skip
-            return line, "out"
-        return "", "err"
-
-
-def _skipped_words(event: Skipped) -> str:
-    """The lines `fit` prints for what a phase skipped (one per switch that is on)."""
-    c = event.counts
-    if event.phase == "phase2":
-        updates = c["motion_updates"] + c["motion_updates_skipped"]
-        visits = c["refine_visits"] + c["refine_visits_skipped"]
-        line = (f"fit: Phase 2 held {c['held']} of {c['objects']} objects at a constant "
-                f"transform: skipped {c['motion_updates_skipped']} of {updates} M_phi object "
-                f"updates and {c['refine_visits_skipped']} of {visits} refinement visits "
-                "(static objects)")  # fmt: skip
-        if c["loop_skipped"]:
-            line += f"; its loop of {c['loop_skipped']} iterations skipped: no object moves"
-        return line
-    lines = []
-    if "nodes" in c:
-        lines.append(f"fit: Phase 1 moved {c['gaussians']} Gaussians by {c['nodes']} control "
-                     f"nodes from iteration {c['nodes_from']} (D_theta on the nodes, not the "
-                     f"Gaussians; nodes added {c['nodes_added']}, removed "
-                     f"{c['nodes_removed']})")  # fmt: skip
-    elif "deform_rows" in c:
-        evaluations = c["deform_rows"] + c["deform_rows_skipped"]
-        line = (f"fit: Phase 1 skipped D_theta on {c['share']:.0%} of the Gaussian evaluations "
-                f"({c['deform_rows_skipped']} of {evaluations}); static at the end: "
-                f"{c['static']} of {c['gaussians']} Gaussians")  # fmt: skip
-        if c["static"] == c["gaussians"]:
-            line += "; no Gaussian moves: a static scene, D_theta no longer evaluated"
-        lines.append(line)
-    if "coarse_iterations" in c:
-        lines.append(f"fit: Phase 1 trained its first {c['coarse_iterations']} iterations at "
-                     f"{c['coarse_scale']:g}x resolution: {c['pixels_saved']:.0%} fewer pixels "
-                     "rendered in all")  # fmt: skip
-    if "pruned" in c:
-        lines.append(f"fit: Phase 1 pruned {c['pruned']} transparent Gaussians (opacity < "
-                     f"{c['prune_opacity']:g}) after densification")  # fmt: skip
-    return "\n".join(lines)

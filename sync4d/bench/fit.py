@@ -31,10 +31,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sync4d.options import add_training_options, positive_float, positive_int
-from sync4d.progress import TerminalRenderer
 from sync4d.report import align_table
 from sync4d.runs.names import EVAL_FILE, RENDERS_DIR
 from sync4d.settings import ConfigError
+from sync4d.terminal import TerminalRenderer
 
 if TYPE_CHECKING:
     from sync4d.config import RunConfig
@@ -135,8 +135,7 @@ def run_grid(
     iterations (its schedules scaled alike), to compare variants at equal time."""
     from sync4d import raster
     from sync4d.config import with_budget
-    from sync4d.data import load_scene
-    from sync4d.pipeline import run_fit
+    from sync4d.pipeline import FitData, run_fit
 
     variants = base if isinstance(base, dict) else {"": base}
     factors = budget_factors or {}
@@ -156,11 +155,11 @@ def run_grid(
             f"{label}",
             file=sys.stderr,
         )
-        scene = load_scene(data, scale, cfg.test_split)
+        fit_data = FitData.load(data, cfg)  # at cfg.resolution_scale = scale
+        scene = fit_data.scene
         run_dir = work_dir / f"s{scale}_c{cap}_i{iters}{'_' + variant if variant else ''}"
-        summary = run_fit(
-            scene, cfg, run_dir, data, threads=threads, log_every=max(50, iters // 10)
-        )
+        summary = run_fit(fit_data, cfg, run_dir, threads=threads,
+                          log_every=max(50, iters // 10))  # fmt: skip
         worst = worst_view(run_dir)
         rows.append(
             {

@@ -134,8 +134,8 @@ def main(args: argparse.Namespace) -> int:
     from sync4d.data import DatasetError
     from sync4d.pipeline.evaluate import evaluate_run
     from sync4d.pipeline.record import dataset_differences
-    from sync4d.progress import TerminalRenderer
     from sync4d.runs import CheckpointError, RunError, load_run
+    from sync4d.terminal import TerminalRenderer
 
     run_dir = Path(args.run)
     try:

@@ -2,7 +2,7 @@
 into a run folder, then the test metrics and Phase 2's diagnostics. The command parses its
 arguments into a `sync4d.pipeline.request.FitRequest`, whose `fit_request` owns what a run
 folder may continue (the resume policy) and does it; what the pipeline reports
-(`sync4d.events`) is printed by `sync4d.progress.TerminalRenderer`; the exit status says how
+(`sync4d.events`) is printed by `sync4d.terminal.TerminalRenderer`; the exit status says how
 it ended (2: a bad input, 3: the watchdog's stop, 130: interrupted).
 
 Without DATA it trains on the embedded synthetic scene (generated once into a cache folder).
@@ -25,8 +25,8 @@ from sync4d.files import LOCK_FILE, RunBusy, RunLock, WriteFailed
 from sync4d.options import add_encoder, add_training_options, positive_float, positive_int
 from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.store import FieldError
-from sync4d.progress import TerminalRenderer
 from sync4d.settings import ConfigError
+from sync4d.terminal import TerminalRenderer
 
 if TYPE_CHECKING:  # the pipeline loads torch: imported when fit runs, not for its --help
     from sync4d.pipeline.request import FitRequest

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from sync4d.data.scene import DatasetError, as_number, as_number_array, cache_dir, check_pose
-from sync4d.events import note
+from sync4d.events import GeneratingScene, emit
 
 __all__ = [
     "SyntheticConfig",
@@ -678,7 +678,7 @@ def ensure_default_scene(config: SyntheticConfig | None = None) -> Path:
     cfg = config or SyntheticConfig()
     if not _is_complete(root, cfg):
         t0 = _time.perf_counter()
-        note(f"generating the synthetic scene in {root} ...")
+        emit(GeneratingScene(str(root)))
         write_synthetic_scene(root, cfg)
-        note(f"  done in {_time.perf_counter() - t0:.1f}s")
+        emit(GeneratingScene(str(root), _time.perf_counter() - t0))
     return root

@@ -20,7 +20,7 @@ from sync4d.data.triangulate import (
     triangulate_scene,
     views_at_one_instant,
 )
-from sync4d.events import note
+from sync4d.events import InitialPoints, Triangulating, emit
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.settings import ConfigError
@@ -203,16 +203,15 @@ def with_initial_points(scene: Scene, p1: Phase1Settings, threads: int = 1) -> S
                 "triangulate with it, or set phase1.init_dome_points = 0"
             )
         return dataclasses.replace(scene, points=None, point_colors=None)
-    note("fit: triangulating initial points (pycolmap, fixed poses)...", detail=True)
+    emit(Triangulating(scene.name))
     tri = triangulate_scene(scene, TriangulationConfig(threads=threads))
     if len(tri.points) == 0:
         raise DatasetError(
             scene.train[0].image_path.parent,
             "triangulation found no points (too little texture?); use phase1.init_from=random",
         )
-    how = "cached" if tri.cached else f"{tri.seconds:.0f} s"
-    note(f"fit: {len(tri.points)} initial points from {tri.views} views at t={tri.time:g} "
-         f"({how})", detail=True)  # fmt: skip
+    emit(InitialPoints("triangulation", len(tri.points), tri.views, float(tri.time),
+                       float(tri.seconds), bool(tri.cached)))  # fmt: skip
     return with_dome_points(
         dataclasses.replace(scene, points=tri.points, point_colors=tri.colors), p1
     )
@@ -227,7 +226,7 @@ def with_dome_points(scene: Scene, p1: Phase1Settings) -> Scene:
         pts, cols = dome_points(scene, p1.init_dome_points, p1.init_dome_radius, p1.seed)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    note(f"fit: {len(pts)} initial points on the dome's wall", detail=True)
+    emit(InitialPoints("dome", len(pts)))
     base = np.zeros((0, 3)) if scene.points is None else np.asarray(scene.points, np.float64)
     base_cols = scene.point_colors
     if base_cols is None:

@@ -19,12 +19,11 @@ from torch import Tensor
 
 from sync4d.phase2.assign import adjusted_rand_index, assign_objects
 from sync4d.phase2.terms import rigid_share
-from sync4d.report import align_table
 
 if TYPE_CHECKING:
     from sync4d.phase2.strategy import MotionStrategy
 
-__all__ = ["diagnostics", "format_diagnostics", "residuals_at"]
+__all__ = ["diagnostics", "residuals_at"]
 
 
 @torch.no_grad()
@@ -110,27 +109,3 @@ def _mask_agreement(p2: MotionStrategy) -> dict:
         "mask_agreement_ari": adjusted_rand_index(p2.assignment.labels, reference.labels),
         "mask_objects": reference.num_objects - 1,
     }
-
-def format_diagnostics(diag: dict) -> str:
-    """Phase 2 diagnostics (Appendix C) as a table plus a summary line."""
-    rows = [
-        [str(o["label"]), o["name"], f"{o['gaussians']:,}",
-         "held" if o.get("held") else "yes" if o["static"] else "",
-         f"{o['rigid_share']:.3f}", f"{o['residual_mean']:.4f}", f"{o['motion_variance']:.2e}"]
-        for o in diag["objects"]
-    ]  # fmt: skip
-    table = align_table(
-        ["k", "object", "Gaussians", "static", "rigid share", "residual", "motion var"], rows,
-        left=(1,),
-    )  # fmt: skip
-    return (
-        f"{table}\nmean rigid share {diag['rigid_share']:.3f}, residual energy "
-        f"{diag['residual_energy']:.2e}, modulated fraction {diag['modulated_fraction']:.3f}, "
-        f"shuffle ratio {diag['shuffle_ratio']:.2f} ({diag['assignment']} assignment)"
-        + (
-            f"\nagreement with mask voting: adjusted Rand index {diag['mask_agreement_ari']:.3f} "
-            f"({diag['num_objects'] - 1} clusters vs {diag['mask_objects']} mask objects)"
-            if "mask_agreement_ari" in diag
-            else ""
-        )
-    )

@@ -9,8 +9,9 @@ settings, timings, counts, and the SHA-256 of the checkpoint it was built from),
 atomically. `load_field(RUN)` reads it back and checks it, and refuses a field whose checkpoint
 has changed since (a refit run), naming the command that rebuilds it.
 
-What the build skips (issue 40) is counted in `Field.counts`, and `skip_report` says it in one
-line: only observed object-frames are cropped and encoded, all in one `encode_images` call
+What the build skips (issue 40) is counted in `Field.counts`, which the pipeline emits as a
+`Skipped("phase3", ...)` event and the command line says in one line: only observed
+object-frames are cropped and encoded, all in one `encode_images` call
 (`Phase3Config.skip_unobserved`; off, the unobserved crops that have a box are encoded too, in a
 second call, and discarded); the relational kinematic dims are computed at every frame, see
 `sync4d.phase3.kinematics`.
@@ -34,8 +35,7 @@ from sync4d.phase3.observe import Observations, observe
 from sync4d.phase3.store import Field, FieldError, checkpoint_record, load_field
 from sync4d.runs import Run
 
-__all__ = ["Field", "FieldError", "build_field", "load_field", "skip_report",
-           "up_vector"]  # fmt: skip
+__all__ = ["Field", "FieldError", "build_field", "load_field", "up_vector"]
 
 
 def up_vector(run: Run, scene_cameras: list, spec: str = "auto") -> np.ndarray:
@@ -146,35 +146,3 @@ def build_field(
     emit(PhaseDone("phase3", {"objects": len(obs.labels), "frames": len(obs.times), **timings,
                               **counts}))  # fmt: skip
     return built
-
-
-def skip_report(field: Field) -> str:
-    """One line for `fit` after Phase 3: what was encoded and skipped (`Field.counts`)."""
-    c = field.counts
-    if not c:
-        return "fit: Phase 3 skipped nothing that it counted (a field built before the counters)"
-    calls = c["encoder_calls"]
-    line = (
-        f"fit: Phase 3 encoded {c['crops_encoded']} of {c['object_frames']} object-frames in "
-        f"{calls} encoder call{'' if calls == 1 else 's'}"
-    )
-    if c["extra_crops"]:
-        line += (
-            f" ({c['extra_crops']} unobserved ones encoded and discarded: "
-            f"phase3.skip_unobserved is off; {c['invisible']} invisible, "
-            f"{c['below_threshold']} below min_visible/min_box)"
-        )
-    else:
-        line += (
-            f" ({c['invisible']} invisible and {c['below_threshold']} below "
-            "min_visible/min_box skipped)"
-        )
-    line += f"; relational features on {c['relational']} object-frames"
-    if c["relational_skipped"]:
-        line += f" ({c['relational_skipped']} without another object left at 0)"
-    if c["relational_unobserved"]:
-        line += (
-            f" ({c['relational_unobserved']} at frames with an unobserved object, "
-            "kept: the prediction there reads them)"
-        )
-    return line

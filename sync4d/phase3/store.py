@@ -38,7 +38,7 @@ class Field:
     W_k, `pred` [K, T, D] e_hat, `sync` [K, T, D] the blended and smoothed embeddings,
     `visible` [K, T], `boxes` [K, T, 4] crop boxes, `gaps` [K, L, T] robust distances to each
     of `gap_labels`, `radius` [K], `centroids` [K, T, 3] (M_phi's). `meta`: everything else;
-    `counts` what the build encoded and skipped (`sync4d.phase3.build.skip_report`; empty in a
+    `counts` what the build encoded and skipped (the `Skipped("phase3", ...)` event; empty in a
     field built before the counters); `checkpoint` the run checkpoint it was built from
     (`checkpoint_record`), which `load_field` checks.
     """

@@ -5,11 +5,13 @@ calls these and prints. `fit` runs Phase 1 then Phase 2 (checkpoints, resume, Ct
 `phase3` builds the language field of a run, `record` holds the run record (dataset
 fingerprint, stored config) and the checks that decide whether a run may continue,
 `evaluate` the image metrics of a run, `stop` the signals that end a loop between iterations,
-`request` what `sync4d fit` asks of a run folder and the resume policy that answers it.
+`request` what `sync4d fit` asks of a run folder and the resume policy that answers it. A
+dataset travels with its scene (`FitData`).
 """
 
 from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
 from sync4d.pipeline.fit import (
+    FitData,
     FitInterrupted,
     TrainingDiverged,
     resolve_data,
@@ -21,6 +23,7 @@ from sync4d.pipeline.fit import (
 from sync4d.pipeline.request import FitRequest, fit_request
 
 __all__ = [
+    "FitData",
     "FitInterrupted",
     "FitRequest",
     "TrainingDiverged",

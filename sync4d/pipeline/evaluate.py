@@ -16,13 +16,21 @@ import torch
 
 from sync4d import watchdog
 from sync4d.data.scene import Frame, Scene
-from sync4d.events import Advanced, Finished, PhaseDone, Started, emit, note
+from sync4d.events import (
+    Advanced,
+    Finished,
+    FramesEvaluated,
+    MetricUnavailable,
+    PhaseDone,
+    Started,
+    Wrote,
+    emit,
+)
 from sync4d.files import write_text_atomic
 from sync4d.metrics import psnr, ssim, ssim_gaussian
 from sync4d.metrics.image import GAUSSIAN_WINDOW
 from sync4d.metrics.lpips import INSTALL_HINT, MIN_SIZE, LPIPSAlex, LPIPSWeightsMissing, load_lpips
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.report import align_table
 from sync4d.runs.folder import RunError
 from sync4d.runs.names import RENDERS_DIR, eval_file
 
@@ -31,7 +39,6 @@ __all__ = [
     "FrameMetrics",
     "evaluate_frames",
     "evaluate_run",
-    "format_metrics",
     "metric_definitions",
     "render_frame",
     "save_side_by_side",
@@ -202,21 +209,6 @@ def metric_definitions(
     return out
 
 
-def format_metrics(metrics: list[FrameMetrics], summary: dict) -> str:
-    """Per-frame table plus the mean row."""
-
-    def f(v: float | None, spec: str) -> str:
-        return "-" if v is None else format(v, spec)
-
-    rows = [[m.name, f"{m.time:.3f}", f(m.psnr, ".2f"), f(m.ssim, ".4f"), f(m.lpips, ".4f")]
-            for m in metrics]  # fmt: skip
-    rows.append(
-        ["mean", "", f(summary["psnr"], ".2f"), f(summary["ssim"], ".4f"),
-         f(summary["lpips"], ".4f")]
-    )  # fmt: skip
-    return align_table(["frame", "time", "PSNR dB", "SSIM", "LPIPS"], rows)
-
-
 def evaluate_run(
     run_dir: Path,
     model: DeformableGaussians,
@@ -229,9 +221,10 @@ def evaluate_run(
 ) -> dict:
     """Evaluate `model` on `scene`'s split, write ``run_dir/eval.json`` (and, with `renders`,
     ``run_dir/renders/<split>/<frame>.png``: render beside ground truth), report the table (a
-    `sync4d.events` note; progress as task "eval <split>", then `PhaseDone("eval")`); returns
+    `FramesEvaluated` event; progress as task "eval <split>", then `Wrote` and
+    `PhaseDone("eval")`); returns
     the summary (mean PSNR, SSIM, SSIM 3x3 box, LPIPS, and ``"metrics"``: what each
-    is). A metric that cannot run is None, with one note (stderr) saying why (for LPIPS
+    is). A metric that cannot run is None, with a `MetricUnavailable` event saying why (for LPIPS
     weights, the command that installs them) and the reason in ``eval.json``. With `tag`
     (another split or dataset than the run's test split) the files are ``eval-<tag>.json`` and
     ``renders/<tag>/`` instead, so the run's own results are never overwritten."""
@@ -243,7 +236,7 @@ def evaluate_run(
     ssim_skipped = _ssim_skipped(frames)
     for name, reason in (("SSIM", ssim_skipped), ("LPIPS", lpips_skipped)):
         if reason is not None:
-            note(f"eval: {name} n/a: {reason}")
+            emit(MetricUnavailable(name, reason))
     task = f"eval {split}"
     emit(Started(task, len(frames), log_every=max(1, len(frames))))
     metrics = evaluate_frames(
@@ -263,8 +256,8 @@ def evaluate_run(
     }
     path = run_dir / eval_file(tag)
     write_text_atomic(path, json.dumps(out, indent=2) + "\n")
-    note(format_metrics(metrics, summary), "out", detail=True)
-    where = f" and {run_dir / RENDERS_DIR / (tag or split)}/" if renders else ""
-    note(f"eval: wrote {path}{where}", "out", detail=True)
+    emit(FramesEvaluated(tuple(asdict(m) for m in metrics), summary))
+    renders_dir = (f"{run_dir / RENDERS_DIR / (tag or split)}/",) if renders else ()
+    emit(Wrote("eval", (str(path), *renders_dir)))
     emit(PhaseDone("eval", {"split": split, "file": str(path), **summary}))
     return {**summary, "metrics": definitions}

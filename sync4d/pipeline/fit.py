@@ -15,31 +15,38 @@ import shutil
 import signal
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from sync4d import watchdog
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
-from sync4d.data import Scene
+from sync4d.data import Scene, load_scene
 from sync4d.events import (
     Advanced,
     Assigned,
+    DatasetChosen,
     Evaluated,
     EventLog,
     Finished,
+    Interrupted,
+    MotionDiagnosed,
+    NothingMoves,
+    Phase2Starting,
     PhaseDone,
     Resumed,
+    ScaleAdvice,
     Skipped,
     Started,
+    Wrote,
     emit,
-    note,
     subscribe,
 )
 from sync4d.files import RunLock, write_atomic, write_text_atomic
 from sync4d.phase1.init import initial_model, scene_extent, with_initial_points
 from sync4d.phase1.trainer import Phase1Trainer
-from sync4d.phase2.diagnostics import diagnostics, format_diagnostics
+from sync4d.phase2.diagnostics import diagnostics
 from sync4d.phase2.strategy import MotionStrategy
 from sync4d.phase2.trainer import phase2_from_state, phase2_trainer
 from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
@@ -67,6 +74,7 @@ from sync4d.runs.names import (
 )
 
 __all__ = [
+    "FitData",
     "FitInterrupted",
     "TrainingDiverged",
     "length_advice",
@@ -90,6 +98,22 @@ def set_threads(threads: int | None) -> int:
     return n
 
 
+@dataclass(frozen=True)
+class FitData:
+    """A run's dataset: its folder `path`, the `scene` loaded from it, and whether it is the
+    embedded synthetic scene (`embedded`, kept in the run record)."""
+
+    path: Path
+    scene: Scene
+    embedded: bool = False
+
+    @classmethod
+    def load(cls, path: str | Path, cfg: RunConfig, embedded: bool = False) -> FitData:
+        """The dataset in `path`, loaded at `cfg`'s resolution scale and test split."""
+        path = Path(path)
+        return cls(path, load_scene(path, cfg.resolution_scale, cfg.test_split), embedded)
+
+
 class FitInterrupted(Exception):
     """Training stopped by Ctrl-C, SIGTERM or SIGHUP after saving its checkpoint."""
 
@@ -101,8 +125,8 @@ REFERENCE_EXTENT = 4.4
 LENGTH_TOLERANCE = 10.0
 
 
-def length_advice(extent: float, p1) -> str | None:
-    """A note for a scene whose size is far from the one the absolute lengths (`near`,
+def length_advice(extent: float, p1) -> ScaleAdvice | None:
+    """The advice for a scene whose size is far from the one the absolute lengths (`near`,
     `init_scale`, `deform.scale_position`, `deform.position_unit`) are for: the settings that
     scale them to it, or None
     when the scene is within `LENGTH_TOLERANCE` of `REFERENCE_EXTENT` or they were set already.
@@ -114,14 +138,10 @@ def length_advice(extent: float, p1) -> str | None:
     defaults = lengths == (0.01, 0.02, 0.1, 1.0)
     if not defaults or 1.0 / LENGTH_TOLERANCE <= ratio <= LENGTH_TOLERANCE:
         return None
-    return (
-        f"fit: this scene is {ratio:.3g} times the size the absolute lengths' defaults are for "
-        f"(extent {extent:.3g} world units against {REFERENCE_EXTENT}); to train it as the "
-        f"default-sized scene trains, scale them with it: --set "
-        f"phase1.near={0.01 * ratio:.3g} --set phase1.init_scale={0.02 * ratio:.3g} --set "
-        f"phase1.deform.scale_position={0.1 * ratio:.3g} --set "
-        f"phase1.deform.position_unit={ratio:.3g}"
-    )
+    return ScaleAdvice(ratio, extent, REFERENCE_EXTENT, {
+        "phase1.near": 0.01 * ratio, "phase1.init_scale": 0.02 * ratio,
+        "phase1.deform.scale_position": 0.1 * ratio, "phase1.deform.position_unit": ratio,
+    })  # fmt: skip
 
 
 class TrainingDiverged(RuntimeError):
@@ -237,9 +257,9 @@ def resolve_data(data: str | Path | None) -> tuple[Path, Path | None]:
     embedded synthetic scene (generated once into the cache) and the shipped synthetic config."""
     if data is not None:
         return Path(data), None
-    from sync4d.data.synthetic import ensure_default_scene
+    from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
 
-    note("fit: no dataset given; using the embedded synthetic scene")
+    emit(DatasetChosen(str(default_scene_dir()), embedded=True))
     root = ensure_default_scene()
     cfg = repo_configs() / "synthetic.toml"
     return root, cfg if cfg.exists() else None
@@ -268,36 +288,33 @@ def resume_trainer(
 
 
 def run_fit(
-    scene: Scene,
+    data: FitData,
     cfg: RunConfig,
     run_dir: Path,
-    data: Path,
     resume: bool = False,
     threads: int | None = None,
     log_every: int = 100,
     command: dict | None = None,
 ) -> dict:
-    """Train (or resume) the phases `cfg.phases` on `scene` into `run_dir`: Phase 1, then Phase 2
+    """Train (or resume) the phases `cfg.phases` on `data` into `run_dir`: Phase 1, then Phase 2
     from its model (the Phase 1 checkpoint is kept as ``phase1.safetensors``); returns the final
     summary (test metrics, and Phase 2's diagnostics when it ran). Holds the run folder's lock
     throughout; `command` (the command-line settings behind `cfg`, see `sync4d.pipeline.record`)
     goes into the run record. Raises `FitInterrupted` after Ctrl-C, SIGTERM or SIGHUP, with
     the last state saved. Reports what happens as `sync4d.events` (silent without a
-    subscriber; the command line subscribes `sync4d.progress.TerminalRenderer`)."""
+    subscriber; the command line subscribes `sync4d.terminal.TerminalRenderer`)."""
     phases = parse_phases(cfg.phases)
     p1 = cfg.phase1
     if not (math.isfinite(p1.near) and p1.near > 0):
         raise ConfigError(f"near: must be a finite distance > 0 (world units), got {p1.near}")
     with RunLock(run_dir, "fit"), StopSignals() as stop, _event_log(run_dir):
         try:
-            return _run_fit(scene, cfg, phases, run_dir, data, resume, threads, log_every,
+            return _run_fit(data, cfg, phases, run_dir, resume, threads, log_every,
                             command or {}, stop)  # fmt: skip
         except KeyboardInterrupt:  # between the loops: the last checkpoint is on disk
-            record = {"data": str(Path(data).resolve()), **(command or {})}
-            note(
-                f"fit: interrupted; the last checkpoint is {run_dir / CHECKPOINT_NAME}.\n"
-                f"     continue with: {continue_command(run_dir, record)}"
-            )
+            record = {"data": str(data.path.resolve()), "embedded": data.embedded,
+                      **(command or {})}  # fmt: skip
+            emit(Interrupted(str(run_dir / CHECKPOINT_NAME), continue_command(run_dir, record)))
             raise FitInterrupted from None
 
 
@@ -314,11 +331,10 @@ def _event_log(run_dir: Path) -> Iterator[None]:
 
 
 def _run_fit(
-    scene: Scene,
+    data: FitData,
     cfg: RunConfig,
     phases: tuple[int, ...],
     run_dir: Path,
-    data: Path,
     resume: bool,
     threads: int | None,
     log_every: int,
@@ -326,17 +342,18 @@ def _run_fit(
     stop: StopSignals,
 ) -> dict:
     p1 = cfg.phase1
+    scene = data.scene
     n_threads = set_threads(threads)
     ckpt = run_dir / CHECKPOINT_NAME
     run_info = {
-        "data": str(data.resolve()),
-        "embedded": bool(command.get("embedded", False)),
+        "data": str(data.path.resolve()),
+        "embedded": data.embedded,
         "scene": scene.name,
         "dataset": dataset_fingerprint(scene),
         "resolution_scale": cfg.resolution_scale,
         "test_split": cfg.test_split,
         "config": dataclasses.asdict(cfg),
-        "command": {k: v for k, v in command.items() if k != "embedded"},
+        "command": command,
         "threads": n_threads,
     }
     kind = checkpoint_kind(ckpt)
@@ -358,7 +375,7 @@ def _run_fit(
         )  # fmt: skip
         advice = length_advice(scene_extent(scene), p1)
         if advice:
-            note(advice)
+            emit(advice)
         trainer = Phase1Trainer(model, scene, p1, p1.iterations, threads=n_threads)
     elif kind is None:
         raise ConfigError(
@@ -405,8 +422,7 @@ def _run_fit(
                 trainer = p2.trainer
                 train_seconds += time.perf_counter() - t0  # the assignment and refinement
             if p2.skip_loop(cfg.phase2.iterations):
-                k = p2.assignment.num_objects
-                note(f"fit: Phase 2 skipped: no object moves ({k} static objects)")
+                emit(NothingMoves(p2.assignment.num_objects))
             train_seconds, interrupted = _train_loop(
                 trainer, cfg.phase2.iterations, desc="phase2", train_seconds=train_seconds,
                 **loop,
@@ -415,10 +431,7 @@ def _run_fit(
             if not interrupted:
                 emit(PhaseDone("phase2", _phase_summary(trainer, train_seconds)))
         if interrupted:
-            note(
-                f"fit: interrupted at iteration {trainer.iteration}; checkpoint saved to "
-                f"{ckpt}.\n     continue with: {continue_command(run_dir, run_info)}"
-            )
+            emit(Interrupted(str(ckpt), continue_command(run_dir, run_info), trainer.iteration))
             raise FitInterrupted
         summary = _finish(trainer, scene, cfg, run_dir, n_threads)
         summary.update(
@@ -503,10 +516,7 @@ def _start_phase2(
     kept = run_dir / PHASE1_CHECKPOINT_NAME
     write_atomic(kept, lambda tmp: shutil.copyfile(ckpt, tmp))
     model = trainer.model if trainer is not None else load_model(ckpt, p1.near)[0]
-    note(
-        f"fit: Phase 2 ({cfg.phase2.iterations} iterations) from {kept}: assigning Gaussians "
-        "to objects ..."
-    )
+    emit(Phase2Starting(cfg.phase2.iterations, str(kept)))
     try:
         p2 = phase2_trainer(model, scene, p1, cfg.phase2, cfg.phase2.iterations, n_threads)
     except ValueError as e:  # bad assignment input
@@ -536,8 +546,8 @@ def _finish(
             f"{scene.name}: object centroids after Phase 2 ({diag['assignment']} assignment)",
         )  # fmt: skip
         summary["phase2"] = diag
-        note(format_diagnostics(diag), "out", detail=True)
-        note(f"fit: wrote {run_dir / PHASE2_FILE} and {plot}", "out", detail=True)
+        emit(MotionDiagnosed({k: v for k, v in diag.items() if k != "trajectories"}))
+        emit(Wrote("fit", (str(run_dir / PHASE2_FILE), str(plot))))
     return summary
 
 

@@ -33,10 +33,17 @@ from sync4d.config import (
     repo_configs,
     with_budget,
 )
-from sync4d.data import Scene, load_scene
 from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
-from sync4d.events import FitStarted, emit, note
-from sync4d.pipeline.fit import restart_phase2, run_fit
+from sync4d.events import (
+    DatasetChosen,
+    FieldBuilt,
+    FitStarted,
+    Phase3Started,
+    SettingChanged,
+    Skipped,
+    emit,
+)
+from sync4d.pipeline.fit import FitData, restart_phase2, run_fit
 from sync4d.pipeline.phase3 import Phase3Build, build_phase3, phase3_config
 from sync4d.pipeline.record import (
     CADENCE_KEYS,
@@ -103,16 +110,6 @@ class FitRequest:
 
 
 @dataclass(frozen=True)
-class FitData:
-    """A run's dataset: its folder, the scene loaded from it, and whether it is the embedded
-    synthetic scene."""
-
-    path: Path
-    scene: Scene
-    embedded: bool
-
-
-@dataclass(frozen=True)
 class FitOutcome:
     """What `fit_request` did: the training summary (`run_fit`'s; None for `--phases 3`
     alone) and the language field it built (None without Phase 3)."""
@@ -173,7 +170,7 @@ def continued_config(req: FitRequest, stored: RunConfig, kind: str | None, resta
         )
     for k, (a, b) in diffs.items():
         if k in free:
-            note(f"fit: {k}: {a} -> {b}")
+            emit(SettingChanged(k, a, b))
     return cfg
 
 
@@ -217,16 +214,15 @@ def _continued(req: FitRequest, kind: str, restart: bool) -> tuple[RunConfig, Fi
     path, embedded = continued_data(req, record, run_dir)
     cfg = continued_config(req, recorded_config(record, run_dir), kind, restart,
                            run_dir / RUN_FILE)  # fmt: skip
-    scene = load_scene(path, cfg.resolution_scale, cfg.test_split)
-    differs = dataset_differences(record.get("dataset", {}), scene)
+    data = FitData.load(path, cfg, embedded)
+    differs = dataset_differences(record.get("dataset", {}), data.scene)
     if differs:
         raise RunError(
             f"{path} is not the dataset of the run in {run_dir} "
             f"({record.get('data')}): {'; '.join(differs)}. Pass the run's dataset, or "
             "start a new run (--force, or another --out)"
         )
-    return cfg, FitData(path, scene, embedded), list(record.get("command", {}).get(
-        "invocations", []))  # fmt: skip
+    return cfg, data, list(record.get("command", {}).get("invocations", []))
 
 
 def fit_request(req: FitRequest, fresh: RunConfig | None = None) -> FitOutcome:
@@ -257,16 +253,17 @@ def fit_request(req: FitRequest, fresh: RunConfig | None = None) -> FitOutcome:
             clear_run(run_dir)
         cfg = fresh
         if req.data is None:
-            note("fit: no dataset given; using the embedded synthetic scene")
-        path = req.data if req.data is not None else ensure_default_scene()
-        data = FitData(path, load_scene(path, cfg.resolution_scale, cfg.test_split),
-                       req.data is None)  # fmt: skip
+            emit(DatasetChosen(str(default_scene_dir()), embedded=True))
+            data = FitData.load(ensure_default_scene(), cfg, embedded=True)
+        else:
+            emit(DatasetChosen(str(req.data), embedded=False))
+            data = FitData.load(req.data, cfg)
         history = []
-    command = {"embedded": data.embedded, "invocations": [*history, req.invocation()]}
+    command = {"invocations": [*history, req.invocation()]}
     scene, camera = data.scene, data.scene.train[0].camera
     emit(FitStarted(scene.name, len(scene.train), len(scene.test), camera.width, camera.height,
                     cfg.phase1.iterations, str(run_dir)))  # fmt: skip
-    summary = run_fit(scene, cfg, run_dir, data.path, req.resume, req.threads, command=command)
+    summary = run_fit(data, cfg, run_dir, req.resume, req.threads, command=command)
     built = None
     if 3 in parse_phases(cfg.phases):
         built = _build_phase3(run_dir, cfg.phase3, req.threads, data.path)
@@ -300,16 +297,13 @@ def fit_phase3_only(req: FitRequest, kind: str | None) -> FitOutcome:
 def _build_phase3(run_dir: Path, cfg3, threads: int | None, data: Path | None) -> Phase3Build:
     """Build and save the language field of the Phase 2 run in `run_dir`."""
     from sync4d.phase3 import load_encoder
-    from sync4d.phase3.build import skip_report
 
     encoder = load_encoder(cfg3.encoder or None)
-    note(f"fit: Phase 3 (language field) with the {encoder.kind} encoder ({encoder.dim}-d"
-         f"{', closed-vocabulary' if encoder.closed_vocabulary else ''}) ...")  # fmt: skip
+    emit(Phase3Started(encoder.kind, encoder.dim, bool(encoder.closed_vocabulary)))
     built = build_phase3(run_dir, cfg3, threads=threads, data=data, encoder=encoder)
     field, t = built.field, built.field.timings
-    note(f"fit: Phase 3: {len(field.labels)} objects x {len(field.times)} frames, "
-         f"{int(t['crops'])} crops ({100 * field.observed.mean():.0f} % observed), built in "
-         f"{t['total_s']:.1f} s (observe {t['observe_s']:.1f}, encode {t['encode_s']:.1f}); "
-         f"field in {built.folder}", stream="out")  # fmt: skip
-    note(skip_report(field))
+    emit(FieldBuilt(len(field.labels), len(field.times), int(t["crops"]),
+                    float(field.observed.mean()), t["total_s"], t["observe_s"], t["encode_s"],
+                    str(built.folder)))  # fmt: skip
+    emit(Skipped("phase3", dict(field.counts)))
     return built

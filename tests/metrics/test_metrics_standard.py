@@ -26,7 +26,7 @@ from sync4d.metrics import dssim, ssim, ssim_gaussian
 from sync4d.metrics import lpips as lp
 from sync4d.pipeline import evaluate
 from sync4d.pipeline.evaluate import METRIC_DEFINITIONS, evaluate_run
-from sync4d.progress import TerminalRenderer
+from sync4d.terminal import TerminalRenderer
 
 DNERF = SHARED_DATA / "dnerf"
 

@@ -19,8 +19,7 @@ import safetensors.numpy
 
 from sync4d.config import load_config, repo_configs
 from sync4d.data import synthetic as syn
-from sync4d.data.detect import load_scene
-from sync4d.pipeline import run_fit
+from sync4d.pipeline import FitData, run_fit
 from sync4d.runs import CHECKPOINT_NAME, PHASE2_FILE
 
 pytestmark = pytest.mark.slow
@@ -29,7 +28,7 @@ def test_fit_recovers_the_synthetic_scene_motion(tmp_path) -> None:
     root = syn.write_synthetic_scene(tmp_path / "scene", syn.SyntheticConfig())
     cfg = load_config(repo_configs() / "synthetic.toml", ["eval_every=0", "checkpoint_every=0"])
     run = tmp_path / "run"
-    summary = run_fit(load_scene(root), cfg, run, root, threads=2)
+    summary = run_fit(FitData.load(root, cfg), cfg, run, threads=2)
     assert summary["iterations"] == cfg.phase2.iterations
 
     # The motion export written into the checkpoint, relative to each object's first frame.

@@ -17,12 +17,14 @@ import torch
 from support.oracle import OracleGaussians, oracle_phase2_run
 from support.scenes import small_synthetic
 from sync4d.data import synthetic as syn
-from sync4d.phase3.build import build_field, load_field, skip_report
+from sync4d.events import Skipped
+from sync4d.phase3.build import build_field, load_field
 from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.encoders.encoder import Encoder
 from sync4d.phase3.encoders.offline import OfflineEncoder
 from sync4d.phase3.kinematics import RELATIONAL_DIMS, relational_counts
 from sync4d.phase3.query import TextCache, answer
+from sync4d.terminal import words
 
 SCENE = small_synthetic(frames=13, train_cameras=3, test_every=4)
 #: Frame times (normalised) when the red ball is out of every view, and inside the pillar.
@@ -159,6 +161,11 @@ def test_relational_dims_are_kept_where_the_ball_is_unseen(hiding):
         "relational_skipped": 5,
         "relational_unobserved": 0,
     }
+
+
+def skip_report(field) -> str:
+    """The line `fit` prints for the field's `Skipped("phase3", counts)` event."""
+    return words(Skipped("phase3", field.counts)).text
 
 
 def test_counts_are_saved_and_reported(hiding, tmp_path):

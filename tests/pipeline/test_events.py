@@ -1,32 +1,51 @@
 """The pipeline reports as events (`sync4d.events`): a small fit's sequence, silence without
-a subscriber, and the command line's renderer (`sync4d.progress.TerminalRenderer`)."""
+a subscriber, and the command line's renderer and words (`sync4d.terminal`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import get_args
 
 import pytest
 
 from support.datasets import write_blender
 from sync4d.config import apply_overrides, load_config, with_budget
-from sync4d.data import load_scene
 from sync4d.events import (
     Advanced,
+    Assigned,
+    DatasetChosen,
     Evaluated,
+    Event,
     EventLog,
+    FieldBuilt,
     Finished,
+    FitStarted,
+    FramesEvaluated,
+    GeneratingScene,
+    InitialPoints,
+    Interrupted,
+    MetricUnavailable,
+    MotionDiagnosed,
     Note,
+    NothingMoves,
+    Phase2Starting,
+    Phase3Started,
     PhaseDone,
+    Resumed,
+    ScaleAdvice,
+    SettingChanged,
     Skipped,
     Started,
+    Triangulating,
+    Wrote,
     emit,
     note,
     read_events,
     subscribe,
 )
-from sync4d.pipeline import run_fit
-from sync4d.progress import TerminalRenderer
-from sync4d.runs import EVENTS_FILE
+from sync4d.pipeline import FitData, run_fit
+from sync4d.runs import EVAL_FILE, EVENTS_FILE, RENDERS_DIR
+from sync4d.terminal import BARS, WORDS, Line, TerminalRenderer, words
 
 SMALL = ["phase1.init_points=300", "eval_frames=2", "phases=1", "eval_every=3",
          "checkpoint_every=0"]
@@ -37,7 +56,7 @@ def _fit(tmp_path: Path, name: str) -> dict:
     if not root.exists():
         write_blender(root, n=4, size=24)
     cfg = apply_overrides(with_budget(load_config(None), 6), SMALL)
-    return run_fit(load_scene(root, 1.0, "test"), cfg, tmp_path / name, root, threads=1)
+    return run_fit(FitData.load(root, cfg), cfg, tmp_path / name, threads=1)
 
 
 def test_a_fit_reports_its_loop_phase_and_evaluation_as_events(tmp_path: Path, capsys) -> None:
@@ -64,14 +83,20 @@ def test_a_fit_reports_its_loop_phase_and_evaluation_as_events(tmp_path: Path, c
     assert skipped.counts["gaussians"] == fit[-2].stats["gaussians"]  # numbers, not words
     assert seen[i_phase1].phase == "phase1" and seen[i_phase1].summary["iteration"] == 6
 
-    # The final evaluation (LPIPS cannot run on 24x24 images: one note says why).
-    tail = [e for e in seen[i_phase1 + 1:] if not (isinstance(e, Note) and " n/a: " in e.text)]
+    # The final evaluation (LPIPS cannot run on 24x24 images: one event says why).
+    (unavailable,) = [e for e in seen if isinstance(e, MetricUnavailable)]
+    assert unavailable.metric == "LPIPS" and "32x32" in unavailable.reason
+    tail = [e for e in seen[i_phase1 + 1:] if e is not unavailable]
     assert tail[0] == Started("eval test", 4, log_every=4)
     assert [e.done for e in tail[1:5]] == [1, 2, 3, 4] and tail[5] == Finished("eval test")
     table, wrote, done, whole = tail[6:]
-    assert table.stream == wrote.stream == "out" and table.detail and wrote.detail
-    assert "mean" in table.text and wrote.text.startswith("eval: wrote ")
+    assert isinstance(table, FramesEvaluated) and len(table.frames) == 4  # numbers, not a table
+    assert [f["psnr"] for f in table.frames] == [e.stats["psnr"] for e in tail[1:5]]
+    assert table.mean["psnr"] == pytest.approx(summary["psnr"]) and table.mean["lpips"] is None
+    run = tmp_path / "run"
+    assert wrote == Wrote("eval", (str(run / EVAL_FILE), f"{run / RENDERS_DIR / 'test'}/"))
     assert done.phase == "eval" and done.summary["psnr"] == pytest.approx(summary["psnr"])
+    assert not [e for e in seen if isinstance(e, Note)]  # the library emits no text
     assert whole.phase == "fit" and whole.summary["psnr"] == pytest.approx(summary["psnr"])
     assert whole.summary["iterations"] == 6 and whole.summary["run_dir"] == str(tmp_path / "run")
 
@@ -167,3 +192,51 @@ def test_a_forced_restart_starts_a_new_event_log(tmp_path: Path, capsys) -> None
     capsys.readouterr()
     done = read_events(tmp_path / "run" / EVENTS_FILE, ("PhaseDone",))
     assert [e["phase"] for e in done] == ["phase1", "eval", "fit"]
+
+
+#: One event of each kind, as the library emits it.
+SAMPLES = [
+    Note("a script's line"), Started("fit", 10, log_every=1), Advanced("fit", 1, {"loss": 0.5}),
+    Finished("fit"), PhaseDone("fit", {"train_seconds": 2.0, "psnr": 24.0, "ssim": None,
+                                       "lpips": None, "gaussians": 10, "run_dir": "runs/x"}),
+    Evaluated("fit", 5, 24.0, None, 2, 100, 1.5),
+    FitStarted("ball", 4, 2, 24, 24, 10, "runs/x"), Resumed("runs/x/ckpt", 5),
+    Assigned("masks", 2, {"background": 3, "ball": 7}),
+    Skipped("phase1", {"gaussians": 10, "deform_rows": 8, "deform_rows_skipped": 2,
+                       "share": 0.2, "static": 1}),  # fmt: skip
+    DatasetChosen("cache/synthetic", True), GeneratingScene("cache/synthetic"),
+    SettingChanged("phase1.iterations", 10, 20), Triangulating("ball"),
+    InitialPoints("triangulation", 500, 3, 0.0, 2.0), ScaleAdvice(0.001, 0.0044, 4.4, {
+        "phase1.near": 1e-5}),
+    Phase2Starting(100, "runs/x/phase1.safetensors"), NothingMoves(3),
+    MotionDiagnosed({"objects": [], "rigid_share": 1.0, "residual_energy": 0.0,
+                     "modulated_fraction": 0.0, "shuffle_ratio": 1.0, "assignment": "masks"}),
+    Phase3Started("offline", 64, True),
+    FieldBuilt(2, 10, 18, 0.9, 1.0, 0.5, 0.4, "runs/x/phase3"),
+    FramesEvaluated(({"name": "r_0", "time": 0.0, "psnr": 24.0, "ssim": None,
+                      "lpips": None},), {"psnr": 24.0, "ssim": None, "lpips": None}),
+    MetricUnavailable("LPIPS", "too small"), Wrote("eval", ("runs/x/eval.json",)),
+    Interrupted("runs/x/ckpt", "python -m sync4d fit --out runs/x --resume", 7),
+]
+
+
+def test_every_event_has_its_words_or_draws_a_bar(capsys) -> None:
+    """A new event without a rule in `sync4d.terminal.WORDS` fails here (and without a sample
+    above): the command line would print nothing for it."""
+    kinds = set(get_args(Event))
+    assert {type(e) for e in SAMPLES} == kinds
+    for event in SAMPLES:
+        if isinstance(event, BARS):
+            assert type(event) not in WORDS
+            continue
+        line = words(event)
+        assert type(event) in WORDS and isinstance(line, Line) and line.stream in ("err", "out")
+        assert line.text and "None" not in line.text, event  # every sample says something
+    renderer = TerminalRenderer(details=False)
+    with renderer.installed():
+        for event in SAMPLES:
+            emit(event)
+    out = capsys.readouterr()
+    assert "fit 1/10 [" in out.err and "done in" not in out.out  # details left out
+    assert "continue with: python -m sync4d fit --out runs/x --resume" in out.err
+    assert "--set phase1.near=1e-05" in out.err and "r_0" not in out.out
