@@ -80,6 +80,7 @@ __all__ = [
     "length_advice",
     "resolve_data",
     "restart_phase2",
+    "event_log",
     "resume_trainer",
     "run_fit",
     "set_threads",
@@ -307,7 +308,7 @@ def run_fit(
     p1 = cfg.phase1
     if not (math.isfinite(p1.near) and p1.near > 0):
         raise ConfigError(f"near: must be a finite distance > 0 (world units), got {p1.near}")
-    with RunLock(run_dir, "fit"), StopSignals() as stop, _event_log(run_dir):
+    with RunLock(run_dir, "fit"), StopSignals() as stop, event_log(run_dir):
         try:
             return _run_fit(data, cfg, phases, run_dir, resume, threads, log_every,
                             command or {}, stop)  # fmt: skip
@@ -319,9 +320,9 @@ def run_fit(
 
 
 @contextlib.contextmanager
-def _event_log(run_dir: Path) -> Iterator[None]:
-    """The run's events as JSON lines in ``events.jsonl`` while the block runs (appended: a
-    resumed run continues the file)."""
+def event_log(run_dir: Path) -> Iterator[None]:
+    """The events emitted while the block runs, as JSON lines in the run's ``events.jsonl``
+    (appended: a resumed run, or its language field built later, continues the file)."""
     log = EventLog(run_dir / EVENTS_FILE)
     try:
         with subscribe(log):

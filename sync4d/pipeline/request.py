@@ -43,7 +43,7 @@ from sync4d.events import (
     Skipped,
     emit,
 )
-from sync4d.pipeline.fit import FitData, restart_phase2, run_fit
+from sync4d.pipeline.fit import FitData, event_log, restart_phase2, run_fit
 from sync4d.pipeline.phase3 import Phase3Build, build_phase3, phase3_config
 from sync4d.pipeline.record import (
     CADENCE_KEYS,
@@ -295,15 +295,17 @@ def fit_phase3_only(req: FitRequest, kind: str | None) -> FitOutcome:
 
 
 def _build_phase3(run_dir: Path, cfg3, threads: int | None, data: Path | None) -> Phase3Build:
-    """Build and save the language field of the Phase 2 run in `run_dir`."""
+    """Build and save the language field of the Phase 2 run in `run_dir`; its events go into
+    the run's event log too (another process follows the build)."""
     from sync4d.phase3 import load_encoder
 
     encoder = load_encoder(cfg3.encoder or None)
-    emit(Phase3Started(encoder.kind, encoder.dim, bool(encoder.closed_vocabulary)))
-    built = build_phase3(run_dir, cfg3, threads=threads, data=data, encoder=encoder)
-    field, t = built.field, built.field.timings
-    emit(FieldBuilt(len(field.labels), len(field.times), int(t["crops"]),
-                    float(field.observed.mean()), t["total_s"], t["observe_s"], t["encode_s"],
-                    str(built.folder)))  # fmt: skip
-    emit(Skipped("phase3", dict(field.counts)))
+    with event_log(run_dir):
+        emit(Phase3Started(encoder.kind, encoder.dim, bool(encoder.closed_vocabulary)))
+        built = build_phase3(run_dir, cfg3, threads=threads, data=data, encoder=encoder)
+        field, t = built.field, built.field.timings
+        emit(FieldBuilt(len(field.labels), len(field.times), int(t["crops"]),
+                        float(field.observed.mean()), t["total_s"], t["observe_s"],
+                        t["encode_s"], str(built.folder)))  # fmt: skip
+        emit(Skipped("phase3", dict(field.counts)))
     return built

@@ -14,6 +14,8 @@ from support.datasets import write_blender
 from support.scenes import small_synthetic
 from sync4d.cli import main
 from sync4d.data import synthetic as syn
+from sync4d.events import read_events
+from sync4d.runs import EVENTS_FILE
 
 SMALL = small_synthetic()
 
@@ -88,6 +90,14 @@ def test_fit_query_and_eval_with_the_offline_encoder(runs, capsys, tmp_path):
     assert "Phase 3: 3 objects x 6 frames" in out
     assert "fit: Phase 3 encoded " in err and " of 18 object-frames in " in err
     assert (run / "phase3" / "field.safetensors").is_file()
+    # The build's events follow the fit's in the run's event log, for another process.
+    events = read_events(run / EVENTS_FILE)
+    kinds = [e["event"] for e in events]
+    build = events[len(kinds) - 1 - kinds[::-1].index("Phase3Started"):]
+    assert [e["event"] for e in build if e["event"] not in ("Started", "Advanced", "Finished")
+            ] == ["Phase3Started", "PhaseDone", "FieldBuilt", "Skipped"]  # fmt: skip
+    assert build[-2]["objects"] == 3 and build[-1]["counts"]["object_frames"] == 18
+    assert build[-1]["phase"] == "phase3"
     assert main(["query", str(run), "the blue box", "a green pillar at rest", "--json"]) == 0
     answers = json.loads(capsys.readouterr().out)
     assert [a["query"] for a in answers] == ["the blue box", "a green pillar at rest"]
