@@ -77,10 +77,10 @@ __all__ = [
     "FitData",
     "FitInterrupted",
     "TrainingDiverged",
+    "event_log",
     "length_advice",
     "resolve_data",
     "restart_phase2",
-    "event_log",
     "resume_trainer",
     "run_fit",
     "set_threads",
@@ -255,8 +255,10 @@ def _train_loop(
 
 def resolve_data(data: str | Path | None) -> tuple[Path, Path | None]:
     """Dataset folder and its default config: `data` (no default config), or with None the
-    embedded synthetic scene (generated once into the cache) and the shipped synthetic config."""
+    embedded synthetic scene (generated once into the cache) and the shipped synthetic config;
+    emits `DatasetChosen`."""
     if data is not None:
+        emit(DatasetChosen(str(data), embedded=False))
         return Path(data), None
     from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
 
@@ -313,8 +315,7 @@ def run_fit(
             return _run_fit(data, cfg, phases, run_dir, resume, threads, log_every,
                             command or {}, stop)  # fmt: skip
         except KeyboardInterrupt:  # between the loops: the last checkpoint is on disk
-            record = {"data": str(data.path.resolve()), "embedded": data.embedded,
-                      **(command or {})}  # fmt: skip
+            record = {"data": str(data.path.resolve()), "embedded": data.embedded}
             emit(Interrupted(str(run_dir / CHECKPOINT_NAME), continue_command(run_dir, record)))
             raise FitInterrupted from None
 

@@ -35,7 +35,6 @@ from sync4d.config import (
 )
 from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
 from sync4d.events import (
-    DatasetChosen,
     FieldBuilt,
     FitStarted,
     Phase3Started,
@@ -43,7 +42,7 @@ from sync4d.events import (
     Skipped,
     emit,
 )
-from sync4d.pipeline.fit import FitData, event_log, restart_phase2, run_fit
+from sync4d.pipeline.fit import FitData, event_log, resolve_data, restart_phase2, run_fit
 from sync4d.pipeline.phase3 import Phase3Build, build_phase3, phase3_config
 from sync4d.pipeline.record import (
     CADENCE_KEYS,
@@ -252,12 +251,8 @@ def fit_request(req: FitRequest, fresh: RunConfig | None = None) -> FitOutcome:
         if req.force:
             clear_run(run_dir)
         cfg = fresh
-        if req.data is None:
-            emit(DatasetChosen(str(default_scene_dir()), embedded=True))
-            data = FitData.load(ensure_default_scene(), cfg, embedded=True)
-        else:
-            emit(DatasetChosen(str(req.data), embedded=False))
-            data = FitData.load(req.data, cfg)
+        path, _ = resolve_data(req.data)  # the config was chosen already (fresh_config)
+        data = FitData.load(path, cfg, embedded=req.data is None)
         history = []
     command = {"invocations": [*history, req.invocation()]}
     scene, camera = data.scene, data.scene.train[0].camera
