@@ -305,10 +305,12 @@ class FieldBuilt:
 @dataclass(frozen=True)
 class FramesEvaluated:
     """The per-frame test metrics of an evaluation (`frames`: name, time, psnr, ssim, lpips;
-    None where a metric could not run) and their mean (`mean`)."""
+    None where a metric could not run), their mean (`mean`) and the background they were
+    scored on (`background`: "black", say; empty where only one was)."""
 
     frames: tuple[Mapping[str, object], ...]
     mean: Mapping[str, object] = field(default_factory=dict)
+    background: str = ""
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 
+from sync4d.runs.names import BACKGROUNDS
 from sync4d.settings import BACKENDS
 
 __all__ = [
@@ -83,8 +84,6 @@ def positive_float(text: str) -> float:
     return value
 
 
-#: Background colours `background_colour` knows by name.
-BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 def background_colour(text: str) -> tuple[float, float, float]:

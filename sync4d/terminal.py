@@ -84,15 +84,16 @@ def _or(value: Any, spec: str, none: str = "n/a") -> str:
     return none if value is None else format(value, spec)
 
 
-def format_metrics(frames: Any, mean: Mapping[str, Any]) -> str:
+def format_metrics(frames: Any, mean: Mapping[str, Any], background: str = "") -> str:
     """The evaluation's per-frame table (`frames`: mappings with name, time, psnr, ssim,
-    lpips) and its mean row."""
+    lpips) and its mean row, under "on BACKGROUND:" when `background` is named."""
     rows = [[m["name"], f"{m['time']:.3f}", _or(m["psnr"], ".2f", "-"),
              _or(m["ssim"], ".4f", "-"), _or(m["lpips"], ".4f", "-")]
             for m in frames]  # fmt: skip
     rows.append(["mean", "", _or(mean["psnr"], ".2f", "-"), _or(mean["ssim"], ".4f", "-"),
                  _or(mean["lpips"], ".4f", "-")])  # fmt: skip
-    return align_table(["frame", "time", "PSNR dB", "SSIM", "LPIPS"], rows)
+    table = align_table(["frame", "time", "PSNR dB", "SSIM", "LPIPS"], rows)
+    return f"on {background}:\n{table}" if background else table
 
 
 def format_diagnostics(diag: Mapping[str, Any]) -> str:
@@ -134,9 +135,14 @@ def _phase_done(e: PhaseDone) -> Line:
     if e.phase != "fit":
         return Line("")
     s = e.summary
-    text = (f"fit: done in {format_duration(float(s['train_seconds']))} of training: test PSNR "
-            f"{s['psnr']:.2f} dB, SSIM {_or(s['ssim'], '.4f')}, LPIPS {_or(s['lpips'], '.4f')}, "
-            f"{s['gaussians']} Gaussians; run in {s['run_dir']}")  # fmt: skip
+    on = f" on {s['background']}" if s.get("background") else ""
+    text = (f"fit: done in {format_duration(float(s['train_seconds']))} of training: test PSNR"
+            f"{on} {s['psnr']:.2f} dB, SSIM {_or(s['ssim'], '.4f')}, "
+            f"LPIPS {_or(s['lpips'], '.4f')}, {s['gaussians']} Gaussians; run in "
+            f"{s['run_dir']}")  # fmt: skip
+    for name, m in (s.get("backgrounds") or {}).items():
+        text += (f"\nfit: on {name}: test PSNR {m['psnr']:.2f} dB, SSIM {_or(m['ssim'], '.4f')}, "
+                 f"LPIPS {_or(m['lpips'], '.4f')}")  # fmt: skip
     d = s.get("phase2")
     if d:
         text += (f"\nfit: Phase 2: mean rigid share {d['rigid_share']:.3f}, shuffle ratio "
@@ -285,7 +291,8 @@ WORDS: dict[type, Callable[[Any], Line]] = {
     MotionDiagnosed: lambda e: Line(format_diagnostics(e.diagnostics), "out", detail=True),
     Phase3Started: _phase3_started,
     FieldBuilt: _field_built,
-    FramesEvaluated: lambda e: Line(format_metrics(e.frames, e.mean), "out", detail=True),
+    FramesEvaluated: lambda e: Line(format_metrics(e.frames, e.mean, e.background), "out",
+                                    detail=True),
     MetricUnavailable: lambda e: Line(f"eval: {e.metric} n/a: {e.reason}"),
     Wrote: lambda e: Line(f"{e.stage}: wrote {' and '.join(e.paths)}", "out", detail=True),
     Interrupted: _interrupted,

@@ -179,6 +179,7 @@ def run_grid(
                 "lpips": summary["lpips"],
                 "metrics": summary["metrics"],
                 "worst_view": worst,
+                "backgrounds": background_scores(run_dir, dataclasses.asdict(cfg.phase1)),
                 **({"variant": variant} if variant else {}),
                 "skipped": summary.get("skipped"),
             }
@@ -187,6 +188,30 @@ def run_grid(
     for r, f in zip(rows, front, strict=True):
         r["pareto"] = f
     return rows
+
+
+def background_scores(run_dir: Path, phase1: dict[str, Any]) -> dict[str, Any]:
+    """A row's background fields from `run_dir`'s evaluations: ``train_background`` (what
+    training composited behind the Gaussians: "white", "black", "random", ...) and
+    ``on``: background name -> PSNR, SSIM, LPIPS and worst view (name, PSNR) of
+    ``eval.json`` (the run's own background, `phase1`'s) and of ``eval-white.json`` /
+    ``eval-black.json`` where they exist."""
+    from sync4d.runs.names import BACKGROUNDS, background_tag, eval_file
+
+    own = background_tag(phase1.get("background", (1.0, 1.0, 1.0)))
+    mode = phase1.get("train_background", "fixed")
+    on: dict[str, Any] = {}
+    for name in dict.fromkeys([own, *BACKGROUNDS]):
+        try:
+            rec = json.loads((run_dir / eval_file(None if name == own else name)).read_text())
+            mean, frames = rec["mean"], rec["frames"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        worst = min(frames, key=lambda f: f["psnr"]) if frames else None
+        on[name] = {k: mean.get(k) for k in ("psnr", "ssim", "lpips")} | {
+            "worst": None if worst is None else {"name": worst["name"], "time": worst["time"],
+                                                 "psnr": worst["psnr"]}}  # fmt: skip
+    return {"train_background": own if mode == "fixed" else mode, "on": on}
 
 
 def worst_view(run_dir: Path) -> dict[str, Any] | None:
@@ -287,6 +312,7 @@ def rows_from_runs(run_dirs: list[Path]) -> list[dict[str, Any]]:
                 "lpips": final.get("lpips"),
                 "metrics": final.get("metrics"),
                 "worst_view": worst,
+                "backgrounds": background_scores(run_dir, cfg["phase1"]),
             }
         )
     for scene in {r["scene"] for r in rows}:
@@ -383,6 +409,23 @@ def _ssim_text(row: dict[str, Any]) -> str:
     return "-" if box is None else f"{box:.4f} box"
 
 
+def _background_cells(row: dict[str, Any]) -> list[str]:
+    """The training background, and PSNR and worst view on white and on black ("-" where
+    the run has no such evaluation)."""
+    bg = row.get("backgrounds") or {}
+    on = bg.get("on") or {}
+
+    def psnr(name: str) -> str:
+        return f"{on[name]['psnr']:.2f}" if name in on and on[name]["psnr"] is not None else "-"
+
+    black = on.get("black", {}).get("worst")
+    return [bg.get("train_background", "-"), psnr("white"), psnr("black"), _worst_text(black)]
+
+
+#: The columns `_background_cells` fills.
+BACKGROUND_HEADER = ["train bg", "PSNR white", "PSNR black", "worst black"]
+
+
 def _ssim_note(rows: list[dict[str, Any]]) -> str:
     """A line under a table that shows a box SSIM, saying what it is; "" when none does."""
     if all(r["ssim"] is not None or r.get("ssim_box3") is None for r in rows):
@@ -409,6 +452,10 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
     ]  # fmt: skip
     header = ["iters", "res", "cap", "train s", "PSNR", "SSIM", "LPIPS", "#G", "front", "worst"]
     left = [1]
+    if any(r.get("backgrounds") for r in rows):
+        for line, r in zip(body, order, strict=True):
+            line.extend(_background_cells(r))
+        header += BACKGROUND_HEADER
     if any("variant" in r for r in rows):
         header.insert(0, "variant")
         for line, r in zip(body, order, strict=True):
@@ -434,13 +481,13 @@ def format_run_rows(rows: list[dict[str, Any]]) -> str:
             "-" if r["threads"] is None else str(r["threads"]),
             f"{r['train_seconds'] / 60:.1f}", f"{r['psnr']:.2f}", _ssim_text(r),
             "-" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['gaussians']:,}",
-            _worst_text(r["worst_view"]), " ".join(r["settings"]) or "-",
+            _worst_text(r["worst_view"]), *_background_cells(r), " ".join(r["settings"]) or "-",
         ]
         for r in rows
     ]  # fmt: skip
     header = ["scene", "split", "iters", "res", "threads", "train min", "PSNR", "SSIM", "LPIPS",
-              "#G", "worst", "settings"]  # fmt: skip
-    return align_table(header, body, left=(0, 1, 10, 11)) + _ssim_note(rows)
+              "#G", "worst", *BACKGROUND_HEADER, "settings"]  # fmt: skip
+    return align_table(header, body, left=(0, 1, 10, 11, 15, 16)) + _ssim_note(rows)
 
 
 def _tabulate_runs(args: argparse.Namespace) -> int:

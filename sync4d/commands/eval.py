@@ -1,9 +1,10 @@
 """``python -m sync4d eval RUN``: PSNR, SSIM and LPIPS-Alex of a run's checkpoint on the test
 split, per frame and mean, written to ``RUN/eval.json`` and printed as a table. Another split
 (``--split train``) or another dataset (``--data`` whose frames differ from the run's) writes
-``RUN/eval-<split>.json`` or ``RUN/eval-<dataset>-<split>.json`` instead; ``--background
-black`` (render and ground truth composited on another colour than the run trained on) adds
-the colour to the tag: ``RUN/eval-black.json``."""
+``RUN/eval-<split>.json`` or ``RUN/eval-<dataset>-<split>.json`` instead. Images with alpha
+(D-NeRF's) are scored on the run's background and on white and black (the peers score D-NeRF
+on black), the others with the colour in the tag: ``RUN/eval-black.json``; ``--background
+COLOUR`` scores on that one colour only."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import sys
 from pathlib import Path
 
 from sync4d.files import RunBusy, RunLock, WriteFailed
-from sync4d.options import BACKGROUNDS, add_backend, add_rule, add_threads, background_colour
+from sync4d.options import add_backend, add_rule, add_threads, background_colour
 
 __all__ = ["add_arguments", "main"]
 
@@ -31,9 +32,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="dataset folder, if it moved since training")
     p.add_argument("--split", choices=("test", "train"), default="test")
     p.add_argument("--background", type=background_colour, default=None, metavar="COLOUR",
-                   help="composite render and ground truth on this colour instead of the "
-                   "run's own: white, black or R,G,B in [0, 1] (Deformable-3DGS and SC-GS "
-                   "score D-NeRF on black); writes RUN/eval-<colour>.json")
+                   help="composite render and ground truth on this colour only: white, "
+                   "black or R,G,B in [0, 1]; another than the run's own writes "
+                   "RUN/eval-<colour>.json (default: the run's own, and for images with alpha "
+                   "white and black too, as Deformable-3DGS and SC-GS score D-NeRF on black)")
     p.add_argument("--queries", default=None, metavar="ANNOTATIONS",
                    help="evaluate Phase 3's temporal queries instead (Acc, vIoU, tIoU, "
                    "Appendix F): our query JSON or 4D LangSplat's annotations folder; a relational "
@@ -116,15 +118,6 @@ def _relational(args: argparse.Namespace) -> int:
     return 0
 
 
-def background_tag(rgb: tuple[float, ...] | list[float]) -> str:
-    """The file tag of an evaluation on background `rgb`: ``white``, ``black`` or
-    ``bg-R-G-B`` (``eval-black.json``, ``renders/black/``)."""
-    for name, value in BACKGROUNDS.items():
-        if tuple(rgb) == value:
-            return name
-    return "bg-" + "-".join(f"{v:g}" for v in rgb)
-
-
 def main(args: argparse.Namespace) -> int:
     """Run `eval` with parsed `args`; the exit status."""
     if getattr(args, "queries", None):
@@ -132,9 +125,10 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     from sync4d.data import DatasetError
-    from sync4d.pipeline.evaluate import evaluate_run
+    from sync4d.pipeline.evaluate import evaluate_run, with_backgrounds
     from sync4d.pipeline.record import dataset_differences
     from sync4d.runs import CheckpointError, RunError, load_run
+    from sync4d.runs.names import background_tag
     from sync4d.terminal import TerminalRenderer
 
     run_dir = Path(args.run)
@@ -151,17 +145,19 @@ def main(args: argparse.Namespace) -> int:
             tag = f"{scene.name}-{args.split}" if other else None
             if tag is None and args.split != "test":
                 tag = args.split
-            background = run.background
             chosen = getattr(args, "background", None)
-            if chosen is not None and list(chosen) != list(run.background):
-                background = list(chosen)
-                tag = "-".join(t for t in (tag, background_tag(chosen)) if t)
             threads = args.threads or None
             if threads:
                 torch.set_num_threads(threads)
             with TerminalRenderer().installed():
-                evaluate_run(run.path, run.model, scene, background, threads, args.split,
-                             tag=tag)  # fmt: skip
+                if chosen is None:  # the run's background, and for RGBA images white and black
+                    with_backgrounds(run.path, run.model, scene, run.background, threads,
+                                     args.split, tag=tag)  # fmt: skip
+                else:
+                    if list(chosen) != list(run.background):
+                        tag = "-".join(t for t in (tag, background_tag(chosen)) if t)
+                    evaluate_run(run.path, run.model, scene, list(chosen), threads, args.split,
+                                 tag=tag)  # fmt: skip
     except (RunError, CheckpointError, DatasetError, RunBusy, WriteFailed) as e:
         print(f"eval: {e}", file=sys.stderr)
         return 2

@@ -347,6 +347,22 @@ class Frame:
         """The image as float32 [H, W, 3] in [0, 1], RGBA composited on `background`, resized
         to the camera's size. 8-bit modes are scaled by 1/255, 16-bit grayscale by 1/65535;
         other modes raise `DatasetError` (see `image_depth`)."""
+        premultiplied, alpha = self.load_layers()
+        if alpha is None:
+            return premultiplied
+        return premultiplied + np.asarray(background, np.float32) * (1.0 - alpha)
+
+    def has_alpha(self) -> bool:
+        """Whether the image has an alpha channel (read from its header): its colour depends
+        on the background it is composited on (`load_image`)."""
+        with _open_header(self.image_path, "image", "") as im:
+            return im.mode in ("RGBA", "LA", "P", "PA") and image_depth(im, self.image_path) == 8
+
+    def load_layers(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """The image as its colour times alpha, float32 [H, W, 3] in [0, 1], and its alpha
+        [H, W, 1] (None for an image without alpha), resized to the camera's size: the image
+        on background `b` is ``colour + b * (1 - alpha)`` (`load_image`), a background drawn
+        anew at each training step costs no file read."""
         im = _open_header(self.image_path, "image", "")
         try:
             with im:
@@ -363,13 +379,13 @@ class Frame:
         size = (self.camera.width, self.camera.height)
         if depth == 16:
             gray = _resize(arr[..., None], size, nearest=False)
-            return np.repeat(gray, 3, axis=-1)
+            return np.repeat(gray, 3, axis=-1), None
         arr = _resize(arr, size, nearest=False)
         rgb = arr[..., :3].astype(np.float32) / 255.0
-        if arr.shape[-1] == 4:
-            a = arr[..., 3:4].astype(np.float32) / 255.0
-            rgb = rgb * a + np.asarray(background, np.float32) * (1.0 - a)
-        return rgb
+        if arr.shape[-1] != 4:
+            return rgb, None
+        a = arr[..., 3:4].astype(np.float32) / 255.0
+        return rgb * a, a
 
     def _check_size(self, path: Path, arr: np.ndarray, what: str) -> None:
         if self.native_size is not None and (arr.shape[1], arr.shape[0]) != self.native_size:

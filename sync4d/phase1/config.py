@@ -105,6 +105,13 @@ class Phase1Config:
     lambda_dssim: float = ranged(0.2, 0.0)
     #: RGB in [0, 1] composited behind the Gaussians and into RGBA training images.
     background: tuple[float, float, float] = ranged((1.0, 1.0, 1.0), 0.0, 1.0, length=3)
+    #: The background of each training step: "fixed" (`background`, the paper) or "random"
+    #: (a colour drawn uniformly in [0, 1]^3 at every step, behind the Gaussians and in the
+    #: RGBA target alike: SC-GS's `random_bg_color`). On a fixed background the model may
+    #: paint Gaussians of the background's colour that no view can see against it; a random
+    #: one shows them, so only alpha explains the image. Images without alpha train on
+    #: themselves either way. `background` stays the run's colour for `eval` and `render`.
+    train_background: str = choice("fixed", ("fixed", "random"))
     #: Seed of the initial Gaussians, D_theta's weights, the frame order and densification.
     seed: int = ranged(42, 0, 2**32 - 1)
     #: Iterations at the start that train at a reduced resolution (`coarse_scale`): the

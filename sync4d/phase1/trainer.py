@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import random
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -123,6 +124,9 @@ class Phase1Trainer:
         self.densifier = Densifier(densify or self.config.densify, seed=self.config.seed)
         self._rng = random.Random(self.config.seed)
         self._images: dict[int, torch.Tensor] = {}
+        #: Colour times alpha and alpha [H, W, 4] (or [H, W, 3] without alpha) of the
+        #: training frames, for a background drawn at each step (`train_background`).
+        self._layer_images: dict[int, torch.Tensor] = {}
         self._background = torch.tensor(self.config.background, dtype=torch.float32)
         self._coarse_images: dict[int, torch.Tensor] = {}
         #: Full-resolution pixels of the training frames so far; of those, the ones of coarse
@@ -244,19 +248,60 @@ class Phase1Trainer:
             self._images[index] = torch.from_numpy(frame.load_image(self.config.background))
         return self._images[index]
 
+    def step_background(self) -> torch.Tensor:
+        """The RGB [3] (float32) behind this iteration's render and target: `background`, or
+        for `train_background = "random"` a colour uniform in [0, 1]^3 drawn from a generator
+        seeded by the run's seed and the iteration (a resumed run draws the same)."""
+        if self.config.train_background != "random":
+            return self._background
+        generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + self.iteration)
+        return torch.rand(3, generator=generator, dtype=torch.float32)
+
+    def _layers(self, index: int, frame: Frame) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Training frame `index`'s colour times alpha [H, W, 3] and alpha [H, W, 1] (None
+        without alpha; `Frame.load_layers`), loaded once and cached."""
+        if index not in self._layer_images:
+            colour, alpha = frame.load_layers()
+            layers = colour if alpha is None else np.concatenate([colour, alpha], axis=-1)
+            self._layer_images[index] = torch.from_numpy(layers)
+        layers = self._layer_images[index]
+        return (layers, None) if layers.shape[-1] == 3 else (layers[..., :3], layers[..., 3:])
+
+    def target(self, index: int, frame: Frame, background: torch.Tensor) -> torch.Tensor:
+        """Training frame `index`'s full-resolution target [H, W, 3] on `background` (this
+        iteration's, `step_background`)."""
+        if self.config.train_background != "random":
+            return self.image(index, frame)
+        colour, alpha = self._layers(index, frame)
+        return colour if alpha is None else colour + background * (1.0 - alpha)
+
     def coarse(self) -> bool:
         """Whether the current iteration trains at `coarse_scale` (`schedule`)."""
         return self.schedule.coarse(self.iteration)
 
-    def _coarse_view(self, index: int, frame: Frame) -> tuple[Camera, torch.Tensor]:
-        """`frame`'s camera and target image at `coarse_scale` (the image area-averaged to
-        the camera's size, cached until the coarse iterations end)."""
+    def _coarse_view(
+        self, index: int, frame: Frame, background: torch.Tensor | None = None
+    ) -> tuple[Camera, torch.Tensor]:
+        """`frame`'s camera and target image at `coarse_scale` on `background` (default
+        `background`): the image area-averaged to the camera's size, cached until the coarse
+        iterations end; colour times alpha and alpha are averaged apart, so the target on
+        any background is exact."""
+        background = self._background if background is None else background
         camera = frame.camera.scaled(self.config.coarse_scale)
+        random_background = self.config.train_background == "random"
         if index not in self._coarse_images:
-            full = self.image(index, frame).permute(2, 0, 1).unsqueeze(0)
-            small = F.interpolate(full, size=(camera.height, camera.width), mode="area")
+            if random_background:
+                colour, alpha = self._layers(index, frame)
+                full = colour if alpha is None else torch.cat([colour, alpha], dim=-1)
+            else:
+                full = self.image(index, frame)
+            small = F.interpolate(full.permute(2, 0, 1).unsqueeze(0),
+                                  size=(camera.height, camera.width), mode="area")  # fmt: skip
             self._coarse_images[index] = small[0].permute(1, 2, 0).contiguous()
-        return camera, self._coarse_images[index]
+        small = self._coarse_images[index]
+        if random_background and small.shape[-1] == 4:
+            return camera, small[..., :3] + background * (1.0 - small[..., 3:])
+        return camera, small
 
     def _decayed(self, start: float, final: float) -> float:
         """Log-linear interpolation from `start` to `final` over the run."""
@@ -307,18 +352,19 @@ class Phase1Trainer:
         self.update_learning_rates()
         idx = self._rng.randrange(len(self.scene.train))
         frame = self.scene.train[idx]
+        background = self.step_background()
         if self.coarse():
-            camera, target = self._coarse_view(idx, frame)
+            camera, target = self._coarse_view(idx, frame, background)
             self.coarse_pixels += camera.width * camera.height
             self.coarse_full_pixels += frame.camera.width * frame.camera.height
         else:
-            camera, target = frame.camera, self.image(idx, frame)
+            camera, target = frame.camera, self.target(idx, frame, background)
             self._coarse_images.clear()
         self.pixels += frame.camera.width * frame.camera.height
         degree = self.sh_degree_now()
         deformed = self.model.at_time(frame.time, deform=self.deform_active())
         out = self.model.render(
-            camera, frame.time, sh_degree=degree, background=self._background,
+            camera, frame.time, sh_degree=degree, background=background,
             deformed=deformed, threads=self.threads, check=self.check_inputs,
         )  # fmt: skip
         out.means2d.retain_grad()

@@ -32,7 +32,7 @@ from sync4d.metrics.image import GAUSSIAN_WINDOW
 from sync4d.metrics.lpips import INSTALL_HINT, MIN_SIZE, LPIPSAlex, LPIPSWeightsMissing, load_lpips
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.runs.folder import RunError
-from sync4d.runs.names import RENDERS_DIR, eval_file
+from sync4d.runs.names import BACKGROUNDS, RENDERS_DIR, background_tag, eval_file
 
 __all__ = [
     "METRIC_DEFINITIONS",
@@ -218,6 +218,7 @@ def evaluate_run(
     split: str = "test",
     renders: bool = True,
     tag: str | None = None,
+    background_label: bool = False,
 ) -> dict:
     """Evaluate `model` on `scene`'s split, write ``run_dir/eval.json`` (and, with `renders`,
     ``run_dir/renders/<split>/<frame>.png``: render beside ground truth), report the table (a
@@ -227,7 +228,8 @@ def evaluate_run(
     is). A metric that cannot run is None, with a `MetricUnavailable` event saying why (for LPIPS
     weights, the command that installs them) and the reason in ``eval.json``. With `tag`
     (another split or dataset than the run's test split) the files are ``eval-<tag>.json`` and
-    ``renders/<tag>/`` instead, so the run's own results are never overwritten."""
+    ``renders/<tag>/`` instead, so the run's own results are never overwritten.
+    `background_label`: the table says which background it scored on (`with_backgrounds`)."""
     frames = scene.test if split == "test" else scene.train
     if not frames:
         raise RunError(f"{run_dir}: the dataset has no {split} frames to evaluate")
@@ -256,8 +258,50 @@ def evaluate_run(
     }
     path = run_dir / eval_file(tag)
     write_text_atomic(path, json.dumps(out, indent=2) + "\n")
-    emit(FramesEvaluated(tuple(asdict(m) for m in metrics), summary))
+    shown = background_tag(background) if background_label else ""
+    emit(FramesEvaluated(tuple(asdict(m) for m in metrics), summary, shown))
     renders_dir = (f"{run_dir / RENDERS_DIR / (tag or split)}/",) if renders else ()
     emit(Wrote("eval", (str(path), *renders_dir)))
     emit(PhaseDone("eval", {"split": split, "file": str(path), **summary}))
     return {**summary, "metrics": definitions}
+
+
+def other_backgrounds(
+    frames: Sequence[Frame], background: Sequence[float]
+) -> list[tuple[float, float, float]]:
+    """The named backgrounds (`BACKGROUNDS`: white, black) other than `background` that an
+    evaluation of `frames` also scores on: none when their images have no alpha (the
+    background changes nothing), else the ones it did not train on, so a model trained on
+    white is seen on black too, where the Gaussians white hides show."""
+    if not frames or not frames[0].has_alpha():
+        return []
+    return [rgb for rgb in BACKGROUNDS.values() if tuple(rgb) != tuple(background)]
+
+
+def with_backgrounds(
+    run_dir: Path,
+    model: DeformableGaussians,
+    scene: Scene,
+    background: Sequence[float],
+    threads: int | None = None,
+    split: str = "test",
+    tag: str | None = None,
+) -> dict:
+    """`evaluate_run` on the run's `background` (``eval.json``, or ``eval-<tag>.json``), then,
+    for a split with alpha, on each of `other_backgrounds` (``eval-[<tag>-]black.json``, say).
+    Returns the first summary with ``"backgrounds"``: background name -> its PSNR, SSIM and
+    LPIPS, the run's own included (empty without alpha)."""
+    frames = scene.test if split == "test" else scene.train
+    others = other_backgrounds(frames, background)
+    label = bool(others)
+    summary = evaluate_run(run_dir, model, scene, tuple(background), threads, split,
+                           tag=tag, background_label=label)  # fmt: skip
+    keys = ("psnr", "ssim", "lpips")
+    scores = {background_tag(background): {k: summary[k] for k in keys}} if others else {}
+    for rgb in others:
+        name = background_tag(rgb)
+        more = evaluate_run(run_dir, model, scene, rgb, threads, split,
+                            tag="-".join(t for t in (tag, name) if t),
+                            background_label=True)  # fmt: skip
+        scores[name] = {k: more[k] for k in keys}
+    return {**summary, "backgrounds": scores}

@@ -49,7 +49,7 @@ from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.diagnostics import diagnostics
 from sync4d.phase2.strategy import MotionStrategy
 from sync4d.phase2.trainer import phase2_from_state, phase2_trainer
-from sync4d.pipeline.evaluate import evaluate_frames, evaluate_run, summarize
+from sync4d.pipeline.evaluate import evaluate_frames, summarize, with_backgrounds
 from sync4d.pipeline.record import continue_command, dataset_fingerprint
 from sync4d.pipeline.stop import StopSignals
 from sync4d.report import plot_object_trajectories
@@ -456,6 +456,10 @@ def _fit_summary(summary: dict, run_dir: Path) -> dict:
     out = {k: summary.get(k) for k in ("psnr", "ssim", "lpips", "gaussians", "iterations",
                                        "train_seconds")}  # fmt: skip
     out["run_dir"] = str(run_dir)
+    scores = list((summary.get("backgrounds") or {}).items())
+    if scores:  # the run's own background first (`with_backgrounds`), then the others
+        out["background"] = scores[0][0]
+        out["backgrounds"] = dict(scores[1:])
     if "phase2" in summary:
         d = summary["phase2"]
         out["phase2"] = {"rigid_share": d["rigid_share"], "shuffle_ratio": d["shuffle_ratio"],
@@ -533,7 +537,7 @@ def _finish(
     trainer: Phase1Trainer, scene: Scene, cfg: RunConfig, run_dir: Path, n_threads: int
 ) -> dict:
     """The final evaluation, and after Phase 2 its diagnostics and trajectory plot."""
-    summary = evaluate_run(run_dir, trainer.model, scene, cfg.phase1.background, n_threads)
+    summary = with_backgrounds(run_dir, trainer.model, scene, cfg.phase1.background, n_threads)
     if (p2 := _motion(trainer)) is not None:
         diag = diagnostics(p2)
         export = p2.motion_export()

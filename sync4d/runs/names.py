@@ -9,6 +9,7 @@ from __future__ import annotations
 from sync4d.files import LOCK_FILE
 
 __all__ = [
+    "BACKGROUNDS",
     "CHECKPOINT_NAME",
     "EMBEDDED_QUERIES_FILE",
     "EVAL_FILE",
@@ -24,6 +25,7 @@ __all__ = [
     "RUN_FILE",
     "TEXT_CACHE",
     "TRAJECTORY_PLOT",
+    "background_tag",
     "eval_file",
     "query_eval_files",
     "query_eval_summary",
@@ -63,6 +65,19 @@ FIELD_META = "field.json"
 TEXT_CACHE = "texts.json"
 #: The embedded synthetic scene's queries, written for `eval --queries` of a synthetic run.
 EMBEDDED_QUERIES_FILE = "queries-embedded.json"
+
+
+#: The background colours known by name (`eval --background`, `background_tag`).
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+def background_tag(rgb: tuple[float, ...] | list[float]) -> str:
+    """The file tag of an evaluation on background `rgb`: ``white``, ``black`` or
+    ``bg-R-G-B`` (``eval-black.json``, ``renders/black/``)."""
+    for name, value in BACKGROUNDS.items():
+        if tuple(rgb) == value:
+            return name
+    return "bg-" + "-".join(f"{v:g}" for v in rgb)
 
 
 def eval_file(tag: str | None = None) -> str:

@@ -233,14 +233,24 @@ def test_bench_fit_variants_train_side_by_side(data: Path, tmp_path: Path, capsy
     args = ["bench", "fit", str(data), "--iters", "20", "--out", str(out), *TINY,
             "--variant", "off", "--variant",
             "skip:phase1.static.enabled=true,phase1.static.start=5"]  # fmt: skip
+    args[-3:-2] = ["off:phase1.train_background=random"]
     assert main(args) == 0
     rec = json.loads(out.read_text())
     by = {r["variant"]: r for r in rec["results"]}
-    assert set(by) == {"off", "skip"} and rec["variants"]["off"] == []
+    assert set(by) == {"off", "skip"}
+    assert rec["variants"]["off"] == ["phase1.train_background=random"]
+    # RGBA frames: each row is scored on white (the run's own) and on black, and says what
+    # it trained on.
+    assert by["off"]["backgrounds"]["train_background"] == "random"
+    assert by["skip"]["backgrounds"]["train_background"] == "white"
+    for r in by.values():
+        on = r["backgrounds"]["on"]
+        assert set(on) == {"white", "black"} and on["white"]["psnr"] == r["psnr"]
+        assert on["black"]["worst"]["psnr"] <= on["black"]["psnr"]
     assert by["off"]["skipped"]["deform_rows_skipped"] == 0
     assert by["skip"]["skipped"]["deform_rows_skipped"] > 0
     table = capsys.readouterr().out
-    assert "variant" in table and "D_theta skipped" in table
+    assert "variant" in table and "D_theta skipped" in table and "PSNR black" in table
     assert main(args[:-1] + ["skip:phase1.static.enabled"]) == 2
     assert "--variant" in capsys.readouterr().err
     assert main(args[:-1] + ["more:budget=-2"]) == 2

@@ -83,22 +83,33 @@ def test_a_fit_reports_its_loop_phase_and_evaluation_as_events(tmp_path: Path, c
     assert skipped.counts["gaussians"] == fit[-2].stats["gaussians"]  # numbers, not words
     assert seen[i_phase1].phase == "phase1" and seen[i_phase1].summary["iteration"] == 6
 
-    # The final evaluation (LPIPS cannot run on 24x24 images: one event says why).
-    (unavailable,) = [e for e in seen if isinstance(e, MetricUnavailable)]
-    assert unavailable.metric == "LPIPS" and "32x32" in unavailable.reason
-    tail = [e for e in seen[i_phase1 + 1:] if e is not unavailable]
-    assert tail[0] == Started("eval test", 4, log_every=4)
-    assert [e.done for e in tail[1:5]] == [1, 2, 3, 4] and tail[5] == Finished("eval test")
-    table, wrote, done, whole = tail[6:]
-    assert isinstance(table, FramesEvaluated) and len(table.frames) == 4  # numbers, not a table
-    assert [f["psnr"] for f in table.frames] == [e.stats["psnr"] for e in tail[1:5]]
-    assert table.mean["psnr"] == pytest.approx(summary["psnr"]) and table.mean["lpips"] is None
+    # The final evaluation, on white (the run's) then black (RGBA frames): LPIPS cannot run
+    # on 24x24 images, one event for each says why.
+    unavailable = [e for e in seen if isinstance(e, MetricUnavailable)]
+    assert len(unavailable) == 2
+    assert all(u.metric == "LPIPS" and "32x32" in u.reason for u in unavailable)
+    tail = [e for e in seen[i_phase1 + 1:] if not isinstance(e, MetricUnavailable)]
     run = tmp_path / "run"
-    assert wrote == Wrote("eval", (str(run / EVAL_FILE), f"{run / RENDERS_DIR / 'test'}/"))
-    assert done.phase == "eval" and done.summary["psnr"] == pytest.approx(summary["psnr"])
+    for k, (name, file) in enumerate((("white", EVAL_FILE), ("black", "eval-black.json"))):
+        part = tail[9 * k: 9 * k + 9]
+        assert part[0] == Started("eval test", 4, log_every=4)
+        assert [e.done for e in part[1:5]] == [1, 2, 3, 4] and part[5] == Finished("eval test")
+        table, wrote, done = part[6:]
+        assert isinstance(table, FramesEvaluated) and len(table.frames) == 4  # numbers
+        assert table.background == name
+        assert [f["psnr"] for f in table.frames] == [e.stats["psnr"] for e in part[1:5]]
+        assert table.mean["lpips"] is None
+        renders = f"{run / RENDERS_DIR / ('test' if k == 0 else name)}/"
+        assert wrote == Wrote("eval", (str(run / file), renders))
+        assert done.phase == "eval" and done.summary["psnr"] == table.mean["psnr"]
+    assert tail[6].mean["psnr"] == pytest.approx(summary["psnr"])
+    whole = tail[-1]
+    assert len(tail) == 19
     assert not [e for e in seen if isinstance(e, Note)]  # the library emits no text
     assert whole.phase == "fit" and whole.summary["psnr"] == pytest.approx(summary["psnr"])
     assert whole.summary["iterations"] == 6 and whole.summary["run_dir"] == str(tmp_path / "run")
+    assert whole.summary["background"] == "white"
+    assert whole.summary["backgrounds"]["black"]["psnr"] == tail[15].mean["psnr"]
 
 
 def test_the_run_folder_holds_the_events_another_process_follows(tmp_path: Path) -> None:
@@ -191,7 +202,7 @@ def test_a_forced_restart_starts_a_new_event_log(tmp_path: Path, capsys) -> None
     assert main([*args, "--force"]) == 0
     capsys.readouterr()
     done = read_events(tmp_path / "run" / EVENTS_FILE, ("PhaseDone",))
-    assert [e["phase"] for e in done] == ["phase1", "eval", "fit"]
+    assert [e["phase"] for e in done] == ["phase1", "eval", "eval", "fit"]  # white, black
 
 
 #: One event of each kind, as the library emits it.
