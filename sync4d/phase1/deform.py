@@ -36,8 +36,14 @@ class DeformConfig:
 
     #: Dimension of each Gaussian's learned embedding z_i.
     embed_dim: int = ranged(32, 1)
-    #: Frequencies L of the time encoding gamma(t) = [t, sin(2^k pi t), cos(2^k pi t)], k < L.
+    #: Frequencies L of the time encoding gamma(t) = [t, sin(2^k w t), cos(2^k w t)], k < L.
     bands: int = ranged(6, 0, 20)
+    #: The time encoding's lowest angular frequency w, radians per unit of time. pi (the
+    #: paper, NeRF's encoding) makes every band above the lowest periodic over [0, 1]: the
+    #: first and last instants share 2L - 1 of gamma's 2L sines and cosines, and D_theta must
+    #: tell them apart from t and one band alone. 1 (Deformable-3DGS's, SC-GS's) repeats no
+    #: band's phase at t = 1 below k = 2.
+    time_frequency: float = ranged(math.pi, 0.0, 1e3, lo_open=True)
     #: Frequencies of an encoding of the canonical position, [x0, sin(2^k pi x0),
     #: cos(2^k pi x0)] for k below it (3 + 6 L inputs instead of x0's 3). 0 (the paper) feeds
     #: the raw position; Deformable-3DGS encodes it with 10 so limbs next to each other can
@@ -70,11 +76,11 @@ class DeformConfig:
         return 3 * (1 + 2 * self.position_bands) + self.embed_dim + 1 + 2 * self.bands
 
 
-def time_encoding(t: Tensor, bands: int = 6) -> Tensor:
-    """gamma(t) = [t, sin(2^0 pi t), cos(2^0 pi t), ..., sin(2^(L-1) pi t), cos(...)]:
-    [...] -> [..., 1 + 2 L]."""
+def time_encoding(t: Tensor, bands: int = 6, frequency: float = math.pi) -> Tensor:
+    """gamma(t) = [t, sin(2^0 w t), cos(2^0 w t), ..., sin(2^(L-1) w t), cos(...)], w =
+    `frequency` (the paper: pi): [...] -> [..., 1 + 2 L]."""
     t = t.unsqueeze(-1)
-    freqs = (2.0 ** torch.arange(bands, dtype=t.dtype, device=t.device)) * math.pi
+    freqs = (2.0 ** torch.arange(bands, dtype=t.dtype, device=t.device)) * frequency
     ang = t * freqs
     enc = torch.stack([torch.sin(ang), torch.cos(ang)], dim=-1).flatten(-2)
     return torch.cat([t, enc], dim=-1)
@@ -137,9 +143,8 @@ class DeformationMLP(nn.Module):
             t = t.expand(n)
         c = self.config
         pos = x0 if c.position_unit == 1.0 else x0 / c.position_unit
-        h = torch.cat(
-            [position_encoding(pos, c.position_bands), z, time_encoding(t, c.bands)], dim=-1
-        )
+        gamma = time_encoding(t, c.bands, c.time_frequency)
+        h = torch.cat([position_encoding(pos, c.position_bands), z, gamma], dim=-1)
         if c.precision == "bfloat16" and h.device.type == "cpu":
             first, rest = self.trunk[:2], self.trunk[2:]
             h = first(h)

@@ -45,6 +45,27 @@ def test_time_encoding_matches_appendix_a() -> None:
         assert torch.allclose(g[:, 2 + 2 * j], torch.cos(2**j * math.pi * t))
 
 
+def test_time_frequency_sets_the_lowest_band_and_pi_shares_the_ends() -> None:
+    t = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    g = time_encoding(t, bands=6, frequency=1.0)
+    for j in range(6):
+        assert torch.allclose(g[:, 1 + 2 * j], torch.sin(2**j * t))
+    # pi: the first and last instants differ in t and one cosine only; 1: in every band
+    # (sin(2^j) != 0 for j < 6).
+    pi = time_encoding(t, bands=6)
+    assert int((~torch.isclose(pi[0], pi[1], atol=1e-9)).sum()) == 2
+    assert int((~torch.isclose(g[0], g[1], atol=1e-9)).sum()) == 13
+    # D_theta reads it: the same weights, another frequency, other offsets at t = 0.5.
+    g0 = torch.Generator().manual_seed(0)
+    a = DeformationMLP(DeformConfig(), g0)
+    b = DeformationMLP(DeformConfig(time_frequency=1.0), torch.Generator().manual_seed(0))
+    for m in (a, b):
+        torch.nn.init.normal_(m.head.weight, generator=torch.Generator().manual_seed(1))
+    x0, z = torch.zeros(2, 3), torch.zeros(2, 32)
+    assert not torch.allclose(a(x0, z, 0.5)[0], b(x0, z, 0.5)[0])
+    assert torch.allclose(a(x0, z, 0.0)[0], b(x0, z, 0.0)[0])  # at t = 0 both read zeros
+
+
 def test_position_encoding_layout_and_input_width() -> None:
     x = torch.tensor([[0.1, -0.7, 1.3], [0.0, 0.5, -1.0]], dtype=torch.float64)
     assert torch.equal(position_encoding(x, 0), x)

@@ -7,6 +7,7 @@ use another build. Outside CI a missing binary skips these tests; in CI it fails
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -32,12 +33,14 @@ def run(tmp_path_factory, request) -> tuple[Path, DeformableGaussians, object]:
     """A checkpoint of a small model whose D_theta is far from the identity, with SH degree 1;
     D_theta reads the raw position (the paper) or its 4-band encoding; in the third variant
     every other Gaussian is static (its canonical state at every time); in the last D_theta
-    reads the position in half units (`position_unit`), 2-band encoded."""
+    reads the position in half units (`position_unit`), 2-band encoded, and time at a lowest
+    frequency of 1 instead of pi (`time_frequency`)."""
     bands, half_static, unit = request.param
     tmp = tmp_path_factory.mktemp("render")
     scene, _ = orbit_scene(tmp)
     g = torch.Generator().manual_seed(5)
-    config = DeformConfig(position_bands=bands, position_unit=unit)
+    config = DeformConfig(position_bands=bands, position_unit=unit,
+                          time_frequency=1.0 if unit != 1.0 else math.pi)  # fmt: skip
     model = random_gaussians(60, g, spread=0.4, scale=0.08, opacity_logit=1.0, sh_degree=1,
                              config=config)  # fmt: skip
     if half_static:

@@ -70,6 +70,9 @@ pub struct DeformMlp {
     pub head: Linear,
     /// Frequency bands L of the time encoding (1 + 2L values).
     pub bands: usize,
+    /// The time encoding's lowest angular frequency (pi in checkpoints written before the
+    /// setting existed).
+    pub time_frequency: f32,
     /// Frequency bands of the position encoding (3 (1 + 2L) values; 0: the raw position).
     pub position_bands: usize,
     /// Output scales of dx, dw and dl.
@@ -461,6 +464,19 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         }
         v as f32
     };
+    // Absent in checkpoints written before the setting existed: the paper's pi.
+    let time_frequency = if dc.get("time_frequency").is_none() {
+        std::f32::consts::PI
+    } else {
+        let v = num(dc, "time_frequency", path)?;
+        if !(v.is_finite() && v > 0.0) {
+            return Err(err(
+                path,
+                format!("deform_config.time_frequency must be finite and > 0, got {v}"),
+            ));
+        }
+        v as f32
+    };
     // Absent in checkpoints written before node motion existed: D_theta moves each Gaussian.
     let motion = match meta.get("motion") {
         None | Some(Value::Null) => "gaussians",
@@ -598,6 +614,7 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
             trunk,
             head,
             bands,
+            time_frequency,
             position_bands,
             scales,
             position_unit,

@@ -28,12 +28,13 @@ pub struct Deformed {
     pub scales: Vec<f32>,
 }
 
-/// gamma(t): [t, sin(2^0 pi t), cos(2^0 pi t), ..., sin(2^(L-1) pi t), cos(2^(L-1) pi t)].
-pub fn time_encoding(t: f32, bands: usize) -> Vec<f32> {
+/// gamma(t): [t, sin(2^0 w t), cos(2^0 w t), ..., sin(2^(L-1) w t), cos(2^(L-1) w t)], w =
+/// `frequency` (the paper's pi; `DeformMlp::time_frequency`).
+pub fn time_encoding(t: f32, bands: usize, frequency: f32) -> Vec<f32> {
     let mut out = Vec::with_capacity(1 + 2 * bands);
     out.push(t);
     for b in 0..bands {
-        let a = t * (2.0f32.powi(b as i32) * std::f32::consts::PI);
+        let a = t * (2.0f32.powi(b as i32) * frequency);
         out.push(a.sin());
         out.push(a.cos());
     }
@@ -186,7 +187,7 @@ pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
         return blend_nodes(ck, nodes, &offsets);
     }
     let n = ck.n;
-    let gamma = time_encoding(t, ck.mlp.bands);
+    let gamma = time_encoding(t, ck.mlp.bands, ck.mlp.time_frequency);
     let freqs = position_frequencies(ck.mlp.position_bands);
     let e = ck.embed_dim;
     let mut d = Deformed {
@@ -234,7 +235,7 @@ pub fn deform_at(ck: &Checkpoint, t: f32) -> Deformed {
 
 /// D_theta's (dx, dw, dl) of every node at time `t`: M rows of 9 (parallel over nodes).
 pub fn node_offsets(ck: &Checkpoint, nodes: &Nodes, t: f32) -> Vec<[f32; 9]> {
-    let gamma = time_encoding(t, ck.mlp.bands);
+    let gamma = time_encoding(t, ck.mlp.bands, ck.mlp.time_frequency);
     let freqs = position_frequencies(ck.mlp.position_bands);
     let e = ck.embed_dim;
     (0..nodes.m)
@@ -490,6 +491,7 @@ mod tests {
                     outputs: 9,
                 },
                 bands: 1,
+                time_frequency: std::f32::consts::PI,
                 position_bands: 0,
                 scales: SCALES,
                 position_unit: 1.0,

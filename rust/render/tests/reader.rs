@@ -159,7 +159,7 @@ fn reads_a_valid_checkpoint_and_deforms_it() {
         let n: f32 = q.iter().map(|v| v * v).sum::<f32>().sqrt();
         assert!((n - 1.0).abs() < 1e-5);
     }
-    assert_eq!(time_encoding(0.25, 2).len(), 5);
+    assert_eq!(time_encoding(0.25, 2, std::f32::consts::PI).len(), 5);
 }
 
 #[test]
