@@ -33,7 +33,7 @@ def fidelity(run_dir: Path, count: int, neighbours: int, times: int, steps: int,
              seed: int = 0) -> dict:  # fmt: skip
     run = load_run(run_dir)
     model = run.model
-    if model.nodes is not None:
+    if model.motion != "gaussians":
         raise SystemExit(f"{run_dir}: a node run; give a per-Gaussian run")
     ts = torch.linspace(0.0, 1.0, times)
     with torch.no_grad():
@@ -48,8 +48,9 @@ def fidelity(run_dir: Path, count: int, neighbours: int, times: int, steps: int,
                  "extent": extent, "mean_motion": mean_motion, "blends": {}}  # fmt: skip
     for kind in BLENDS:
         cfg = NodeConfig(count=count, neighbours=neighbours, blend=kind)
+        own = model.motion_model
         nodes = model.use_nodes(cfg, torch.Generator().manual_seed(seed))
-        model.nodes = None  # the run's model stays per-Gaussian
+        model.set_motion(own)  # the run's model stays per-Gaussian
         pos, lr, index = nodes.positions.detach(), nodes.log_radii.detach(), nodes.index
         m = pos.shape[0]
         rv = torch.zeros(times, m, 3, requires_grad=True)

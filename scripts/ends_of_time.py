@@ -3,9 +3,11 @@ docs/results/ends-of-time.md, from finished runs (nothing is trained).
 
 For each run, on black (the peers' protocol) and at the run's resolution:
 
-* ``test``: each test view's PSNR and time, and what the training data gives it: training
-  frames within +-0.05 of its time, and the angle (degrees) from its camera to the nearest
-  of their cameras (the views nearest in time that constrain the scene at that instant);
+* ``test``: each test view's PSNR and time, the share of its squared error in its worst 1 %
+  of pixels (an edge or a rim rather than the whole object), and what the training data gives
+  it: training frames within +-0.05 of its time, the angle (degrees) from its camera to the
+  nearest of their cameras, its camera's elevation and the share of training cameras lower
+  (a grazing view few training views resemble);
 * ``train_bins``: the training views' own PSNR in five time bins, and ``train_ends`` that of
   the three first, three middle and three last training frames (the ends' own frames: does
   the model fit them, or fail to generalise from them?);
@@ -46,10 +48,23 @@ def _view_dir(frame) -> np.ndarray:
     return centre / np.linalg.norm(centre)
 
 
-def _score(model, frame, time: float, threads: int) -> float:
+def _score(model, frame, time: float, threads: int, detail: bool = False):
+    """PSNR on black of `frame` rendered at `time`; with `detail`, also the share of the
+    squared error in the image's worst 1 % of pixels."""
     target = torch.from_numpy(frame.load_image(BLACK))
-    shifted = dataclasses.replace(frame, time=time)
-    return float(psnr(render_frame(model, shifted, BLACK, threads), target))
+    pred = render_frame(model, dataclasses.replace(frame, time=time), BLACK, threads)
+    value = float(psnr(pred, target))
+    if not detail:
+        return value
+    err = ((pred.clamp(0, 1) - target) ** 2).mean(-1).flatten().sort(descending=True).values
+    return value, float(err[: max(1, err.numel() // 100)].sum() / err.sum().clamp_min(1e-30))
+
+
+def _elevation(frame) -> float:
+    """Degrees of the camera centre above the world's xy plane, seen from the origin (D-NeRF's
+    z is up)."""
+    d = _view_dir(frame)
+    return float(np.degrees(np.arcsin(np.clip(d[2], -1.0, 1.0))))
 
 
 def measure(run_dir: Path, threads: int) -> dict:
@@ -58,13 +73,19 @@ def measure(run_dir: Path, threads: int) -> dict:
     model = run.model
     train_t = np.array([f.time for f in scene.train])
     train_dirs = np.stack([_view_dir(f) for f in scene.train])
+    train_elev = np.array([_elevation(f) for f in scene.train])
     test = []
     for f in sorted(scene.test, key=lambda f: f.time):
         near = np.abs(train_t - f.time) <= WINDOW + 1e-9
         cos = np.clip(train_dirs[near] @ _view_dir(f), -1.0, 1.0)
-        test.append({"name": f.name, "time": f.time, "psnr": _score(model, f, f.time, threads),
+        value, top = _score(model, f, f.time, threads, detail=True)
+        elev = _elevation(f)
+        test.append({"name": f.name, "time": f.time, "psnr": value,
+                     "error_share_worst_1pct_pixels": top,
                      "train_within_window": int(near.sum()),
-                     "nearest_camera_deg": float(np.degrees(np.arccos(cos.max())))})  # fmt: skip
+                     "nearest_camera_deg": float(np.degrees(np.arccos(cos.max()))),
+                     "elevation_deg": elev,
+                     "train_below_elevation": float((train_elev < elev).mean())})  # fmt: skip
     edges = np.linspace(0.0, 1.0, 6)
     bins = []
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
@@ -139,6 +160,12 @@ def main() -> None:
         for name, s in r["shifted"].items():
             print(f"  {name} t={s['time']:.2f}: " + " ".join(
                 f"{k}:{v:.2f}" for k, v in s["psnr_at_shift"].items()))
+        for v in (t[0], t[-1], min(t, key=lambda v: v["psnr"])):
+            print(f"  {v['name']} t={v['time']:.2f}: {v['psnr']:.2f} dB, "
+                  f"{v['error_share_worst_1pct_pixels']:.0%} of its error in 1 % of pixels, "
+                  f"elevation {v['elevation_deg']:.1f} deg ({v['train_below_elevation']:.0%} of "
+                  f"training cameras lower), nearest camera within +-{WINDOW}: "
+                  f"{v['nearest_camera_deg']:.0f} deg")
         print(f"  encoding: t=0 and t=1 share {r['encoding']['shared_by_t0_and_t1']} of "
               f"{r['encoding']['values']} values (time_frequency "
               f"{r['encoding']['time_frequency']:.4g})")

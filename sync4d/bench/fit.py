@@ -173,6 +173,7 @@ def run_grid(
                 "train_seconds": summary["train_seconds"],
                 "wall_seconds": summary["wall_seconds"],
                 "gaussians": summary["gaussians"],
+                "peak_rss_mib": summary.get("peak_rss_mib"),
                 "psnr": summary["psnr"],
                 "ssim": summary["ssim"],
                 "ssim_box3": summary["ssim_box3"],
@@ -306,6 +307,7 @@ def rows_from_runs(run_dirs: list[Path]) -> list[dict[str, Any]]:
                 "train_seconds": final["train_seconds"],
                 "wall_seconds": final.get("wall_seconds"),
                 "gaussians": final["gaussians"],
+                "peak_rss_mib": final.get("peak_rss_mib"),
                 "psnr": final["psnr"],
                 "ssim": final["ssim"] if standard else None,
                 "ssim_box3": final["ssim_box3"] if standard else final["ssim"],
@@ -481,13 +483,14 @@ def format_run_rows(rows: list[dict[str, Any]]) -> str:
             "-" if r["threads"] is None else str(r["threads"]),
             f"{r['train_seconds'] / 60:.1f}", f"{r['psnr']:.2f}", _ssim_text(r),
             "-" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['gaussians']:,}",
+            "-" if r.get("peak_rss_mib") is None else f"{r['peak_rss_mib']:,.0f}",
             _worst_text(r["worst_view"]), *_background_cells(r), " ".join(r["settings"]) or "-",
         ]
         for r in rows
     ]  # fmt: skip
     header = ["scene", "split", "iters", "res", "threads", "train min", "PSNR", "SSIM", "LPIPS",
-              "#G", "worst", *BACKGROUND_HEADER, "settings"]  # fmt: skip
-    return align_table(header, body, left=(0, 1, 10, 11, 15, 16)) + _ssim_note(rows)
+              "#G", "peak MiB", "worst", *BACKGROUND_HEADER, "settings"]  # fmt: skip
+    return align_table(header, body, left=(0, 1, 11, 12, 16, 17)) + _ssim_note(rows)
 
 
 def _tabulate_runs(args: argparse.Namespace) -> int:

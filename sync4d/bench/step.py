@@ -3,7 +3,7 @@ the run's own Gaussian count.
 
 Each variant (``NAME:KEY=VALUE,...`` overrides of the run's recorded config, e.g.
 ``nodes:phase1.motion=nodes``) gets a copy of the run's latest checkpoint (a variant asking
-for nodes on a per-Gaussian run samples them first, `Phase1Trainer.start_nodes`) and a Phase 1
+for nodes on a per-Gaussian run samples them first, `Motion.to_final_stage`) and a Phase 1
 trainer at the finished schedule (full SH degree, D_theta on) with densification off, so every
 variant steps the same Gaussians (a per-Gaussian variant of a node run drops its nodes: the
 motion is then not the run's, the cost of a step is D_theta's on every row). Rounds
@@ -69,6 +69,7 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
     from sync4d.config import apply_overrides
     from sync4d.phase1.densify import DensifyConfig
     from sync4d.phase1.gaussians import DeformableGaussians
+    from sync4d.phase1.motion import motion_for
     from sync4d.phase1.trainer import FinishedSchedule, Phase1Trainer
     from sync4d.pipeline.record import read_record, recorded_config
     from sync4d.runs import RunError, load_run
@@ -86,15 +87,15 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
     for name, overrides in variants.items():
         vcfg = apply_overrides(cfg, overrides).phase1
         model = DeformableGaussians.from_state(tensors, meta)
-        if vcfg.motion == "gaussians" and model.nodes is not None:
-            # A node run stepped per Gaussian: D_theta on every row with the Gaussians' own
-            # embeddings. The motion is not the run's, the cost per step is D_theta's.
-            model.nodes = None
+        if vcfg.motion != model.motion_model.name:
+            # Another motion than the run's (a node run stepped per Gaussian: D_theta on every
+            # row with the Gaussians' own embeddings): the motion is not the run's, the cost
+            # per step is the variant's.
+            model.set_motion(motion_for(vcfg))
         trainer = Phase1Trainer(model, scene, vcfg, total_iterations=vcfg.iterations,
                                 threads=threads, densify=never,
                                 schedule=FinishedSchedule())  # fmt: skip
-        if vcfg.motion == "nodes" and model.nodes is None:
-            trainer.start_nodes()
+        model.motion_model.to_final_stage(trainer)  # nodes sampled now on a per-Gaussian run
         trainer.step()  # warm-up: caches the first image, allocates
         trainers[name] = trainer
     frames = scene.train
@@ -118,11 +119,8 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
             for k in range(steps):  # D_theta alone: on the nodes, or on every Gaussian
                 frame = frames[(r * steps + k) % len(frames)]
                 t0 = time.perf_counter()
-                if model.nodes is not None:
-                    out = model.nodes.motion(model.deform, frame.time)
-                else:  # the rows `at_time` evaluates: the moving ones (static: skipped)
-                    rows = (~model.static).nonzero().squeeze(1)
-                    out = model.deform(model.means[rows], model.embeddings[rows], frame.time)
+                # on the nodes, or on the rows `at_time` evaluates (static: skipped)
+                out = model.motion_model.network(model, frame.time)
                 sum(o.sum() for o in out).backward()
                 timings[name]["d_theta"].append(time.perf_counter() - t0)
                 model.zero_grad(set_to_none=True)
@@ -144,12 +142,11 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
         step, motion, dth, rast = (_median_ms(t[k]) for k in ("step", "motion", "d_theta",
                                                                  "raster"))  # fmt: skip
         base = base or step
-        nodes = trainer.model.nodes
         rows.append({
             "variant": name, "overrides": variants[name],
             "motion_model": trainer.model.motion,
             "gaussians": trainer.model.num_gaussians,
-            "nodes": nodes.count if nodes is not None else None,
+            "nodes": trainer.model.motion_model.counts().get("nodes"),
             "step_ms": step, "motion_ms": motion, "d_theta_ms": dth, "raster_ms": rast,
             "motion_share": motion / step, "d_theta_share": dth / step,
             "raster_share": rast / step,

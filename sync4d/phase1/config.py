@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from sync4d.phase1.deform import DeformConfig
 from sync4d.phase1.densify import DensifyConfig
 from sync4d.phase1.init import INIT_SOURCES
+from sync4d.phase1.motion import MOTIONS
 from sync4d.phase1.nodes import NodeConfig
 from sync4d.phase1.static import StaticConfig
 from sync4d.settings import choice, ranged
@@ -30,10 +31,13 @@ class Phase1Config:
     #: Spherical-harmonics degree of the Gaussians' colours (0-3).
     sh_degree: int = ranged(3, 0, 3)
     deform: DeformConfig = field(default_factory=DeformConfig)
-    #: What D_theta moves: "gaussians" (the paper: every Gaussian) or "nodes" (a few hundred
-    #: control nodes whose rigid motions each Gaussian blends, after a coarse stage of
-    #: per-Gaussian D_theta; `nodes`, `sync4d.phase1.nodes`).
-    motion: str = choice("gaussians", ("gaussians", "nodes"))
+    #: What D_theta moves (`sync4d.phase1.motion`, one registered plug-in each): "gaussians"
+    #: (the paper: every Gaussian) or "nodes" (a few hundred control nodes whose rigid motions
+    #: each Gaussian blends, after a coarse stage of per-Gaussian D_theta; `nodes`,
+    #: `sync4d.phase1.nodes`).
+    motion: str = choice("gaussians", check=lambda v: None if v in MOTIONS else
+                         f"expected one of {', '.join(MOTIONS)}",
+                         text="a registered motion (sync4d.phase1.motion): gaussians, nodes")
     #: The control nodes of `motion = "nodes"`.
     nodes: NodeConfig = field(default_factory=NodeConfig)
     #: Near clipping plane of every render (training, evaluation, `render`), world units;

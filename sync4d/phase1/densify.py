@@ -66,8 +66,7 @@ def _replace_rows(optimizer: torch.optim.Optimizer, model: DeformableGaussians, 
     replace_param_rows(optimizer, model, PER_GAUSSIAN, fn)
     # Per-Gaussian flags follow the same rows (split and cloned children inherit them).
     model.static = fn("static", model.static, False)
-    if model.nodes is not None:  # children blend their parent's nodes until the next refresh
-        model.nodes.index = fn("node_index", model.nodes.index, False)
+    model.motion_model.rows_changed(fn)
 
 
 class Densifier:

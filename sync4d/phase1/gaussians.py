@@ -17,7 +17,8 @@ from torch import Tensor, nn
 
 from sync4d import raster, watchdog
 from sync4d.data.scene import Camera
-from sync4d.phase1.deform import DeformationMLP, DeformConfig, deform_gaussians
+from sync4d.phase1.deform import DeformationMLP, DeformConfig
+from sync4d.phase1.motion import GaussianMotion, Motion, NodesMotion, motion_from_state
 from sync4d.phase1.nodes import NodeConfig, NodeMotion
 
 __all__ = ["DeformableGaussians", "PER_GAUSSIAN", "rgb_to_sh_dc", "SH_C0"]
@@ -92,28 +93,40 @@ class DeformableGaussians(nn.Module):
         #: call (None before one, and when every Gaussian is static): the motion-sparsity
         #: loss reads them (`sync4d.phase1.static.motion_sparsity`).
         self.last_offsets: tuple[Tensor, Tensor, Tensor] | None = None
-        #: The control nodes that carry the motion once `use_nodes` was called
-        #: (`sync4d.phase1.nodes`); None: D_theta moves every Gaussian (the paper).
-        self.nodes: NodeMotion | None = None
+        #: What moves the Gaussians (`sync4d.phase1.motion`): D_theta per Gaussian until a
+        #: trainer configures another (`Phase1Trainer`) or a checkpoint loads one.
+        self.motion_model: Motion = GaussianMotion()
+        #: The names under which the motion's modules are registered (`attach_motion_modules`).
+        self._motion_module_names: tuple[str, ...] = ()
 
     @property
     def motion(self) -> str:
-        """"nodes" when control nodes carry the motion, else "gaussians" (D_theta per
-        Gaussian)."""
-        return "gaussians" if self.nodes is None else "nodes"
+        """What moves the Gaussians now: "gaussians" (D_theta per Gaussian), "nodes" (control
+        nodes), or another registered motion's name (`Motion.current`)."""
+        return self.motion_model.current
+
+    def set_motion(self, motion: Motion) -> None:
+        """Let `motion` move the Gaussians from now on (its modules registered)."""
+        self.motion_model = motion
+        self.attach_motion_modules()
+
+    def attach_motion_modules(self) -> None:
+        """Register the motion's modules (`Motion.modules`) as this model's submodules, and
+        drop those of a former motion, so their parameters are the model's."""
+        for name in self._motion_module_names:
+            delattr(self, name)
+        modules = self.motion_model.modules()
+        for name, module in modules.items():
+            setattr(self, name, module)
+        self._motion_module_names = tuple(modules)
 
     def use_nodes(self, config: NodeConfig, generator: torch.Generator | None = None
                   ) -> NodeMotion:  # fmt: skip
-        """Hand the motion to control nodes sampled among the Gaussians
-        (`NodeMotion.sample`: each node copies its Gaussian's position and embedding, so
-        D_theta gives it that Gaussian's motion); the static set is cleared (the nodes make
-        D_theta's cost independent of N). Returns the nodes."""
-        opacities = torch.sigmoid(self.opacity_logits.detach())
-        self.nodes = NodeMotion.sample(self.means.detach(), self.embeddings.detach(), opacities,
-                                       config, generator)  # fmt: skip
-        self.static = torch.zeros(self.num_gaussians, dtype=torch.bool)
-        self.last_offsets = None
-        return self.nodes
+        """Hand the motion to control nodes sampled among the Gaussians (`NodesMotion.sample`)
+        with node settings `config`. Returns the nodes."""
+        motion = NodesMotion()
+        self.set_motion(motion)
+        return motion.sample(self, config, generator)
 
     @classmethod
     def random_in_box(
@@ -134,9 +147,9 @@ class DeformableGaussians(nn.Module):
         tensors.update({f"deform.{k}": v.detach() for k, v in self.deform.state_dict().items()})
         meta = {"sh_degree": self.sh_degree, "near": self.near,
                 "deform_config": dataclasses.asdict(self.config)}  # fmt: skip
-        if self.nodes is not None:  # absent: D_theta per Gaussian (and older files)
-            tensors.update(self.nodes.state())
-            meta.update({"motion": "nodes", "node_config": self.nodes.settings()})
+        more, more_meta = self.motion_model.state()  # nothing for D_theta per Gaussian
+        tensors.update(more)
+        meta.update(more_meta)
         return tensors, meta
 
     @classmethod
@@ -164,12 +177,7 @@ class DeformableGaussians(nn.Module):
                 raise ValueError(f"'gaussians.static' has shape {list(static.shape)}, expected "
                                  f"[{model.num_gaussians}]")  # fmt: skip
             model.static = static > 0.5
-        motion = meta.get("motion", "gaussians")
-        if motion == "nodes":
-            model.nodes = NodeMotion.from_state(tensors, meta["node_config"],
-                                                model.num_gaussians, model.config.embed_dim)
-        elif motion != "gaussians":
-            raise ValueError(f"unknown motion model {motion!r} (expected 'gaussians' or 'nodes')")
+        model.set_motion(motion_from_state(model, tensors, meta))
         deform = {k.removeprefix("deform."): v for k, v in tensors.items()
                   if k.startswith("deform.")}  # fmt: skip
         try:
@@ -189,28 +197,7 @@ class DeformableGaussians(nn.Module):
         q0 = self.quats / self.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         if not deform:
             return self.means, q0, torch.exp(self.log_scales)
-        n = self.num_gaussians
-        if self.nodes is not None:  # D_theta on the nodes, blended onto the Gaussians
-            self.deform_rows += self.nodes.count
-            return self.nodes.deformed(self.deform, self.means, q0, self.log_scales, t)
-        if self.static.shape != (n,):  # rows changed outside the densifier
-            if bool(self.static.any()):
-                raise RuntimeError(f"static mask has {self.static.shape[0]} rows for {n} "
-                                   "Gaussians: change rows through the densifier")  # fmt: skip
-            self.static = torch.zeros(n, dtype=torch.bool)
-        n_static = int(self.static.sum())
-        self.deform_rows += n - n_static
-        self.deform_rows_skipped += n_static
-        if n_static == 0:
-            dx, dw, dl = self.last_offsets = self.deform(self.means, self.embeddings, t)
-        elif n_static == n:  # nothing moves: the canonical Gaussians at every time
-            self.last_offsets = None
-            return self.means, q0, torch.exp(self.log_scales)
-        else:  # D_theta on the moving rows only; static rows keep zero offsets
-            rows = (~self.static).nonzero().squeeze(1)
-            part = self.last_offsets = self.deform(self.means[rows], self.embeddings[rows], t)
-            dx, dw, dl = (torch.zeros(n, 3, dtype=p.dtype).index_put((rows,), p) for p in part)
-        return deform_gaussians(self.means, q0, self.log_scales, dx, dw, dl)
+        return self.motion_model.deformed(self, t, q0)
 
     def render(
         self,
@@ -256,13 +243,10 @@ class DeformableGaussians(nn.Module):
         )  # fmt: skip
 
     def node_motion(self) -> dict[str, Tensor]:
-        """The last node motion (`NodeMotion.last_motion`: rotations, translations, log-scale
-        offsets of the nodes) by the watchdog's names; {} without nodes."""
-        motion = None if self.nodes is None else self.nodes.last_motion
-        if motion is None:
-            return {}
-        return dict(zip(("node_rotations", "node_shifts", "node_log_scales"), motion,
-                        strict=True))  # fmt: skip
+        """What the motion's last deformation fed the render (`Motion.render_inputs`: the
+        node motion's rotations, translations and log-scale offsets) by the watchdog's names;
+        {} for D_theta per Gaussian."""
+        return self.motion_model.render_inputs()
 
 
 def _rendering_check(inputs: dict[str, Tensor]) -> None:

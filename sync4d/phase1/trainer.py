@@ -34,7 +34,6 @@ from sync4d.phase1.densify import Densifier, DensifyConfig
 from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
 from sync4d.phase1.init import scene_extent, scene_scale
 from sync4d.phase1.losses import photometric_loss
-from sync4d.phase1.nodes import NodeMotion, arap_loss, densify_nodes
 from sync4d.phase1.plugin import TrainerPlugin
 from sync4d.phase1.static import StaticUpdate, motion_sparsity, update_static_set
 
@@ -154,12 +153,14 @@ class Phase1Trainer:
             eps=1e-15,
             fused=True,  # one multithreaded kernel for all groups: ~4x faster than the default
         )
-        if m.nodes is not None:
-            self._add_node_groups()
-        #: The last ARAP loss (None before nodes carry the motion).
-        self.last_arap: float | None = None
-        #: The sorted distinct times of the training frames (the ARAP loss's second times).
-        self._times = sorted({float(f.time) for f in scene.train})
+        #: What moves the Gaussians (`sync4d.phase1.motion`): the model's, or a new one of the
+        #: configured kind; its Adam groups follow D_theta's.
+        m.set_motion(m.motion_model.for_config(self.config))
+        for name, p, lr in m.motion_model.param_groups(self):
+            self.optimizer.add_param_group({"params": [p], "name": name, "lr": lr})
+        #: The sorted distinct times of the training frames (a motion's regulariser draws
+        #: second times from them).
+        self.train_times = sorted({float(f.time) for f in scene.train})
         #: The plug-ins called at fixed points of each step, in order (`plug`).
         self.plugins: list[TrainerPlugin] = []
 
@@ -176,65 +177,6 @@ class Phase1Trainer:
     def phase_name(self) -> str:
         """The name the watchdog gives this trainer's failures ("Phase 1", or a plug-in's)."""
         return next((p.phase_name for p in reversed(self.plugins) if p.phase_name), "Phase 1")
-
-    def _add_node_groups(self) -> None:
-        """The node parameters' Adam groups, after D_theta's (`node_positions`,
-        `node_radii`, `node_embeddings`): a trainer built on a node model has them from the
-        start, one that switches to nodes appends them in the same order."""
-        nodes, c = self.model.nodes, self.config
-        assert nodes is not None
-        for name, p, lr in (
-            ("node_positions", nodes.positions, c.nodes.lr_position * self.extent),
-            ("node_radii", nodes.log_radii, c.nodes.lr_radius),
-            ("node_embeddings", nodes.embeddings, c.lr_embed),
-        ):
-            self.optimizer.add_param_group({"params": [p], "name": name, "lr": lr})
-
-    def nodes_due(self) -> bool:
-        """Whether control nodes take the motion over at the current iteration
-        (`motion = "nodes"`, the coarse stage of `nodes.init_after` iterations over)."""
-        c = self.config
-        return (c.motion == "nodes" and self.model.nodes is None
-                and self.iteration > c.nodes.init_after)  # fmt: skip
-
-    def start_nodes(self) -> None:
-        """Sample the control nodes (`DeformableGaussians.use_nodes`, seeded from the run's
-        seed) and give them Adam groups."""
-        generator = torch.Generator().manual_seed(self.config.seed + 1)
-        self.model.use_nodes(self.config.nodes, generator)
-        self._add_node_groups()
-
-    def node_losses(self, t: float) -> torch.Tensor | None:
-        """`nodes.arap_weight` times the ARAP loss between the node motion at the frame's
-        time `t` (the render's) and at a second training time drawn from a generator
-        seeded by the iteration (so a resumed run draws the same); None without nodes."""
-        nodes, c = self.model.nodes, self.config.nodes
-        if nodes is None or c.arap_weight <= 0 or nodes.last_motion is None:
-            return None
-        times = self._times
-        t2 = times[random.Random(self.config.seed * 1_000_003 + self.iteration)
-                   .randrange(len(times))]  # fmt: skip
-        if len(times) > 1 and t2 == t:
-            t2 = times[(times.index(t2) + 1) % len(times)]
-        arap = arap_loss(nodes.positions, nodes.edges, nodes.last_motion,
-                         nodes.motion(self.model.deform, t2))  # fmt: skip
-        self.last_arap = float(arap.detach())
-        return c.arap_weight * arap
-
-    def nodes_step(self) -> None:
-        """After the optimizer step: adaptive nodes on Gaussian densification steps (before
-        the densifier resets its statistics) until `nodes.densify_until`, and the
-        nearest-node tables' refresh every `nodes.refresh_every` iterations."""
-        nodes, c = self.model.nodes, self.config.nodes
-        if nodes is None:
-            return
-        it = self.iteration
-        if self.densifier.densify_due(it) and it <= c.densify_until and \
-                self.densifier.count.shape[0] == self.model.num_gaussians:  # fmt: skip
-            grad = self.densifier.grad_accum / self.densifier.count.clamp_min(1)
-            densify_nodes(nodes, self.model.means.detach(), grad, self.optimizer)
-        elif it % c.refresh_every == 0:
-            nodes.refresh(self.model.means.detach())
 
     @property
     def background(self) -> torch.Tensor:
@@ -303,7 +245,7 @@ class Phase1Trainer:
             return camera, small[..., :3] + background * (1.0 - small[..., 3:])
         return camera, small
 
-    def _decayed(self, start: float, final: float) -> float:
+    def decayed(self, start: float, final: float) -> float:
         """Log-linear interpolation from `start` to `final` over the run."""
         frac = min(1.0, self.iteration / self.total)
         if start <= 0 or final <= 0:
@@ -313,7 +255,7 @@ class Phase1Trainer:
     def _position_lr(self) -> float:
         """Log-linear decay from lr_means to lr_means_final over the run (scaled by extent)."""
         c = self.config
-        return self._decayed(c.lr_means, c.lr_means_final) * self.extent
+        return self.decayed(c.lr_means, c.lr_means_final) * self.extent
 
     def deform_active(self) -> bool:
         """Whether D_theta deforms the Gaussians at the current iteration (`schedule`)."""
@@ -332,12 +274,10 @@ class Phase1Trainer:
             if g["name"] == "means":
                 g["lr"] = self._position_lr()
             elif g["name"] == "deform":
-                g["lr"] = ramp * self._decayed(c.lr_deform, c.lr_deform_final)
-            elif g["name"] in ("embeddings", "node_embeddings"):
-                g["lr"] = ramp * self._decayed(c.lr_embed, c.lr_embed_final)
-            elif g["name"] == "node_positions":
-                final = c.nodes.lr_position * c.lr_means_final / c.lr_means
-                g["lr"] = self._decayed(c.nodes.lr_position, final) * self.extent
+                g["lr"] = ramp * self.decayed(c.lr_deform, c.lr_deform_final)
+            elif g["name"] == "embeddings":
+                g["lr"] = ramp * self.decayed(c.lr_embed, c.lr_embed_final)
+        self.model.motion_model.update_learning_rates(self, ramp)
         for plugin in self.plugins:
             plugin.update_learning_rates()
 
@@ -347,8 +287,8 @@ class Phase1Trainer:
         if self.densifier.reset_due(self.iteration):
             self.densifier.reset_opacity(self.model, self.optimizer)
         self.iteration += 1
-        if self.nodes_due():
-            self.start_nodes()
+        motion = self.model.motion_model
+        motion.begin_step(self)
         self.update_learning_rates()
         idx = self._rng.randrange(len(self.scene.train))
         frame = self.scene.train[idx]
@@ -379,9 +319,9 @@ class Phase1Trainer:
             sparse = motion_sparsity(self.model.last_offsets, self.extent,
                                      self.model.num_gaussians, s.sparsity_below)  # fmt: skip
             loss = loss + s.sparsity * sparse
-        arap = self.node_losses(frame.time) if self.deform_active() else None
-        if arap is not None:
-            loss = loss + arap
+        regulariser = motion.regulariser(self, frame.time) if self.deform_active() else None
+        if regulariser is not None:
+            loss = loss + regulariser
         loss = watchdog.check_loss(self.phase_name, self.iteration, loss)
         loss.backward()
         params, units = self.watched()
@@ -391,7 +331,7 @@ class Phase1Trainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         watchdog.check_params(self.phase_name, self.iteration, params, units, self.watch_scale)
-        self.nodes_step()
+        motion.after_optimizer_step(self)
         changed = self.densifier.step(self.model, self.optimizer, self.iteration, self.extent)
         if any(changed.values()):
             self.on_gaussians_changed()
@@ -402,11 +342,8 @@ class Phase1Trainer:
             "psnr": psnr(out.features.detach(), target),
             "gaussians": float(self.model.num_gaussians),
             **extra_stats,
+            **motion.step_stats(self),
         }
-        if c.static.enabled and self.model.nodes is None:
-            stats["static"] = float(self.model.static.sum())
-        if self.model.nodes is not None:
-            stats["nodes"] = float(self.model.nodes.count)
         for plugin in self.plugins:
             plugin.after_step()
         return stats
@@ -420,7 +357,7 @@ class Phase1Trainer:
         """The parameters the watchdog checks each step (name -> tensor) and the unit of their
         rows (per-Gaussian tensors: "Gaussians")."""
         units = dict.fromkeys(PER_GAUSSIAN, "Gaussians")
-        units.update({f"nodes.{n}": "nodes" for n in NodeMotion.PER_NODE})
+        units.update(self.model.motion_model.watched_units())
         params = dict(self.model.named_parameters())
         for plugin in self.plugins:
             more, more_units = plugin.watched()
@@ -436,7 +373,7 @@ class Phase1Trainer:
         s = self.config.static
         if not s.enabled or self.iteration < s.start or not self.deform_active():
             return False
-        if self.model.nodes is not None:  # the nodes' cost does not depend on N
+        if not self.model.motion_model.static_set_applies():
             return False
         d = self.densifier.config
         last_densification = densified and self.iteration + d.interval >= d.stop
@@ -445,7 +382,7 @@ class Phase1Trainer:
     def static_check_times(self) -> torch.Tensor:
         """The training times D_theta is evaluated at to find static Gaussians: `static.times`
         evenly spread over the sorted distinct times of the training frames."""
-        times = self._times
+        times = self.train_times
         k = min(len(times), self.config.static.times)
         picks = torch.linspace(0, len(times) - 1, k).round().long()
         return torch.tensor(times, dtype=torch.float32)[picks]

@@ -21,7 +21,8 @@ import torch
 
 from sync4d.data.scene import Frame, Scene
 from sync4d.phase1.gaussians import DeformableGaussians
-from sync4d.phase1.nodes import NodeMotion, blend_weights, knn
+from sync4d.phase1.motion import ControlPoints
+from sync4d.phase1.nodes import knn
 from sync4d.settings import choice, ranged
 
 __all__ = [
@@ -306,20 +307,21 @@ def assign_objects(
 
 
 @torch.no_grad()
-def node_votes(nodes: NodeMotion, means: torch.Tensor, labels: np.ndarray, num_objects: int
+def node_votes(points: ControlPoints, means: torch.Tensor, labels: np.ndarray, num_objects: int
                ) -> np.ndarray:  # fmt: skip
-    """The object of each control node [M] (int): the label its Gaussians (canonical `means`
-    [N, 3], object `labels` [N]) vote for, each vote weighted by the Gaussian's blend weight
-    on the node; a node no Gaussian blends takes its nearest Gaussian's label."""
-    w = blend_weights(means, nodes.positions.detach(), nodes.log_radii.detach(), nodes.index)
-    k = nodes.index.shape[1]
-    votes = torch.zeros(nodes.count * num_objects, dtype=torch.float64)
+    """The object of each control point [M] (int; `Motion.control_points`: the nodes): the
+    label its Gaussians (canonical `means` [N, 3], object `labels` [N]) vote for, each vote
+    weighted by the Gaussian's weight on the point; a point no Gaussian leans on takes its
+    nearest Gaussian's label."""
+    index, w = points.index, points.weights
+    m, k = points.positions.shape[0], index.shape[1]
+    votes = torch.zeros(m * num_objects, dtype=torch.float64)
     lab = torch.as_tensor(labels, dtype=torch.long).repeat_interleave(k)
-    votes.index_add_(0, nodes.index.reshape(-1) * num_objects + lab, w.reshape(-1).double())
-    votes = votes.reshape(nodes.count, num_objects)
+    votes.index_add_(0, index.reshape(-1) * num_objects + lab, w.reshape(-1).double())
+    votes = votes.reshape(m, num_objects)
     out = votes.argmax(1)
     empty = votes.sum(1) <= 0
     if bool(empty.any()):
-        near = knn(nodes.positions.detach()[empty], means, 1)[:, 0]
+        near = knn(points.positions[empty], means, 1)[:, 0]
         out[empty] = torch.as_tensor(labels, dtype=torch.long)[near]
     return out.numpy()

@@ -134,14 +134,14 @@ class MotionStrategy(TrainerPlugin):
         hundreds of rows, not tens of thousands."""
         model = self.trainer.model
         labels = self.labels.numpy()
-        nodes = model.nodes
-        if nodes is not None:  # objects with >= 3 nodes: fitted on their node trajectories
-            node_labels = node_votes(nodes, model.means.detach(), labels,
+        points = model.motion_model.control_points(model)
+        if points is not None:  # objects with >= 3 nodes: fitted on their node trajectories
+            node_labels = node_votes(points, model.means.detach(), labels,
                                      self.assignment.num_objects)  # fmt: skip
             counts = np.bincount(node_labels, minlength=self.assignment.num_objects)
             on_nodes = counts >= 3
-            node_x0 = nodes.positions.detach().double().numpy()
-            node_pos = [node_x0 + nodes.motion(model.deform, float(t))[1].double().numpy()
+            node_x0 = points.positions.double().numpy()
+            node_pos = [node_x0 + points.offset(float(t)).double().numpy()
                         for t in self.times]  # fmt: skip
             self.motion.fit_to(node_x0, node_pos, np.where(on_nodes[node_labels], node_labels,
                                                            -1))  # fmt: skip

@@ -13,6 +13,7 @@ import math
 import os
 import shutil
 import signal
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -45,6 +46,7 @@ from sync4d.events import (
 )
 from sync4d.files import RunLock, write_atomic, write_text_atomic
 from sync4d.phase1.init import initial_model, scene_extent, with_initial_points
+from sync4d.phase1.motion.per_gaussian import static_skip_counts
 from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.diagnostics import diagnostics
 from sync4d.phase2.strategy import MotionStrategy
@@ -439,7 +441,8 @@ def _run_fit(
         summary.update(
             {"iterations": trainer.iteration, "train_seconds": train_seconds,
              "wall_seconds": time.perf_counter() - wall0,
-             "gaussians": trainer.model.num_gaussians, "skipped": skip_counts(trainer.model)}
+             "gaussians": trainer.model.num_gaussians,
+             "skipped": static_skip_counts(trainer.model), "peak_rss_mib": peak_rss_mib()}
         )  # fmt: skip
         if (p2 := _motion(trainer)) is not None:
             summary["phase2_skipped"] = p2.skip_counts()
@@ -448,6 +451,17 @@ def _run_fit(
     finally:
         metrics_log.close()
     return summary
+
+
+def peak_rss_mib() -> float | None:
+    """The largest resident memory of this process so far, MiB (`getrusage`'s ``ru_maxrss``:
+    KiB on Linux, bytes on macOS); None where the platform has no `resource` module."""
+    try:
+        import resource
+    except ImportError:  # Windows
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0), 1)
 
 
 def _fit_summary(summary: dict, run_dir: Path) -> dict:
@@ -473,13 +487,6 @@ def _phase_summary(trainer: Phase1Trainer, train_seconds: float) -> dict:
             "gaussians": trainer.model.num_gaussians}  # fmt: skip
 
 
-def skip_counts(model) -> dict[str, int | float]:
-    """D_theta's row counters of `model` in this process and its static set now."""
-    rows, skipped = model.deform_rows, model.deform_rows_skipped
-    return {"deform_rows": rows, "deform_rows_skipped": skipped,
-            "share": skipped / max(1, rows + skipped), "static": int(model.static.sum())}
-
-
 def _motion(trainer: Phase1Trainer | None) -> MotionStrategy | None:
     """The Phase 2 motion strategy plugged into `trainer` (None: a Phase 1 trainer)."""
     plugins = [] if trainer is None else trainer.plugins
@@ -490,17 +497,12 @@ def phase1_skips(trainer: Phase1Trainer) -> dict[str, int | float]:
     """What Phase 1 skipped in this process, for each switch that is on (the `Skipped` event's
     counts): D_theta on the Gaussians (control nodes carry the motion: ``nodes``,
     ``nodes_from``, ``nodes_added``, ``nodes_removed``) or on static Gaussians
-    (`skip_counts`), pixels of the coarse iterations (``coarse_iterations``,
+    (`static_skip_counts`), pixels of the coarse iterations (``coarse_iterations``,
     ``coarse_scale``, ``pixels_saved``: a fraction), transparent Gaussians pruned after
     densification (``pruned``, ``prune_opacity``); ``gaussians`` the count now."""
     c = trainer.config
     out: dict[str, int | float] = {"gaussians": trainer.model.num_gaussians}
-    nodes = trainer.model.nodes
-    if nodes is not None:
-        out.update(nodes=nodes.count, nodes_from=c.nodes.init_after + 1, nodes_added=nodes.added,
-                   nodes_removed=nodes.removed)  # fmt: skip
-    elif c.static.enabled:
-        out.update(skip_counts(trainer.model))
+    out.update(trainer.model.motion_model.skip_counts(trainer))
     if c.coarse_iterations > 0 and c.coarse_scale < 1.0 and trainer.pixels:
         out.update(coarse_iterations=c.coarse_iterations, coarse_scale=c.coarse_scale,
                    pixels_saved=(trainer.coarse_full_pixels - trainer.coarse_pixels)

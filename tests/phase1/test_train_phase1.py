@@ -74,11 +74,11 @@ def test_static_and_learning_rate_warmups_hold_d_theta_back(tmp_path: Path) -> N
     assert torch.equal(model.deform.head.weight.detach(), head)
     train(trainer, 1)  # iteration 5: the first with D_theta, at a tenth of its rate
     assert trainer.deform_active()
-    full = trainer._decayed(cfg.lr_deform, cfg.lr_deform_final)
+    full = trainer.decayed(cfg.lr_deform, cfg.lr_deform_final)
     assert math.isclose(lr["deform"]["lr"], 0.1 * full, rel_tol=1e-9)
     assert not torch.equal(model.deform.head.weight.detach(), head)
     train(trainer, 9)  # iteration 14: the ramp is over
-    full = trainer._decayed(cfg.lr_deform, cfg.lr_deform_final)
+    full = trainer.decayed(cfg.lr_deform, cfg.lr_deform_final)
     assert math.isclose(lr["deform"]["lr"], full, rel_tol=1e-9)
-    embed = trainer._decayed(cfg.lr_embed, cfg.lr_embed_final)
+    embed = trainer.decayed(cfg.lr_embed, cfg.lr_embed_final)
     assert math.isclose(lr["embeddings"]["lr"], embed, rel_tol=1e-9)

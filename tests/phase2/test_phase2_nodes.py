@@ -66,7 +66,7 @@ def node_oracle(tmp_path_factory):
 
 def test_nodes_vote_for_their_gaussians_objects(node_oracle):
     _, model, truth, _ = node_oracle
-    labels = node_votes(model.nodes, model.means.detach(), truth, 4)
+    labels = node_votes(model.motion_model.control_points(model), model.means.detach(), truth, 4)
     near = torch.cdist(model.nodes.positions.detach(), model.means.detach()).argmin(1).numpy()
     assert (labels == truth[near]).mean() > 0.9
     assert set(np.unique(labels)) == {0, 1, 2, 3}

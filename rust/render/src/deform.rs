@@ -16,6 +16,10 @@
 use rayon::prelude::*;
 
 use crate::checkpoint::{Blend, Checkpoint, DeformMlp, Linear, Nodes};
+use sync4d_motion::{
+    linear_epilogue_forward, node_weighted_sum_forward, LinearEpilogue, LinearEpilogueOut,
+    NodeBlend, LINEAR_COLUMNS,
+};
 
 /// Gaussians deformed to one time: means N*3, unit quaternions N*4, scales N*3.
 #[derive(Debug, Clone)]
@@ -288,57 +292,91 @@ fn node_motion(p: [f32; 3], o: &[f32; 9]) -> NodeMotion {
     }
 }
 
-/// The blend weights of a Gaussian at `x0` over the nodes `index`, written to `w`: the
-/// softmax (its maximum subtracted first) of -0.5 |x0 - p_j|^2 / r_j^2, as
-/// `sync4d.phase1.nodes.blend_weights`; they sum to 1. Where no logit is finite (a Gaussian so
-/// far away that every squared distance overflows), the K nodes weigh equally instead of
-/// giving NaN.
-pub fn node_weights(nodes: &Nodes, x0: [f32; 3], index: &[u32], w: &mut [f32]) {
-    let mut max = f32::NEG_INFINITY;
-    for (wk, &j) in w.iter_mut().zip(index) {
-        let j = j as usize;
+/// The table of node values each Gaussian blends, M rows as `sync4d.phase1.nodes.blend`
+/// builds it: the linear blend's 19 columns (R row-major, T, q, dl) or the dual quaternions'
+/// 11 (q, its dual part, dl).
+fn node_table(nodes: &Nodes, offsets: &[[f32; 9]]) -> (Vec<f32>, usize) {
+    let channels = match nodes.blend {
+        Blend::Linear => LINEAR_COLUMNS,
+        Blend::DualQuaternion => 11,
+    };
+    let mut table = Vec::with_capacity(nodes.m * channels);
+    for (j, o) in offsets.iter().enumerate() {
         let p = &nodes.positions[3 * j..3 * j + 3];
-        let d = [x0[0] - p[0], x0[1] - p[1], x0[2] - p[2]];
-        let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-        let a = -0.5 * d2 * nodes.inv_sq_radii[j];
-        // NaN only from an infinite distance times a zero 1 / r^2: no weight.
-        *wk = if a.is_nan() { f32::NEG_INFINITY } else { a };
-        max = max.max(*wk);
+        let nm = node_motion([p[0], p[1], p[2]], o);
+        match nodes.blend {
+            Blend::Linear => {
+                table.extend_from_slice(&nm.r);
+                table.extend_from_slice(&nm.t);
+                table.extend_from_slice(&nm.q);
+            }
+            Blend::DualQuaternion => {
+                table.extend_from_slice(&nm.q);
+                table.extend_from_slice(&nm.dual);
+            }
+        }
+        table.extend_from_slice(&nm.dl);
     }
-    if !max.is_finite() {
-        w.fill(1.0 / w.len() as f32);
-        return;
-    }
-    let mut sum = 0.0;
-    for wk in w.iter_mut() {
-        *wk = (*wk - max).exp();
-        sum += *wk;
-    }
-    for wk in w.iter_mut() {
-        *wk /= sum;
-    }
+    (table, channels)
 }
 
-/// acc += w v.
-fn add_scaled<const L: usize>(acc: &mut [f32; L], w: f32, v: &[f32; L]) {
-    for (a, b) in acc.iter_mut().zip(v) {
-        *a += w * b;
+/// The blend weights [N, K] of the checkpoint's Gaussians on their nodes, by the node motion
+/// crate's softmax (`sync4d.phase1.nodes.blend_weights`); each row sums to 1.
+///
+/// # Panics
+/// If the nodes do not fit the Gaussians, which the checkpoint reader has checked.
+#[must_use]
+pub fn node_weights(ck: &Checkpoint, nodes: &Nodes) -> Vec<f32> {
+    let ones = vec![1.0f32; nodes.m];
+    let mut sums = vec![0.0f32; ck.n];
+    let mut w = vec![0.0f32; ck.n * nodes.k];
+    node_weighted_sum_forward(&blend_input(ck, nodes, &ones, 1), &mut sums, Some(&mut w))
+        .expect("the checkpoint reader checks the node tables");
+    w
+}
+
+fn blend_input<'a>(
+    ck: &'a Checkpoint,
+    nodes: &'a Nodes,
+    table: &'a [f32],
+    channels: usize,
+) -> NodeBlend<'a, f32, u32> {
+    NodeBlend {
+        x0: &ck.means,
+        positions: &nodes.positions,
+        inv_r2: &nodes.inv_sq_radii,
+        table,
+        index: &nodes.index,
+        neighbours: nodes.k,
+        channels,
     }
 }
 
 /// The checkpoint's Gaussians moved by the nodes, whose D_theta outputs are `offsets` (M rows
-/// of (dx, dw, dl), as [`node_offsets`] gives): parallel over Gaussians.
+/// of (dx, dw, dl), as [`node_offsets`] gives), with the node motion crate's forward, the
+/// kernels training runs (`sync4d-motion`): the softmax-weighted sum of each Gaussian's nodes'
+/// values, then the linear blend's epilogue, or the dual quaternions' normalisation.
+///
+/// # Panics
+/// If the nodes do not fit the Gaussians, which the checkpoint reader has checked.
+#[must_use]
 pub fn blend_nodes(ck: &Checkpoint, nodes: &Nodes, offsets: &[[f32; 9]]) -> Deformed {
     /// Gaussians a parallel task deforms.
     const CHUNK: usize = 256;
+    const CHECKED: &str = "the checkpoint reader checks the node tables";
     let n = ck.n;
-    let k = nodes.k;
-    let motions: Vec<NodeMotion> = offsets
-        .iter()
-        .enumerate()
-        .map(|(j, o)| {
-            let p = &nodes.positions[3 * j..3 * j + 3];
-            node_motion([p[0], p[1], p[2]], o)
+    let (table, channels) = node_table(nodes, offsets);
+    let mut b = vec![0.0f32; n * channels];
+    node_weighted_sum_forward(&blend_input(ck, nodes, &table, channels), &mut b, None)
+        .expect(CHECKED);
+    let q0: Vec<f32> = ck
+        .quats
+        .chunks_exact(4)
+        .flat_map(|q| {
+            let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+                .sqrt()
+                .max(1e-12);
+            [q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm]
         })
         .collect();
     let mut d = Deformed {
@@ -346,72 +384,47 @@ pub fn blend_nodes(ck: &Checkpoint, nodes: &Nodes, offsets: &[[f32; 9]]) -> Defo
         quats: vec![0.0; 4 * n],
         scales: vec![0.0; 3 * n],
     };
+    if nodes.blend == Blend::Linear {
+        let e = LinearEpilogue {
+            blended: &b,
+            x0: &ck.means,
+            q0: &q0,
+            log_s0: &ck.log_scales,
+        };
+        let out = LinearEpilogueOut {
+            means: &mut d.means,
+            quats: &mut d.quats,
+            scales: &mut d.scales,
+        };
+        linear_epilogue_forward(&e, out).expect(CHECKED);
+        return d;
+    }
     d.means
         .par_chunks_mut(3 * CHUNK)
         .zip(d.quats.par_chunks_mut(4 * CHUNK))
         .zip(d.scales.par_chunks_mut(3 * CHUNK))
         .enumerate()
         .for_each(|(c, ((m, q), s))| {
-            let mut w = vec![0.0f32; k];
             for l in 0..m.len() / 3 {
                 let i = c * CHUNK + l;
+                let row = &b[channels * i..channels * (i + 1)];
                 let x0 = [ck.means[3 * i], ck.means[3 * i + 1], ck.means[3 * i + 2]];
-                let q0 = normalize([
-                    ck.quats[4 * i],
-                    ck.quats[4 * i + 1],
-                    ck.quats[4 * i + 2],
-                    ck.quats[4 * i + 3],
+                let norm = (row[0] * row[0] + row[1] * row[1] + row[2] * row[2] + row[3] * row[3])
+                    .sqrt()
+                    .max(1e-12);
+                let r = [row[0] / norm, row[1] / norm, row[2] / norm, row[3] / norm];
+                let dd = [row[4] / norm, row[5] / norm, row[6] / norm, row[7] / norm];
+                let rx = mat_vec(&quat_to_matrix(r), x0);
+                let tr = quat_mul(dd, [r[0], -r[1], -r[2], -r[3]]);
+                m[3 * l..3 * l + 3].copy_from_slice(&[
+                    rx[0] + 2.0 * tr[1],
+                    rx[1] + 2.0 * tr[2],
+                    rx[2] + 2.0 * tr[3],
                 ]);
-                let index = &nodes.index[k * i..k * (i + 1)];
-                node_weights(nodes, x0, index, &mut w);
-                let mut dl = [0.0f32; 3];
-                let (x, qt) = match nodes.blend {
-                    Blend::Linear => {
-                        // x = (sum_j w_j R_j) x0 + sum_j w_j T_j, as Python blends it.
-                        let (mut a, mut b, mut qb) = ([0.0f32; 9], [0.0f32; 3], [0.0f32; 4]);
-                        for (&wj, &j) in w.iter().zip(index) {
-                            let nm = &motions[j as usize];
-                            add_scaled(&mut a, wj, &nm.r);
-                            add_scaled(&mut b, wj, &nm.t);
-                            add_scaled(&mut qb, wj, &nm.q);
-                            add_scaled(&mut dl, wj, &nm.dl);
-                        }
-                        let a = [[a[0], a[1], a[2]], [a[3], a[4], a[5]], [a[6], a[7], a[8]]];
-                        let ax = mat_vec(&a, x0);
-                        (
-                            [ax[0] + b[0], ax[1] + b[1], ax[2] + b[2]],
-                            normalize(quat_mul(qb, q0)),
-                        )
-                    }
-                    Blend::DualQuaternion => {
-                        let (mut br, mut bd) = ([0.0f32; 4], [0.0f32; 4]);
-                        for (&wj, &j) in w.iter().zip(index) {
-                            let nm = &motions[j as usize];
-                            add_scaled(&mut br, wj, &nm.q);
-                            add_scaled(&mut bd, wj, &nm.dual);
-                            add_scaled(&mut dl, wj, &nm.dl);
-                        }
-                        let norm = (br[0] * br[0] + br[1] * br[1] + br[2] * br[2] + br[3] * br[3])
-                            .sqrt()
-                            .max(1e-12);
-                        let r = [br[0] / norm, br[1] / norm, br[2] / norm, br[3] / norm];
-                        let dd = [bd[0] / norm, bd[1] / norm, bd[2] / norm, bd[3] / norm];
-                        let rx = mat_vec(&quat_to_matrix(r), x0);
-                        let tr = quat_mul(dd, [r[0], -r[1], -r[2], -r[3]]);
-                        (
-                            [
-                                rx[0] + 2.0 * tr[1],
-                                rx[1] + 2.0 * tr[2],
-                                rx[2] + 2.0 * tr[3],
-                            ],
-                            normalize(quat_mul(r, q0)),
-                        )
-                    }
-                };
-                m[3 * l..3 * l + 3].copy_from_slice(&x);
-                q[4 * l..4 * l + 4].copy_from_slice(&qt);
+                let q0i = [q0[4 * i], q0[4 * i + 1], q0[4 * i + 2], q0[4 * i + 3]];
+                q[4 * l..4 * l + 4].copy_from_slice(&normalize(quat_mul(r, q0i)));
                 for a in 0..3 {
-                    s[3 * l + a] = (ck.log_scales[3 * i + a] + dl[a]).exp();
+                    s[3 * l + a] = (ck.log_scales[3 * i + a] + row[8 + a]).exp();
                 }
             }
         });
@@ -679,40 +692,59 @@ mod tests {
 
     #[test]
     fn weights_sum_to_one_and_survive_far_gaussians() {
+        // One Gaussian per case, each blending all 5 nodes.
+        let cases = |nodes: &Nodes| -> Vec<[f32; 3]> {
+            vec![
+                [0.1, -0.2, 0.3],
+                [30.0, 0.0, 0.0],
+                [1e6, -1e6, 1e6],
+                [1e20, 1e20, -1e20], // squared distances overflow to inf
+                nodes.positions[3..6].try_into().unwrap(),
+                [0.5, 0.5, 0.5],
+            ]
+        };
+        let weights = |ck: &Checkpoint, xs: &[[f32; 3]]| -> Vec<f32> {
+            let mut ck = ck.clone();
+            ck.n = xs.len();
+            ck.means = xs.iter().flatten().copied().collect();
+            let nodes = ck.nodes.as_mut().unwrap();
+            nodes.index = (0..xs.len() * 5).map(|i| (i % 5) as u32).collect();
+            let nodes = ck.nodes.clone().unwrap();
+            node_weights(&ck, &nodes)
+        };
         let ck = random_model(10, 5, 5, Blend::Linear, [0.0; 9]);
-        let nodes = ck.nodes.as_ref().unwrap();
-        let index = [0, 1, 2, 3, 4];
-        let mut w = [0.0f32; 5];
-        for x0 in [
-            [0.1, -0.2, 0.3],
-            [30.0, 0.0, 0.0],
-            [1e6, -1e6, 1e6],
-            [1e20, 1e20, -1e20], // squared distances overflow to inf
-            nodes.positions[3..6].try_into().unwrap(),
-        ] {
-            node_weights(nodes, x0, &index, &mut w);
-            assert!(w.iter().all(|v| v.is_finite() && *v >= 0.0), "{x0:?} {w:?}");
-            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6, "{x0:?} {w:?}");
+        let xs = cases(ck.nodes.as_ref().unwrap());
+        let w = weights(&ck, &xs);
+        for (x0, row) in xs.iter().zip(w.chunks(5)) {
+            assert!(
+                row.iter().all(|v| v.is_finite() && *v >= 0.0),
+                "{x0:?} {row:?}"
+            );
+            assert!(
+                (row.iter().sum::<f32>() - 1.0).abs() < 1e-6,
+                "{x0:?} {row:?}"
+            );
         }
         // The nearest node takes all the weight far away.
-        node_weights(nodes, [1e6, -1e6, 1e6], &index, &mut w);
-        assert!(w.iter().any(|v| *v > 0.999));
-        // Radii at Python's clamp (1 / r^2 = 1e20), with a Gaussian on a node and one off
-        // all of them; and radii so large that 1 / r^2 is 0, with the Gaussian infinitely far.
-        let mut tiny = ck.clone();
-        tiny.nodes.as_mut().unwrap().inv_sq_radii = vec![1e20; 5];
-        let nodes = tiny.nodes.as_ref().unwrap();
-        for x0 in [nodes.positions[6..9].try_into().unwrap(), [0.5, 0.5, 0.5]] {
-            node_weights(nodes, x0, &index, &mut w);
-            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6, "{x0:?} {w:?}");
-        }
-        let mut huge = ck.clone();
-        huge.nodes.as_mut().unwrap().inv_sq_radii = vec![0.0, 0.0, 1.0, 1.0, 1.0];
-        let nodes = huge.nodes.as_ref().unwrap();
-        for x0 in [[1e20, 1e20, -1e20], [0.5, 0.5, 0.5]] {
-            node_weights(nodes, x0, &index, &mut w);
-            assert!(w.iter().all(|v| v.is_finite()), "{x0:?} {w:?}");
-            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6, "{x0:?} {w:?}");
+        assert!(w[10..15].iter().any(|v| *v > 0.999));
+        // Radii at Python's clamp (1 / r^2 = 1e20), and radii so large that 1 / r^2 is 0.
+        // The infinitely far Gaussian is left out of the second: 0 * inf is NaN in training's
+        // forward (and in torch's `blend_weights`), which the renderer now shares.
+        for (radii, far) in [
+            (vec![1e20; 5], true),
+            (vec![0.0, 0.0, 1.0, 1.0, 1.0], false),
+        ] {
+            let mut other = ck.clone();
+            other.nodes.as_mut().unwrap().inv_sq_radii = radii;
+            let xs: Vec<[f32; 3]> = xs.iter().copied().filter(|x| far || x[0] < 1e19).collect();
+            let w = weights(&other, &xs);
+            for (x0, row) in xs.iter().zip(w.chunks(5)) {
+                assert!(row.iter().all(|v| v.is_finite()), "{x0:?} {row:?}");
+                assert!(
+                    (row.iter().sum::<f32>() - 1.0).abs() < 1e-6,
+                    "{x0:?} {row:?}"
+                );
+            }
         }
         // And the whole deformation stays finite with far Gaussians in it, for both blends.
         for blend in [Blend::Linear, Blend::DualQuaternion] {
