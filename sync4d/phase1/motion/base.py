@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar
@@ -37,7 +38,7 @@ class ControlPoints:
     offset: Callable[[float], Tensor]
 
 
-class Motion:
+class Motion(ABC):
     """What moves Phase 1's Gaussians: every hook does what the per-Gaussian model needs
     (nothing) unless overridden. Model hooks get the model; trainer hooks get the trainer,
     whose public names (`iteration`, `config`, `optimizer`, `model`, `extent`, `densifier`)
@@ -56,16 +57,17 @@ class Motion:
         ``"motion"`` and `DeformableGaussians.motion`."""
         return self.name
 
+    @abstractmethod
     def deformed(self, model: DeformableGaussians, t: float, q0: Tensor
                  ) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
         """The Gaussians' means [N, 3], unit quaternions [N, 4] (`q0`: the canonical ones,
-        normalised) and scales [N, 3] at time `t`."""
-        raise NotImplementedError
+        normalised) and scales [N, 3] at time `t`. Every motion defines it."""
 
     def network(self, model: DeformableGaussians, t: float) -> tuple[Tensor, ...]:
-        """D_theta's outputs alone at `t` on the rows this motion evaluates it on (`bench
-        step`'s D_theta column)."""
-        raise NotImplementedError
+        """The motion's learnt function alone at `t` (`bench step`'s D_theta column): D_theta
+        on the rows the motion evaluates it on; by default the whole deformed state."""
+        quats = model.quats / model.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        return self.deformed(model, t, quats)
 
     def modules(self) -> dict[str, nn.Module]:
         """The modules holding this motion's parameters, by the attribute name the model
@@ -86,10 +88,12 @@ class Motion:
     def load(self, model: DeformableGaussians, tensors: dict[str, Tensor], meta: dict) -> None:
         """Load what `state` wrote, for `model` (its Gaussians loaded). KeyError for a missing
         tensor or setting, ValueError for one that does not fit."""
+        return None  # a hook: nothing unless a motion overrides it
 
     def rows_changed(self, fn: Callable[[str, Tensor, bool], Tensor]) -> None:
         """Densification replaced the Gaussian rows by `fn(name, tensor, is_state)`: carry
         per-Gaussian tensors of the motion through it."""
+        return None  # a hook: nothing unless a motion overrides it
 
     def control_points(self, model: DeformableGaussians) -> ControlPoints | None:
         """The points that carry the motion (None: every Gaussian carries its own)."""
@@ -116,10 +120,12 @@ class Motion:
     def begin_step(self, trainer: Phase1Trainer) -> None:
         """At the start of an iteration (`trainer.iteration` already counts it): a stage
         change (nodes sampled, their groups added to `trainer.optimizer`)."""
+        return None  # a hook: nothing unless a motion overrides it
 
     def update_learning_rates(self, trainer: Phase1Trainer, ramp: float) -> None:
         """Set this iteration's rates of the groups `param_groups` added (`ramp`: D_theta's
         warm-up factor)."""
+        return None  # a hook: nothing unless a motion overrides it
 
     def regulariser(self, trainer: Phase1Trainer, t: float) -> Tensor | None:
         """A term added to the loss for a frame at time `t` (weight included), while D_theta
@@ -128,6 +134,7 @@ class Motion:
 
     def after_optimizer_step(self, trainer: Phase1Trainer) -> None:
         """After Adam's step, before densification."""
+        return None  # a hook: nothing unless a motion overrides it
 
     def step_stats(self, trainer: Phase1Trainer) -> dict[str, float]:
         """Scalars of the step's report."""
@@ -152,6 +159,7 @@ class Motion:
 
     def to_final_stage(self, trainer: Phase1Trainer) -> None:
         """Move to the motion's trained stage now (a benchmark of its step)."""
+        return None  # a hook: nothing unless a motion overrides it
 
 
 #: Registered motions by name (`register_motion`).
