@@ -270,6 +270,21 @@ fn num(meta: &Value, key: &str, path: &Path) -> Result<f64, CheckpointError> {
         .ok_or_else(|| err(path, format!("metadata lacks the number '{key}'")))
 }
 
+/// `deform_config.key`, a finite number > 0, or `default` when the checkpoint has none.
+fn positive_or(dc: &Value, key: &str, default: f32, path: &Path) -> Result<f32, CheckpointError> {
+    if dc.get(key).is_none() {
+        return Ok(default);
+    }
+    let v = num(dc, key, path)?;
+    if !(v.is_finite() && v > 0.0) {
+        return Err(err(
+            path,
+            format!("deform_config.{key} must be finite and > 0, got {v}"),
+        ));
+    }
+    Ok(v as f32)
+}
+
 fn camera_record(v: &Value, path: &Path) -> Result<CameraRecord, CheckpointError> {
     let bad = || err(path, format!("malformed camera record {v}"));
     let f = |k: &str| v.get(k).and_then(Value::as_f64).ok_or_else(bad);
@@ -451,32 +466,10 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         v as usize
     };
 
-    // Absent in checkpoints written before the setting existed: the raw position.
-    let position_unit = if dc.get("position_unit").is_none() {
-        1.0
-    } else {
-        let v = num(dc, "position_unit", path)?;
-        if !(v.is_finite() && v > 0.0) {
-            return Err(err(
-                path,
-                format!("deform_config.position_unit must be finite and > 0, got {v}"),
-            ));
-        }
-        v as f32
-    };
-    // Absent in checkpoints written before the setting existed: the paper's pi.
-    let time_frequency = if dc.get("time_frequency").is_none() {
-        std::f32::consts::PI
-    } else {
-        let v = num(dc, "time_frequency", path)?;
-        if !(v.is_finite() && v > 0.0) {
-            return Err(err(
-                path,
-                format!("deform_config.time_frequency must be finite and > 0, got {v}"),
-            ));
-        }
-        v as f32
-    };
+    // Absent in checkpoints written before each setting existed: the raw position, the
+    // paper's pi.
+    let position_unit = positive_or(dc, "position_unit", 1.0, path)?;
+    let time_frequency = positive_or(dc, "time_frequency", std::f32::consts::PI, path)?;
     // Absent in checkpoints written before node motion existed: D_theta moves each Gaussian.
     let motion = match meta.get("motion") {
         None | Some(Value::Null) => "gaussians",
