@@ -551,7 +551,7 @@ def _variant_configs(args: argparse.Namespace, default_cfg: str | None
 
 def main(args: argparse.Namespace) -> int:
     from sync4d.data import DatasetError
-    from sync4d.files import WriteFailed, check_writable, write_text_atomic
+    from sync4d.files import RunBusy, WriteFailed, check_writable, write_text_atomic
     from sync4d.pipeline import FitInterrupted, resolve_data
 
     if args.runs:
@@ -595,6 +595,9 @@ def main(args: argparse.Namespace) -> int:
                 rows += scene_rows
     except (ConfigError, DatasetError, WriteFailed) as e:
         print(f"bench fit: {e}", file=sys.stderr)
+        return 2
+    except RunBusy as e:  # another bench's --keep-runs folder
+        print(f"bench fit: {e}; or give each bench its own --keep-runs", file=sys.stderr)
         return 2
     except FitInterrupted:
         print("bench fit: interrupted; no results written", file=sys.stderr)

@@ -61,6 +61,7 @@ __all__ = [
     "NodeMotion",
     "arap_loss",
     "blend",
+    "strain_loss",
     "blend_weights",
     "densify_nodes",
     "farthest_point_sample",
@@ -95,8 +96,14 @@ class NodeConfig:
     refresh_every: int = ranged(100, 1, scales=10)
     #: Weight of the ARAP loss between neighbouring nodes over a pair of times.
     arap_weight: float = ranged(1e-3, 0.0)
-    #: Graph neighbours of each node in the ARAP loss.
+    #: The ARAP weight falls linearly from `arap_weight` when the coarse stage ends to zero at
+    #: this iteration and stays zero after (scaled with `fit --iters`); 0 keeps it constant.
+    arap_until: int = ranged(0, 0, scales=0)
+    #: Graph neighbours of each node in the ARAP and strain losses.
     arap_neighbours: int = ranged(8, 1, 64)
+    #: Weight of the strain prior (`strain_loss`): each graph edge's length at the frame's
+    #: time against its canonical length, relative to that length; 0 off.
+    strain_weight: float = ranged(0.0, 0.0)
     #: Adam rate of the node positions, times the scene extent (decays like the means').
     lr_position: float = ranged(1.6e-4, 0.0, lo_open=True)
     #: Adam rate of the nodes' log-radii.
@@ -280,6 +287,23 @@ def arap_loss(positions: Tensor, edges: Tensor, motion_a: tuple[Tensor, Tensor, 
         canon = (positions[edges] - positions.unsqueeze(1)).detach()
         scale = float((canon**2).sum(-1).mean())
     return ((eb - pred) ** 2).sum(-1).mean() / max(scale, 1e-30)
+
+
+def strain_loss(positions: Tensor, edges: Tensor, motion: tuple[Tensor, Tensor, Tensor]
+                ) -> Tensor:  # fmt: skip
+    """Strain prior of the node graph at one time: the mean over nodes j and their graph
+    neighbours k (`edges` [M, E]) of ((|y_k - y_j| - L_jk) / L_jk)^2, y = p + dx at the time
+    of `motion` (`node_transforms`' (q, dx, dl)), L_jk = |p_k - p_j| the canonical length
+    (the divisor detached). Each edge is normalised by its own length, so short edges between
+    touching parts count as much as long ones; scale-free. Rotations are free (unlike
+    `arap_loss`)."""
+    _, dx, _ = motion
+    y = positions + dx
+    length = (y[edges] - y.unsqueeze(1)).norm(dim=-1)  # [M, E]
+    canon = (positions[edges] - positions.unsqueeze(1)).norm(dim=-1)
+    divisor = canon.detach()
+    floor = 1e-6 * max(float(divisor.max()) if divisor.numel() else 0.0, 1e-12)
+    return (((length - canon) / divisor.clamp_min(floor)) ** 2).mean()
 
 
 class NodeMotion(nn.Module):

@@ -26,6 +26,7 @@ from sync4d.phase1.nodes import (
     densify_nodes,
     farthest_point_sample,
     knn,
+    strain_loss,
 )
 from sync4d.phase1.trainer import Phase1Trainer
 
@@ -164,6 +165,38 @@ def test_arap_is_zero_for_rigid_motion_and_positive_otherwise() -> None:
     big = (bent[0], bent[1] * 1e3, bent[2])
     aa = (a[0], a[1] * 1e3, a[2])
     torch.testing.assert_close(arap_loss(pos * 1e3, edges, aa, big), arap_loss(pos, edges, a, bent))
+
+
+def test_strain_is_zero_for_rigid_motion_scale_free_and_matches_finite_differences() -> None:
+    g = torch.Generator().manual_seed(2)
+    pos = torch.randn(12, 3, generator=g, dtype=F64)
+    edges = knn(pos, pos, 3, exclude_self=True)
+    rv = torch.tensor([0.4, -0.2, 0.9], dtype=F64)
+    dx = ((rotvec_to_matrix(rv) - torch.eye(3, dtype=F64)) @ pos.unsqueeze(-1)).squeeze(-1) + 1.5
+    q = axis_angle_to_quat(torch.zeros(12, 3, dtype=F64))  # rotations do not enter the strain
+    assert float(strain_loss(pos, edges, (q, dx, dx * 0))) < 1e-20
+    # Every edge stretched by 10 %: strain 0.01 whatever the edge's length or the scene's size.
+    for scale in (1.0, 1e-3, 1e3):
+        p = pos * scale
+        torch.testing.assert_close(strain_loss(p, edges, (q, 0.1 * p, dx * 0)),
+                                   torch.tensor(0.01, dtype=F64))  # fmt: skip
+    dxr = (torch.randn(12, 3, generator=g, dtype=F64) * 0.2).requires_grad_()
+    assert torch.autograd.gradcheck(lambda d: strain_loss(pos, edges, (q, d, d * 0)), (dxr,))
+
+
+def test_arap_weight_decays_to_zero_at_arap_until() -> None:
+    from types import SimpleNamespace
+
+    from sync4d.phase1.motion.control_nodes import NodesMotion
+
+    def weight(it: int, until: int) -> float:
+        config = SimpleNamespace(nodes=NodeConfig(arap_weight=1e-3, init_after=1000,
+                                                  arap_until=until))  # fmt: skip
+        return NodesMotion().arap_weight(SimpleNamespace(config=config, iteration=it))
+
+    assert weight(5000, 0) == 1e-3
+    assert weight(1000, 3000) == 1e-3 and weight(3000, 3000) == 0.0 and weight(9000, 3000) == 0.0
+    assert abs(weight(2000, 3000) - 5e-4) < 1e-15
 
 
 def test_farthest_point_sampling_spreads_and_knn_orders() -> None:

@@ -135,6 +135,27 @@ def test_a_second_writer_is_told_who_holds_the_run(data: Path, tmp_path: Path, c
     assert main(["fit", str(data), "--out", str(run), "--resume", "--iters", "5"]) == 0
 
 
+def test_two_benches_sharing_keep_runs_get_one_line(data: Path, tmp_path: Path, capsys) -> None:
+    """A bench whose --keep-runs budget folder another process holds ends in one line naming
+    the holder and the fix, not a traceback."""
+    keep = tmp_path / "keep"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from sync4d.files import RunLock; "
+         "RunLock(sys.argv[1], 'fit').acquire(); print('held', flush=True); time.sleep(120)",
+         str(keep / "s1.0_c1000000_i3")],
+        stdout=subprocess.PIPE, text=True, env=ENV,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        assert main(["bench", "fit", str(data), "--iters", "3", "--out", str(tmp_path / "b.json"),
+                     "--keep-runs", str(keep), *TINY]) == 2  # fmt: skip
+    finally:
+        holder.kill()
+        holder.wait()
+    err = capsys.readouterr().err
+    assert f"(pid {holder.pid}" in err and "own --keep-runs" in err and "Traceback" not in err
+
+
 # 4. A second Ctrl-C (and a hang-up) during a save waits for the save.
 def test_signals_during_a_save_wait_for_it(data: Path, tmp_path: Path, monkeypatch, capsys) -> None:
     run = tmp_path / "run"

@@ -19,7 +19,14 @@ from sync4d.phase1.motion.per_gaussian import (
     per_gaussian_network,
     static_skip_counts,
 )
-from sync4d.phase1.nodes import NodeConfig, NodeMotion, arap_loss, blend_weights, densify_nodes
+from sync4d.phase1.nodes import (
+    NodeConfig,
+    NodeMotion,
+    arap_loss,
+    blend_weights,
+    densify_nodes,
+    strain_loss,
+)
 
 if TYPE_CHECKING:
     from sync4d.phase1.config import Phase1Config
@@ -151,22 +158,40 @@ class NodesMotion(Motion):
                 final = c.nodes.lr_position * c.lr_means_final / c.lr_means
                 g["lr"] = trainer.decayed(c.nodes.lr_position, final) * trainer.extent
 
+    def arap_weight(self, trainer: Phase1Trainer) -> float:
+        """`nodes.arap_weight`, falling linearly to zero from the coarse stage's end to
+        `nodes.arap_until` when that is set."""
+        c = trainer.config.nodes
+        if c.arap_until <= 0:
+            return c.arap_weight
+        start = c.init_after
+        left = (c.arap_until - trainer.iteration) / max(1, c.arap_until - start)
+        return c.arap_weight * min(1.0, max(0.0, left))
+
     def regulariser(self, trainer: Phase1Trainer, t: float) -> Tensor | None:
-        """`nodes.arap_weight` times the ARAP loss between the node motion at the frame's
-        time `t` (the render's) and at a second training time drawn from a generator seeded
-        by the iteration (so a resumed run draws the same)."""
+        """The node graph's priors: the ARAP loss (`arap_weight`) between the node motion at
+        the frame's time `t` (the render's) and at a second training time drawn from a
+        generator seeded by the iteration (so a resumed run draws the same), plus
+        `nodes.strain_weight` times the strain prior at `t`."""
         nodes, c = self.nodes, trainer.config
-        if nodes is None or c.nodes.arap_weight <= 0 or nodes.last_motion is None:
+        if nodes is None or nodes.last_motion is None:
             return None
-        times = trainer.train_times
-        t2 = times[random.Random(c.seed * 1_000_003 + trainer.iteration)
-                   .randrange(len(times))]  # fmt: skip
-        if len(times) > 1 and t2 == t:
-            t2 = times[(times.index(t2) + 1) % len(times)]
-        arap = arap_loss(nodes.positions, nodes.edges, nodes.last_motion,
-                         nodes.motion(trainer.model.deform, t2))  # fmt: skip
-        self._last_arap = float(arap.detach())
-        return c.nodes.arap_weight * arap
+        terms: list[Tensor] = []
+        weight = self.arap_weight(trainer)
+        if weight > 0:
+            times = trainer.train_times
+            t2 = times[random.Random(c.seed * 1_000_003 + trainer.iteration)
+                       .randrange(len(times))]  # fmt: skip
+            if len(times) > 1 and t2 == t:
+                t2 = times[(times.index(t2) + 1) % len(times)]
+            arap = arap_loss(nodes.positions, nodes.edges, nodes.last_motion,
+                             nodes.motion(trainer.model.deform, t2))  # fmt: skip
+            self._last_arap = float(arap.detach())
+            terms.append(weight * arap)
+        if c.nodes.strain_weight > 0:
+            strain = strain_loss(nodes.positions, nodes.edges, nodes.last_motion)
+            terms.append(c.nodes.strain_weight * strain)
+        return sum(terms[1:], terms[0]) if terms else None
 
     def last_regulariser(self) -> float | None:
         return self._last_arap
