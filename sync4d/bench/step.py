@@ -12,8 +12,11 @@ it times `steps` whole training steps, then the same number of the motion alone 
 and, for nodes, the blend: forward and backward of the deformed means, rotations and scales
 at a training frame's time), of D_theta alone (on the nodes, or on every Gaussian) and of
 the rasterizer alone (SH colours, projection,
-compositing; forward and backward). The shares are each part's median over the step's
-median. Prints a table and writes a JSON with the date, machine and threads.
+compositing; forward and backward), of the photometric loss alone (L1 and D-SSIM of a
+render against its target, forward and backward) and of the optimizer's update alone (Adam
+over every parameter group, with the gradients a step leaves). The shares are each part's
+median over the step's median; the rest of a step is the densification statistics, the
+watchdog's checks and Python. Prints a table and writes a JSON with the date, machine and threads.
 """
 
 from __future__ import annotations
@@ -69,6 +72,7 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
     from sync4d.config import apply_overrides
     from sync4d.phase1.densify import DensifyConfig
     from sync4d.phase1.gaussians import DeformableGaussians
+    from sync4d.phase1.losses import photometric_loss
     from sync4d.phase1.motion import motion_for
     from sync4d.phase1.trainer import FinishedSchedule, Phase1Trainer
     from sync4d.pipeline.record import read_record, recorded_config
@@ -99,9 +103,8 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
         trainer.step()  # warm-up: caches the first image, allocates
         trainers[name] = trainer
     frames = scene.train
-    timings: dict[str, dict[str, list[float]]] = {
-        n: {"step": [], "motion": [], "d_theta": [], "raster": []} for n in variants
-    }
+    parts = ("step", "motion", "d_theta", "raster", "loss", "optimizer")
+    timings: dict[str, dict[str, list[float]]] = {n: {k: [] for k in parts} for n in variants}
     for r in range(rounds):
         for name, trainer in trainers.items():
             model = trainer.model
@@ -134,13 +137,33 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
                 img.sum().backward()
                 timings[name]["raster"].append(time.perf_counter() - t0)
                 model.zero_grad(set_to_none=True)
+            c = trainer.config
+            for k in range(steps):
+                frame = frames[(r * steps + k) % len(frames)]
+                with torch.no_grad():
+                    img = model.render(frame.camera, frame.time, background=trainer.background,
+                                       threads=threads).features  # fmt: skip
+                img.requires_grad_()
+                target = trainer.target(0, frames[0], trainer.background)
+                t0 = time.perf_counter()
+                photometric_loss(img, target, c.lambda_l1, c.lambda_dssim,
+                                 threads=threads).backward()  # fmt: skip
+                timings[name]["loss"].append(time.perf_counter() - t0)
+            for k in range(steps):  # the update alone, on the gradients of a render
+                frame = frames[(r * steps + k) % len(frames)]
+                out = model.render(frame.camera, frame.time, background=trainer.background,
+                                   threads=threads)  # fmt: skip
+                out.features.sum().backward()
+                t0 = time.perf_counter()
+                trainer.optimizer.step()
+                timings[name]["optimizer"].append(time.perf_counter() - t0)
+                trainer.optimizer.zero_grad(set_to_none=True)
         print(f"bench step: round {r + 1}/{rounds} done", file=sys.stderr)
     rows = []
     base = None
     for name, trainer in trainers.items():
         t = timings[name]
-        step, motion, dth, rast = (_median_ms(t[k]) for k in ("step", "motion", "d_theta",
-                                                                 "raster"))  # fmt: skip
+        step, motion, dth, rast, loss, opt = (_median_ms(t[k]) for k in parts)
         base = base or step
         rows.append({
             "variant": name, "overrides": variants[name],
@@ -148,8 +171,10 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
             "gaussians": trainer.model.num_gaussians,
             "nodes": trainer.model.motion_model.counts().get("nodes"),
             "step_ms": step, "motion_ms": motion, "d_theta_ms": dth, "raster_ms": rast,
+            "loss_ms": loss, "optimizer_ms": opt,
             "motion_share": motion / step, "d_theta_share": dth / step,
-            "raster_share": rast / step,
+            "raster_share": rast / step, "loss_share": loss / step,
+            "optimizer_share": opt / step,
             "speedup": base / step, "raw_s": t,
         })  # fmt: skip
     return {
@@ -184,13 +209,16 @@ def main(args: argparse.Namespace) -> int:
         print(f"bench step: {e}", file=sys.stderr)
         return 2
     table = [["variant", "motion", "gaussians", "nodes", "step ms", "motion ms", "share",
-              "D_theta ms", "share", "raster ms", "share", "speed-up"]]  # fmt: skip
+              "D_theta ms", "share", "raster ms", "share", "loss ms", "share", "Adam ms",
+              "share", "speed-up"]]  # fmt: skip
     for r in result["rows"]:
         table.append([r["variant"], r["motion_model"], f"{r['gaussians']:,}",
                       "-" if r["nodes"] is None else str(r["nodes"]), f"{r['step_ms']:.1f}",
                       f"{r['motion_ms']:.1f}", f"{100 * r['motion_share']:.0f} %",
                       f"{r['d_theta_ms']:.1f}", f"{100 * r['d_theta_share']:.1f} %",
                       f"{r['raster_ms']:.1f}", f"{100 * r['raster_share']:.0f} %",
+                      f"{r['loss_ms']:.1f}", f"{100 * r['loss_share']:.0f} %",
+                      f"{r['optimizer_ms']:.1f}", f"{100 * r['optimizer_share']:.0f} %",
                       f"{r['speedup']:.2f}x"])  # fmt: skip
     print(align_table(table[0], table[1:]))
     out = Path(args.out)

@@ -311,6 +311,9 @@ def test_bench_step_times_both_motion_models(data: Path, tmp_path: Path, capsys)
     assert rows["nodes"]["gaussians"] == rows["gaussians"]["gaussians"]
     for r in rows.values():
         assert len(r["raw_s"]["step"]) == 2 and 0 < r["motion_share"] < 1
+        for part in ("loss", "optimizer"):  # timed apart from the whole step
+            assert len(r["raw_s"][part]) == 2 and r[f"{part}_ms"] > 0
+            assert 0 < r[f"{part}_share"] < 1
     assert "speed-up" in capsys.readouterr().out
     assert main(["bench", "step", str(run), "--variant", "x:phase1.motion", "--out",
                  str(out)]) == 2  # fmt: skip
