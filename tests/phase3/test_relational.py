@@ -132,6 +132,45 @@ def test_plans_of_each_form(bb, text, expected):
     assert _plan(bb, text).startswith(expected)
 
 
+def test_a_form_added_in_one_class_and_one_row_is_read_evaluated_and_scored(bb, tmp_path):
+    """A toy form (the object whose atom holds for the most frames, claimed for "fastest"
+    before `Extreme`): one class and one `register_form` row; the parser, the evaluation and
+    the question-file check then know it."""
+    from sync4d.phase3.evaluation.relational_eval import read_relational
+    from sync4d.phase3.relational import FORMS, Form, Selected, answer_relational, register_form
+
+    class MostFrames(Form):
+        name, order = "toy-most-frames", 5
+
+        def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+            if r.extreme != ("speed", "max"):
+                return None
+            return Plan(self.name, subject, relation, names=names)
+
+        def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+            return f"most-frames({inner}) {over}"
+
+        def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+            frames = {k: float(act[k].sum()) for k in plan.subject.objects}
+            order = sorted(frames, key=lambda k: -frames[k])
+            return Selected(order, {k: eps[k] for k in order}, None, frames)
+
+    register_form(MostFrames)
+    try:
+        field, cache = bb
+        ans = answer_relational(field, "which ball falls the fastest", cache, Phase3Config())
+        assert ans is not None and ans["form"] == "toy-most-frames"
+        assert ans["plan"].startswith("most-frames(falling) over {")
+        path = tmp_path / "q.json"
+        path.write_text(json.dumps({"kind": "relational", "questions": [
+            {"question": "which ball falls the fastest", "form": "toy-most-frames",
+             "object": "red ball", "times": [[0.0, 0.5]]}]}))  # fmt: skip
+        assert read_relational(path, NAMES)[0]["form"] == "toy-most-frames"
+    finally:
+        FORMS.pop("toy-most-frames")
+    assert _plan(bb, "which ball falls the fastest").startswith("max(speed, falling) over {")
+
+
 def test_a_paraphrased_atom_reads_through_the_encoder(bb):
     # no word of these is an atom phrase: the encoder relates them to one
     assert _plan(bb, "which ball strikes the floor first").startswith(

@@ -1,0 +1,193 @@
+"""What the operators read: per object and frame, the height, the speed and each atom's
+activation (`Timeline`), the clause's frames (`clause_active`), the relation between two
+clauses (`relate`), and the episodes and peaks the forms select from. The field's own
+timeline (M_phi's motion, the motion predicates, ground contact) is `field_timeline`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sync4d.phase3 import motion_phrases as mp
+from sync4d.phase3.activation import intervals
+from sync4d.phase3.relational.words import EVENT_WINDOW, FLAT
+
+if TYPE_CHECKING:
+    from sync4d.phase3.relational.plan import Atom, Clause
+    from sync4d.phase3.store import Field
+
+__all__ = ["Timeline", "clause_active", "episodes", "field_timeline", "ground_contact",
+           "peak_run", "rebounds", "relate"]  # fmt: skip
+
+
+@dataclass
+class Timeline:
+    """What the operators read, per object k and frame f: `times` [T], `height` and `speed`
+    [K, T], and `activation(atom, k)` -> bool [T] of an atom (set by the caller: the field's
+    predicates, or the true states of an evaluation set)."""
+
+    times: np.ndarray
+    height: np.ndarray
+    speed: np.ndarray
+    activation: object  # Callable[[Atom], np.ndarray [K, T]]
+    #: Gaps shorter than this many frames inside a clause's episodes are closed (an episode
+    #: is not two because a slow motion dips under a threshold for a frame or two).
+    merge: int = 0
+
+    def onset_frames(self) -> int:
+        """The first frame an onset can be at: a state needs to be absent for `merge`
+        frames (the shortest state) before it begins, so an episode that starts earlier was
+        under way when the clip began (at least 1: frame 0 is never an onset)."""
+        return max(1, self.merge)
+
+    def window(self) -> int:
+        """Frames each side of an instantaneous event (`EVENT_WINDOW`, at least 1)."""
+        dt = float(np.median(np.diff(self.times))) if len(self.times) > 1 else 1.0
+        return max(1, int(round(EVENT_WINDOW / max(dt, 1e-9))))
+
+
+def episodes(row: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of true frames of `row` [T], inclusive (start, end)."""
+    return intervals(np.asarray(row, bool))
+
+
+def clause_active(c: Clause, tl: Timeline) -> np.ndarray:
+    """Frames [K, T] where clause `c` holds: its atoms (AND), negated when it says so, gaps
+    shorter than `tl.merge` closed."""
+    k, t = tl.height.shape
+    act = np.ones((k, t), bool)
+    for a in c.atoms:
+        act &= np.asarray(tl.activation(a), bool)
+    act = ~act if c.negated else act
+    for row in act:
+        eps = episodes(row)
+        for (_, e), (s, _) in zip(eps, eps[1:], strict=False):
+            if s - e - 1 < tl.merge:
+                row[e:s] = True
+    return act
+
+
+def relate(a: np.ndarray, b: np.ndarray, word: str, lead: int = 1) -> np.ndarray:
+    """Frames [T] of `a` [T] in relation `word` to `b` [T]: while / during: both; before /
+    until: before the first onset of `b` (an episode that starts at frame `lead` or later);
+    after: from that onset on (after the end of `b`'s first episode when it has no onset)."""
+    if word in ("while", "during"):
+        return a & b
+    iv = intervals(b)
+    t = len(a)
+    idx = np.arange(t)
+    onsets = [s for s, _ in iv if s >= lead]
+    if word in ("before", "until"):
+        return a & (idx < onsets[0]) if onsets else np.zeros(t, bool)
+    if word == "after":
+        if onsets:
+            return a & (idx >= onsets[0])
+        return a & (idx > iv[0][1]) if iv else np.zeros(t, bool)
+    raise ValueError(f"unknown relation {word!r}")
+
+
+def peak_run(q: np.ndarray, direction: str, scale: float = 0.0) -> tuple[float, tuple[int, int]]:
+    """(extreme value, the run around it on its side of the mid-range) of `q` [T]; the whole
+    clip when `q` varies by at most `FLAT` of `scale` (the largest range among the compared
+    objects): a still object's speed or height has no peak but its noise."""
+    f = int(np.argmax(q) if direction == "max" else np.argmin(q))
+    lo, hi = float(q.min()), float(q.max())
+    side = q >= lo + 0.5 * (hi - lo) if direction == "max" else q <= lo + 0.5 * (hi - lo)
+    if hi - lo <= FLAT * scale or hi == lo:
+        side = np.ones_like(q, bool)
+    for s, e in episodes(side):
+        if s <= f <= e:
+            return float(q[f]), (s, e)
+    return float(q[f]), (f, f)
+
+
+# --- the field's timeline --------------------------------------------------------------------
+
+
+def rebounds(times: np.ndarray, height: np.ndarray, s_ref: float, tol: np.ndarray,
+             cfg, lowest: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """Rebounds [K, T] of heights `height` [K, T] (already smoothed in time): a fall followed
+    by a rise (vertical speed beyond `vertical_speed` times `s_ref`, as "falling" and "rising"
+    read it), whose lowest frame between them is at most max(`tol` [K], a quarter of the
+    object's height range) above its lowest height over the clip; marked as that lowest frame
+    +- the event window (`EVENT_WINDOW`). `lowest` [K, T] (bool), when given, gets the lowest
+    frames."""
+    k, t = height.shape
+    vu = np.gradient(height, times, axis=1) if t > 1 else np.zeros_like(height)
+    minf = int(cfg.phrase_min_frames)
+    fall = mp.clean_runs(-vu > cfg.vertical_speed * s_ref, minf)
+    rise = mp.clean_runs(vu > cfg.vertical_speed * s_ref, minf)
+    w = Timeline(times, height, height, None).window()
+    out = np.zeros((k, t), bool)
+    for j in range(k):
+        band = max(float(tol[j]), 0.25 * float(np.ptp(height[j])))
+        rises = episodes(rise[j])
+        for _, e in episodes(fall[j]):
+            nxt = [s for s, _ in rises if s > e]
+            if not nxt:
+                continue
+            f = e + int(np.argmin(height[j, e:nxt[0] + 1]))
+            if height[j, f] - height[j].min() <= band:
+                out[j, max(0, f - w):min(t, f + w + 1)] = True
+                if lowest is not None:
+                    lowest[j, f] = True
+    return out
+
+
+def ground_contact(field: Field, cfg) -> np.ndarray:
+    """Contact with the background [K, T] (see the package notes): a rebound (`rebounds`) of
+    M_phi's smoothed centroid height, or a run of small gaps, within the same tolerance of the
+    object's lowest height, that holds no rebound (rolling, resting: a run around a rebound is
+    the ball passing near the surface on its way)."""
+    times, k = field.times, len(field.labels)
+    c, _, s_ref = mp.smoothed_motion(field.centroids, times, field.radius, cfg.phrase_smooth)
+    tol = cfg.contact_gap * np.asarray(field.radius, np.float64)
+    out = np.zeros((k, len(times)), bool)
+    lowest = np.zeros_like(out)
+    hits = rebounds(times, c @ field.up, s_ref, tol, cfg, lowest)
+    gl = list(field.gap_labels)
+    if 0 in gl:
+        g = np.asarray(field.gaps[:, gl.index(0)], np.float64)
+        near = mp.clean_runs(np.where(np.isfinite(g), g, np.inf) < tol[:, None],
+                             int(cfg.phrase_min_frames))  # fmt: skip
+        h = c @ field.up  # touching needs the object near its lowest height, too
+        near &= (h - h.min(axis=1, keepdims=True)) <= tol[:, None]
+        for j in range(k):  # a run of small gaps around a rebound is that rebound's
+            for s, e in episodes(near[j]):
+                if not lowest[j, s:e + 1].any():
+                    out[j, s:e + 1] = True
+    return out | hits
+
+
+#: Approaching / moving away from the background is falling / rising (the scene
+#: description's approach and separation events with the background: the height changes).
+_TOWARDS_GROUND = {"approaching": "falling", "moving away": "rising"}
+
+
+def field_timeline(field: Field, cfg) -> Timeline:
+    """The timeline of `field`: M_phi's smoothed centroid height and speed, and the atoms
+    evaluated by the motion predicates (contact with the background: `ground_contact`)."""
+    c, vel, _ = mp.smoothed_motion(field.centroids, field.times, field.radius,
+                                   cfg.phrase_smooth)  # fmt: skip
+    memo: dict[tuple[str, int | None], np.ndarray] = {}
+
+    def activation(a: Atom) -> np.ndarray:
+        key = (a.name, a.target)
+        if key not in memo:
+            if a.name == "contact" and a.target == 0:
+                memo[key] = ground_contact(field, cfg)
+            else:
+                name = "touching" if a.name == "contact" else a.name
+                if a.target == 0 and name in _TOWARDS_GROUND:
+                    name = _TOWARDS_GROUND[name]
+                pred = next(p for p in mp.PREDICATES if p.name == name)
+                m = mp.MatchedPredicate(pred, a.words, a.similarity, target=a.target)
+                memo[key] = mp.evaluate(m, field.features, field.centroids, field.gaps,
+                                        field.gap_labels, field.labels, field.radius,
+                                        field.up, field.right, field.times, cfg)  # fmt: skip
+        return memo[key]
+
+    return Timeline(np.asarray(field.times), c @ field.up, np.linalg.norm(vel, axis=-1),
+                    activation, int(cfg.phrase_min_frames))  # fmt: skip
