@@ -138,13 +138,13 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
                 timings[name]["raster"].append(time.perf_counter() - t0)
                 model.zero_grad(set_to_none=True)
             c = trainer.config
+            target = trainer.target(0, frames[0], trainer.background)  # any image of the size
             for k in range(steps):
                 frame = frames[(r * steps + k) % len(frames)]
                 with torch.no_grad():
                     img = model.render(frame.camera, frame.time, background=trainer.background,
                                        threads=threads).features  # fmt: skip
                 img.requires_grad_()
-                target = trainer.target(0, frames[0], trainer.background)
                 t0 = time.perf_counter()
                 photometric_loss(img, target, c.lambda_l1, c.lambda_dssim,
                                  threads=threads).backward()  # fmt: skip

@@ -142,15 +142,15 @@ def test_a_form_added_in_one_class_and_one_row_is_read_evaluated_and_scored(bb, 
     class MostFrames(Form):
         name, order = "toy-most-frames", 5
 
-        def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+        def claim(self, r, subject, relation, names, text):
             if r.extreme != ("speed", "max"):
                 return None
             return Plan(self.name, subject, relation, names=names)
 
-        def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+        def text(self, plan, inner, over, of, nth):
             return f"most-frames({inner}) {over}"
 
-        def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+        def select(self, plan, act, tl, eps):
             frames = {k: float(act[k].sum()) for k in plan.subject.objects}
             order = sorted(frames, key=lambda k: -frames[k])
             return Selected(order, {k: eps[k] for k in order}, None, frames)

@@ -9,6 +9,7 @@ over a count ("the most bounces") is a count selection."""
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
@@ -35,28 +36,28 @@ def ranked(cands: list[int], key: dict[int, float], reverse: bool = False) -> li
     return sorted(cands, key=lambda k: (-key[k] if reverse else key[k], cands.index(k)))
 
 
-class Form:
+class Form(ABC):
     """A question form. `name` is what `Plan.form` and question files say; `order` ranks the
     claims (lower first; the first plan returned wins)."""
 
     name: ClassVar[str]
     order: ClassVar[int]
 
+    @abstractmethod
     def claim(self, r: Reading, subject: Clause, relation: tuple[str, Clause] | None,
               names: list[str], text: str) -> Plan | None:  # fmt: skip
         """The plan of the reading `r` when this form answers it, else None."""
-        raise NotImplementedError
 
+    @abstractmethod
     def text(self, plan: Plan, inner: str, over: str, of: str, nth: str) -> str:
         """The plan as one line, given the subject's atoms and relation (`inner`), its
         objects (`over`), its one object (`of`) and the rank word (`nth`)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def select(self, plan: Plan, act: np.ndarray, tl: Timeline,
                eps: dict[int, list[tuple[int, int]]]) -> Selected:  # fmt: skip
         """Objects ranked and their intervals from the subject's related frames `act` [K, T]
         (`eps`: each candidate's episodes of them)."""
-        raise NotImplementedError
 
 
 #: The registered forms by name, in the order question files and summaries list them.
@@ -82,7 +83,7 @@ class OrdinalObjects(Form):
 
     name, order = "ordinal-objects", 51
 
-    def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+    def claim(self, r, subject, relation, names, text):
         if r.ordinal is not None:
             need_atom(text, subject, "an ordinal")
             return Plan(self.name, subject, relation, r.ordinal, names=names)
@@ -91,10 +92,10 @@ class OrdinalObjects(Form):
             return Plan(self.name, subject, relation, 1, names=names)
         return None
 
-    def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+    def text(self, plan, inner, over, of, nth):
         return f"{nth}({inner}) {over}"
 
-    def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+    def select(self, plan, act, tl, eps):
         cands, t = plan.subject.objects, act.shape[1]
         # by onset: an episode under way from the clip's first frames has none in the clip
         lead = tl.onset_frames()
@@ -118,7 +119,7 @@ class OrdinalEpisodes(Form):
 
     name, order = "ordinal-episodes", 50
 
-    def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+    def claim(self, r, subject, relation, names, text):
         if r.ordinal is None:
             return None
         need_atom(text, subject, "an ordinal")
@@ -127,10 +128,10 @@ class OrdinalEpisodes(Form):
             return None  # the class's objects: `OrdinalObjects`
         return Plan(self.name, subject, relation, r.ordinal, names=names)
 
-    def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+    def text(self, plan, inner, over, of, nth):
         return f"{nth}({inner}) {of}"
 
-    def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+    def select(self, plan, act, tl, eps):
         k = plan.subject.objects[0]
         n = plan.n or 1
         e = eps[k]
@@ -143,16 +144,16 @@ class Count(Form):
 
     name, order = "count", 20
 
-    def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+    def claim(self, r, subject, relation, names, text):
         if not r.count_ask:
             return None
         need_atom(text, subject, "how many times")
         return Plan(self.name, subject, relation, names=names)
 
-    def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+    def text(self, plan, inner, over, of, nth):
         return f"count({inner}) {of}"
 
-    def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+    def select(self, plan, act, tl, eps):
         k = plan.subject.objects[0]
         return Selected([k], {k: eps[k]}, len(eps[k]), {k: float(len(eps[k]))})
 
@@ -163,7 +164,7 @@ class CountSelect(Form):
 
     name, order = "count-select", 30
 
-    def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+    def claim(self, r, subject, relation, names, text):
         if r.count_n is None:
             return None
         need_atom(text, subject, "a count such as \"twice\"")
@@ -171,12 +172,12 @@ class CountSelect(Form):
         return Plan(self.name, subject, relation, r.count_n,
                     direction="fewer" if r.never else None, names=names)  # fmt: skip
 
-    def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+    def text(self, plan, inner, over, of, nth):
         if plan.quantity == "count":
             return f"{plan.direction}(count({inner})) {over}"
         return f"count({inner}) {'<' if plan.direction == 'fewer' else '=='} {plan.n} {over}"
 
-    def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+    def select(self, plan, act, tl, eps):
         cands = plan.subject.objects
         n = {k: len(eps[k]) for k in cands}
         if plan.quantity == "count":
@@ -195,15 +196,15 @@ class Relation(Form):
 
     name, order = "relation", 1000
 
-    def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+    def claim(self, r, subject, relation, names, text):
         return Plan(self.name, subject, relation, names=names)
 
-    def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+    def text(self, plan, inner, over, of, nth):
         s, word = plan.subject, plan.relation[0] if plan.relation else "while"
         who = plan.names[s.objects[0]] if s.specific else over[len("over "):]
         return f"{word}({who}: {inner})"
 
-    def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+    def select(self, plan, act, tl, eps):
         cands = plan.subject.objects
         cnt = {k: float(act[k].sum()) for k in cands}
         return Selected(ranked(cands, cnt, reverse=True), eps, None, cnt)
@@ -215,7 +216,7 @@ class Extreme(Form):
 
     name, order = "extreme", 10
 
-    def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+    def claim(self, r, subject, relation, names, text):
         if r.extreme is None:
             return None
         q, d = r.extreme
@@ -226,10 +227,10 @@ class Extreme(Form):
         form = CountSelect.name if q == "count" else self.name
         return Plan(form, subject, relation, None, q, d, names)
 
-    def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+    def text(self, plan, inner, over, of, nth):
         return f"{plan.direction}({plan.quantity}, {inner}) {over}"
 
-    def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+    def select(self, plan, act, tl, eps):
         cands = plan.subject.objects
         sign = 1.0 if plan.direction == "max" else -1.0
         best: dict[int, tuple[float, tuple[int, int] | None]] = {}
@@ -272,16 +273,16 @@ class Negation(Form):
 
     name, order = "negation", 40
 
-    def claim(self, r, subject, relation, names, text):  # type: ignore[no-untyped-def]
+    def claim(self, r, subject, relation, names, text):
         if not r.never:
             return None
         need_atom(text, subject, "\"never\"")
         return Plan(self.name, subject, relation, names=names)
 
-    def text(self, plan, inner, over, of, nth):  # type: ignore[no-untyped-def]
+    def text(self, plan, inner, over, of, nth):
         return f"never({inner}) {over}"
 
-    def select(self, plan, act, tl, eps):  # type: ignore[no-untyped-def]
+    def select(self, plan, act, tl, eps):
         cands, t = plan.subject.objects, act.shape[1]
         frames = {k: float(act[k].sum()) for k in cands}
         order = ranked(cands, frames)
