@@ -41,6 +41,14 @@ def _drawn(img: np.ndarray) -> int:
     return int((np.abs(img.astype(int) - 255).max(-1) > 30).sum())
 
 
+def _answer_to(text: str, panel: str) -> str | None:
+    """The answer's first ranked row under the heading `text` in the panel's text, if shown."""
+    if text not in panel:
+        return None
+    rows = [r for r in panel.split(text)[-1].splitlines() if r.startswith("1 ")]
+    return rows[0] if rows else None
+
+
 def test_the_viewer_in_a_browser(tmp_path_factory):
     run_dir = oracle_run_folder(tmp_path_factory.mktemp("browser_run"), (QUERY,))
     shots = tmp_path_factory.mktemp("screenshots")
@@ -69,10 +77,13 @@ def test_the_viewer_in_a_browser(tmp_path_factory):
         first = shot("t0", lambda im: _drawn(im) > 0.02 * im.shape[0] * im.shape[1])
         assert _lit(first) == 0
         # a query: the red ball ranks first and is lit while it rises (0.35-0.55), not before
-        br.type_text(driver, "query", QUERY)
+        # One input event with the whole text: typed key by key, viser's text box (1.1.0 and
+        # 1.1.1 under Chromium 156) sometimes sends only the first key to the server while the
+        # page shows them all (4 of 12 tries), and the server then answers "t"
+        br.type_text(driver, "query", QUERY, single_update=True)
         br.click_button(driver, "Ask")
-        br.wait_for(lambda: "| 1 | red ball |" in br.panel_text(driver).replace("\n", " ")
-                    or "red ball" in br.panel_text(driver).split(QUERY)[-1], 20, "the answer")
+        row = br.wait_for(lambda: _answer_to(QUERY, br.panel_text(driver)), 30, "the answer")
+        assert row.startswith("1 red ball"), br.panel_text(driver)
         br.set_slider(driver, "time", 0.45)
         rising = shot("t045-lit", lambda im: _lit(im) > 200)
         br.set_slider(driver, "time", 0.1)
