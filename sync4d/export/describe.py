@@ -18,11 +18,10 @@ that is not sync4d (a person, a script, a multimodal LLM):
 * **events** between two objects, or an object and the background (id 0): ``approach`` and
   ``separation`` (the centroid distance, or for the background the object's height above the
   surface under it, falls or grows faster than ``closing_speed`` times the scene's reference
-  speed) and ``contact`` (the robust gap below ``contact_gap`` times the object's radius:
-  evidence "gap"; or, with the background, a fall that turns straight into a rise near the
-  object's lowest height over the clip and near the surface under it, `rebound_gap` radii at
-  most: evidence "rebound"; a pendulum's swing or a jump's turn in mid-air is no contact); runs
-  shorter than ``phrase_min_frames`` are dropped, one-frame gaps closed;
+  speed) and ``contact``: the run's contacts as `sync4d.phase3.states` finds them (the one
+  model every query, the prompt and the MCP tools read; evidence "gap" or "rebound", onset and
+  offset from the object's geometry against the surface); runs shorter than
+  ``phrase_min_frames`` are dropped, one-frame gaps closed;
 * **language slots**: for each query, the object the default scorer ranks first and the frames
   where it is active (Appendix F's rule of the field); for each vocabulary entry the same, but
   only when that object's appearance, the cosine of its static embedding to the entry, beats
@@ -50,6 +49,7 @@ from sync4d import __version__
 from sync4d.export.schema import SceneError
 from sync4d.files import file_sha256
 from sync4d.phase3 import motion_phrases as mp
+from sync4d.phase3 import states
 from sync4d.phase3.activation import intervals
 from sync4d.phase3.kinematics import FEATURE_NAMES
 from sync4d.phase3.query import TextCache, answer, field_settings
@@ -63,7 +63,7 @@ __all__ = ["EVENT_KINDS", "SEGMENT_STATES", "THRESHOLD_KEYS", "SceneSettings", "
 FORMAT = "sync4d.scene"
 VERSION = 1
 #: The motion states of the segments, in their order in the file.
-SEGMENT_STATES = ("at rest", "moving", "rising", "falling", "turning")
+SEGMENT_STATES = states.MOTION_STATES
 #: The pairwise event kinds, in their order in the file.
 EVENT_KINDS = ("approach", "contact", "separation")
 #: The Phase 3 settings the segments and events read (recorded under `metadata.thresholds`).
@@ -87,15 +87,6 @@ class SceneSettings:
     #: bouncingballs and two embedded-scene runs, the objects' own colours separate by
     #: 0.22-0.54, entries no object matches by 0.12 at most; 0.17 is the middle of the gap).
     slot_margin: float = 0.17
-    #: A fall that turns into a rise is a contact with the surface under the object
-    #: (evidence "rebound") only when, at the turn, the object's height above that surface is
-    #: at most this many object radii (bouncingballs' red ball: 0.77 at its bounces, where the
-    #: measured gap stays open; apexes 1.4-1.9) ...
-    rebound_gap: float = 1.2
-    #: ... and its centroid is at most max(`contact_gap` radii, this fraction of its height
-    #: range over the clip) above its lowest height (as `sync4d.phase3.relational` reads
-    #: contact with the ground).
-    rebound_height: float = 0.25
 
 
 def _span(a: int, b: int, times: np.ndarray) -> dict:
@@ -154,14 +145,11 @@ def _runs(active: np.ndarray, min_frames: int) -> list[tuple[int, int]]:
 
 
 def motion_segments(field: Field, cfg) -> list[list[dict]]:
-    """Per object, the intervals of each state of `SEGMENT_STATES`, in time order."""
-    by_name = {p.name: p for p in mp.PREDICATES}
+    """Per object, the intervals of each state of `SEGMENT_STATES` (`states.motion_state`),
+    in time order."""
     out: list[list[dict]] = [[] for _ in field.labels]
     for state in SEGMENT_STATES:
-        m = mp.MatchedPredicate(by_name[state], state, 1.0)
-        act = mp.evaluate(m, field.features, field.centroids, field.gaps, field.gap_labels,
-                          field.labels, field.radius, field.up, field.right, field.times,
-                          cfg)  # fmt: skip
+        act = states.motion_state(field, cfg, state)
         for k in range(len(field.labels)):
             out[k] += [{"state": state, **_span(a, b, field.times)} for a, b in intervals(act[k])]
     for segs in out:
@@ -169,91 +157,55 @@ def motion_segments(field: Field, cfg) -> list[list[dict]]:
     return out
 
 
-def _rebounds(down: np.ndarray, up: np.ndarray, min_frames: int, height: np.ndarray,
-              gap: np.ndarray, height_band: float, surface: float) -> np.ndarray:  # fmt: skip
-    """Frames [T] bool where an object comes down onto the surface under it and goes straight
-    back up: from the last frame of an approach run to the first of the separation run that
-    follows within `min_frames` frames, when at the turn (the lowest `height` [T] between them)
-    the object is within `height_band` of its lowest height over the clip and its `gap` [T]
-    above the surface under it is at most `surface`. A bounce touched the surface however
-    large the reconstruction leaves the measured gap (a small ball's lowest Gaussians sit
-    above the plate's surface Gaussians); a turn in mid-air (a pendulum, an arm lowered and
-    raised, a jump's apex seen upside down) is not a contact."""
-    out = np.zeros(len(down), bool)
-    falls = _runs(down, min_frames)
-    rises = _runs(up, min_frames)
-    low = float(np.min(height))
-    for _, end in falls:
-        nxt = [s for s, _ in rises if end < s <= end + min_frames]
-        if not nxt:
-            continue
-        f = end + int(np.argmin(height[end:nxt[0] + 1]))
-        if height[f] - low <= height_band and float(np.min(gap[end:nxt[0] + 1])) <= surface:
-            out[end:nxt[0] + 1] = True
-    return out
-
-
-def pairwise_events(field: Field, cfg, settings: SceneSettings = SceneSettings()
-                    ) -> list[dict]:  # fmt: skip
+def pairwise_events(field: Field, cfg) -> list[dict]:
     """Approach, contact and separation intervals of every pair of objects and of every object
-    with the background, sorted by start frame (rebounds: `settings.rebound_gap`,
-    `settings.rebound_height`)."""
+    with the background, sorted by start frame; the contacts are `states.contacts`."""
     times, labels, radius = field.times, field.labels, field.radius
     c, _, s_ref = mp.smoothed_motion(field.centroids, times, radius, cfg.phrase_smooth)
     closing_tol = cfg.closing_speed * s_ref
     minf = int(cfg.phrase_min_frames)
     t = len(times)
+    gl = list(field.gap_labels)
+    events: list[dict] = []
 
     def rate(d: np.ndarray) -> np.ndarray:
         return np.gradient(d, times) if t > 1 else np.zeros(t)
 
-    def add(kind: str, a: int, b: int, active: np.ndarray, dist: np.ndarray,
-            rebound: np.ndarray | None = None) -> None:  # fmt: skip
-        runs = _runs(active, minf)
-        if rebound is not None and rebound.any():  # rebounds need no minimum length
-            mask = np.zeros(t, bool)
-            for s, e in runs:
-                mask[s:e + 1] = True
-            runs = intervals(mask | rebound)
-        for s, e in runs:
+    def add(kind: str, a: int, b: int, runs: list[tuple[int, int]], dist: np.ndarray,
+            evidence: list[str] | None = None) -> None:  # fmt: skip
+        for i, (s, e) in enumerate(runs):
             ev = {"kind": kind, "objects": [a, b], **_span(s, e, times),
                   "distance": [float(dist[s]), float(dist[e])]}  # fmt: skip
-            if kind == "contact":
-                ev["evidence"] = "gap" if bool(np.any(active[s:e + 1])) else "rebound"
+            if evidence is not None:
+                ev["evidence"] = evidence[i]
             events.append(ev)
 
-    events: list[dict] = []
-    gl = list(field.gap_labels)
+    def height_gap(k: int) -> np.ndarray | None:
+        """Object k's height above the surface under it [T] (unmeasured frames filled)."""
+        if 0 not in gl:
+            return None
+        g = np.asarray(field.gaps[k, gl.index(0)], np.float64)
+        ok = np.isfinite(g)
+        return np.where(ok, g, np.interp(times, times[ok], g[ok])) if ok.any() else None
+
+    found = states.contacts(field, cfg)
     for k, a in enumerate(labels):
-        tol = cfg.contact_gap * float(radius[k])
-        if 0 in gl:  # the background: the object's height above the surface under it
-            g = np.asarray(field.gaps[k, gl.index(0)], np.float64)
-            ok = np.isfinite(g)
-            if ok.any():
-                g = np.where(ok, g, np.interp(times, times[ok], g[ok]))
-                gs = mp.smooth_in_time(g[None], times, cfg.phrase_smooth)[0]
-                down, up = -rate(gs) > closing_tol, rate(gs) > closing_tol
-                h = c[k] @ np.asarray(field.up, np.float64)
-                band = max(tol, settings.rebound_height * float(np.ptp(h)))
-                add("approach", a, 0, down, g)
-                add("contact", a, 0, g < tol, g,
-                    _rebounds(down, up, minf, h, gs, band,
-                              settings.rebound_gap * float(radius[k])))
-                add("separation", a, 0, up, g)
+        g = height_gap(k)
+        if g is not None:
+            gs = mp.smooth_in_time(g[None], times, cfg.phrase_smooth)[0]
+            add("approach", a, 0, _runs(-rate(gs) > closing_tol, minf), g)
+            mine = [x for x in found if x.label == a and x.other == 0]
+            add("contact", a, 0, [(x.start, x.end) for x in mine], g,
+                [x.evidence for x in mine])  # fmt: skip
+            add("separation", a, 0, _runs(rate(gs) > closing_tol, minf), g)
         for j in range(k + 1, len(labels)):
             b = labels[j]
             d = np.linalg.norm(c[k] - c[j], axis=-1)
-            add("approach", a, b, -rate(d) > closing_tol, d)
-            gap = np.full(t, np.inf)
-            if b in gl:
-                gap = np.minimum(gap, np.where(np.isfinite(field.gaps[k, gl.index(b)]),
-                                               field.gaps[k, gl.index(b)] / tol, np.inf))
-            if a in gl:
-                tol_b = cfg.contact_gap * float(radius[j])
-                gap = np.minimum(gap, np.where(np.isfinite(field.gaps[j, gl.index(a)]),
-                                               field.gaps[j, gl.index(a)] / tol_b, np.inf))
-            add("contact", a, b, gap < 1.0, d)
-            add("separation", a, b, rate(d) > closing_tol, d)
+            add("approach", a, b, _runs(-rate(d) > closing_tol, minf), d)
+            both = [x for x in found if {x.label, x.other} == {a, b}]
+            add("contact", a, b, [(x.start, x.end) for x in both], d,
+                [x.evidence for x in both])  # fmt: skip
+            add("separation", a, b, _runs(rate(d) > closing_tol, minf), d)
     events.sort(key=lambda e: (e["start"], EVENT_KINDS.index(e["kind"]), e["objects"]))
     return events
 
@@ -379,12 +331,10 @@ def describe(
         "frames": {"count": len(times), "times": times.tolist()},
         "cameras": _cameras(run),
         "thresholds": {**{k: getattr(cfg, k) for k in THRESHOLD_KEYS},
-                       "slot_margin": settings.slot_margin,
-                       "rebound_gap": settings.rebound_gap,
-                       "rebound_height": settings.rebound_height},
+                       **states.settings(cfg), "slot_margin": settings.slot_margin},
     }  # fmt: skip
     doc = {"metadata": metadata, "objects": objects, "tracks": tracks,
-           "events": pairwise_events(field, cfg, settings), "texts": texts}  # fmt: skip
+           "events": pairwise_events(field, cfg), "texts": texts}  # fmt: skip
     embeddings = {
         "static": np.ascontiguousarray(field.static, np.float32),
         "sync": np.ascontiguousarray(field.sync, np.float32),

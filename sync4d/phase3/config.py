@@ -84,6 +84,17 @@ class Phase3Config:
     closing_speed: float = ranged(0.1, 0.0)
     #: ... touching when the gap is below this fraction of the object's radius, ...
     contact_gap: float = ranged(0.6, 0.0)
+    #: ... a fall that turns into a rise touches the surface under the object when the gap
+    #: there is at most this many radii (a reconstruction leaves a small ball's lowest
+    #: Gaussians above the plate's: bouncingballs' red ball 0.77 radii at its bounces, 1.4-1.9
+    #: at its apexes; `sync4d.phase3.states`) ...
+    rebound_gap: float = ranged(1.2, 0.0)
+    #: ... and the turn is within max(`contact_gap` radii, this fraction of the object's
+    #: height range over the clip) of its lowest height ...
+    rebound_height: float = ranged(0.25, 0.0, 1.0)
+    #: ... and a contact lasts while the gap stays within this many radii of its value at the
+    #: turn (onset: it comes within; offset: it leaves) ...
+    contact_band: float = ranged(0.05, 0.0)
     #: ... with motion read from centroids smoothed by a Gaussian of this sigma (normalised
     #: time) ...
     phrase_smooth: float = ranged(0.015, 0.0)

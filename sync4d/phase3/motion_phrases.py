@@ -20,8 +20,8 @@ the contact gaps, and matched to the query text:
 * speeds are compared with the scene's reference speed s_ref (95th percentile of every object's
   speed), with a floor for static scenes; "up" is the field's up vector; "left"/"right" are
   along the first training camera's image x axis;
-* "touching the background" compares the object's height above the background surface under it
-  with `contact_gap` times its radius; touching another object, the robust gap between them.
+* "touching" is a contact, which the run's one state model decides (`sync4d.phase3.states`:
+  `states.holds` evaluates a matched predicate, contacts there and every other one here).
 
 Each predicate gives a bool per object and frame; matched predicates are combined with AND; a
 state holds over an interval: one-frame gaps are closed and runs shorter than
@@ -279,10 +279,5 @@ def _evaluate(m, features, centroids, gaps, gap_labels, labels, radius, up, righ
             out[tgt] = False
         return out
     if name == "touching":
-        tol = cfg.contact_gap * radius[:, None]
-        if m.target is None:
-            return (gaps < tol[:, None]).any(1)
-        if m.target not in gap_labels:
-            return np.zeros((k, t), bool)
-        return gaps[:, gap_labels.index(m.target)] < tol
+        raise ValueError("touching is a contact: sync4d.phase3.states.contact reads it")
     raise ValueError(f"unknown predicate {name!r}")

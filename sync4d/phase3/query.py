@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sync4d.phase3 import motion_phrases as mp
+from sync4d.phase3 import states
 from sync4d.phase3.activation import activate, intervals
 from sync4d.phase3.encoders.encoder import Encoder
 from sync4d.phase3.field import query_scores
@@ -105,9 +106,7 @@ def _motion(field: Field, text: str, rule: str, cfg: Phase3Config, cache: TextCa
     truth = np.ones((k, t), bool)
     for m in matched:
         resolve_target(m, field, cache)
-        truth &= mp.evaluate(m, field.features, field.centroids, field.gaps, field.gap_labels,
-                             field.labels, field.radius, field.up, field.right, field.times,
-                             cfg)  # fmt: skip
+        truth &= states.holds(field, m, cfg)
     frac = truth.mean(1)
     # Ranking: the motion happens at all (2), how often (1), then identity (< 1 in size).
     span = float(np.ptp(ident)) if k > 1 else 0.0

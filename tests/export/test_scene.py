@@ -5,6 +5,7 @@ numbers, and one clear error for each malformed file."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from types import SimpleNamespace
@@ -283,8 +284,8 @@ def test_a_fall_then_rise_in_mid_air_is_no_contact(shape):
         assert [(c["start"] == 0, c["end"] == 60, c["evidence"]) for c in contacts] == [
             (True, False, "gap"), (False, True, "gap")], kinds
     # without the two conditions (any fall turning into a rise) the turn was a contact
-    anywhere = SceneSettings(rebound_gap=np.inf, rebound_height=np.inf)
-    events = pairwise_events(_mid_air_field(height), Phase3Config(), anywhere)
+    anywhere = dataclasses.replace(Phase3Config(), rebound_gap=1e9, rebound_height=1.0)
+    events = pairwise_events(_mid_air_field(height), anywhere)
     assert [e for e in events if e["kind"] == "contact" and e["t0"] <= 0.5 <= e["t1"]
             and e["evidence"] == "rebound"], kinds
     if shape == "swing":  # the same turn lowered to 0.9 radii above the plate: a bounce

@@ -25,17 +25,11 @@ perception: an atom is one of today's answers, so the grammar adds only the rela
   `ATOM_EXTRA`: "stays still" is "still"). A paraphrase of an atom therefore reads as well as
   the encoder relates it; nothing in this module lists question wordings, only the grammar's
   function words (`words.ORDINALS`, `words.RELATIONS`, `words.EXTREMES`, ...).
-* **Contact with the ground** is the union of rebounds and the gap evidence (the height above
-  the surface under the object below `contact_gap` times its radius, as "touching the ground"
-  reads today, and the object within that of its lowest height over the clip: a reconstruction
-  whose plate Gaussians cling to a ball would keep it "touching" in the air) where a run of it
-  holds no rebound (rolling, resting; around a rebound it is the ball passing near the surface).
-  A rebound is a fall followed by a rise whose lowest point between them is at most
-  max(`contact_gap` radius, a quarter of the object's height range) above the object's lowest
-  height over the clip. A rebound is an instant; it is reported as the frames within
-  ``EVENT_WINDOW`` (normalised time, at least one frame each side) of the lowest point, so an
-  interval score of an instant measures its timing rather than failing on one frame. Approaching
-  / moving away from the ground is falling / rising.
+* **Contact** (with the ground, or with a named object) and every motion state are read from
+  the run's one state model, `sync4d.phase3.states`, as `query`'s motion phrases and the scene
+  description read them: a contact lasts from the frame the object's gap to the surface comes
+  within `contact_band` radii of its value at the touch to the frame it leaves that band.
+  Approaching / moving away from the ground is falling / rising.
 * **Operators** (`Plan`; one registered class per form, `forms.FORMS`), applied in this
   order: an optional *relation* filters the subject's
   frames by another clause (while / during: both hold; before / until: before the other clause's
@@ -88,8 +82,6 @@ from sync4d.phase3.relational.timeline import (
     clause_active,
     episodes,
     field_timeline,
-    ground_contact,
-    rebounds,
     relate,
 )
 from sync4d.phase3.relational.words import ATOMS, EXTREMES, ORDINALS, RELATIONS
@@ -100,8 +92,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ATOMS", "EXTREMES", "FORMS", "ORDINALS", "RELATIONS", "Atom", "Clause", "Form",
            "Plan", "RelationalError", "Selected", "Timeline", "answer_relational",
-           "evaluate_plan", "ground_contact", "parse", "plan_text", "rebounds",
-           "register_form", "relate", "select"]  # fmt: skip
+           "evaluate_plan", "parse", "plan_text", "register_form", "relate", "select"]  # fmt: skip
 
 
 def _atoms_text(c: Clause) -> str:

@@ -1,7 +1,8 @@
 """What the operators read: per object and frame, the height, the speed and each atom's
 activation (`Timeline`), the clause's frames (`clause_active`), the relation between two
 clauses (`relate`), and the episodes and peaks the forms select from. The field's own
-timeline (M_phi's motion, the motion predicates, ground contact) is `field_timeline`."""
+timeline (M_phi's motion, the states and contacts of `sync4d.phase3.states`) is
+`field_timeline`."""
 
 from __future__ import annotations
 
@@ -11,15 +12,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sync4d.phase3 import motion_phrases as mp
+from sync4d.phase3 import states
 from sync4d.phase3.activation import intervals
-from sync4d.phase3.relational.words import EVENT_WINDOW, FLAT
+from sync4d.phase3.relational.words import FLAT
 
 if TYPE_CHECKING:
     from sync4d.phase3.relational.plan import Atom, Clause
     from sync4d.phase3.store import Field
 
-__all__ = ["Timeline", "clause_active", "episodes", "field_timeline", "ground_contact",
-           "peak_run", "rebounds", "relate"]  # fmt: skip
+__all__ = ["Timeline", "clause_active", "episodes", "field_timeline", "peak_run", "relate"]
 
 
 @dataclass
@@ -41,11 +42,6 @@ class Timeline:
         frames (the shortest state) before it begins, so an episode that starts earlier was
         under way when the clip began (at least 1: frame 0 is never an onset)."""
         return max(1, self.merge)
-
-    def window(self) -> int:
-        """Frames each side of an instantaneous event (`EVENT_WINDOW`, at least 1)."""
-        dt = float(np.median(np.diff(self.times))) if len(self.times) > 1 else 1.0
-        return max(1, int(round(EVENT_WINDOW / max(dt, 1e-9))))
 
 
 def episodes(row: np.ndarray) -> list[tuple[int, int]]:
@@ -106,61 +102,6 @@ def peak_run(q: np.ndarray, direction: str, scale: float = 0.0) -> tuple[float, 
 # --- the field's timeline --------------------------------------------------------------------
 
 
-def rebounds(times: np.ndarray, height: np.ndarray, s_ref: float, tol: np.ndarray,
-             cfg, lowest: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
-    """Rebounds [K, T] of heights `height` [K, T] (already smoothed in time): a fall followed
-    by a rise (vertical speed beyond `vertical_speed` times `s_ref`, as "falling" and "rising"
-    read it), whose lowest frame between them is at most max(`tol` [K], a quarter of the
-    object's height range) above its lowest height over the clip; marked as that lowest frame
-    +- the event window (`EVENT_WINDOW`). `lowest` [K, T] (bool), when given, gets the lowest
-    frames."""
-    k, t = height.shape
-    vu = np.gradient(height, times, axis=1) if t > 1 else np.zeros_like(height)
-    minf = int(cfg.phrase_min_frames)
-    fall = mp.clean_runs(-vu > cfg.vertical_speed * s_ref, minf)
-    rise = mp.clean_runs(vu > cfg.vertical_speed * s_ref, minf)
-    w = Timeline(times, height, height, None).window()
-    out = np.zeros((k, t), bool)
-    for j in range(k):
-        band = max(float(tol[j]), 0.25 * float(np.ptp(height[j])))
-        rises = episodes(rise[j])
-        for _, e in episodes(fall[j]):
-            nxt = [s for s, _ in rises if s > e]
-            if not nxt:
-                continue
-            f = e + int(np.argmin(height[j, e:nxt[0] + 1]))
-            if height[j, f] - height[j].min() <= band:
-                out[j, max(0, f - w):min(t, f + w + 1)] = True
-                if lowest is not None:
-                    lowest[j, f] = True
-    return out
-
-
-def ground_contact(field: Field, cfg) -> np.ndarray:
-    """Contact with the background [K, T] (see the package notes): a rebound (`rebounds`) of
-    M_phi's smoothed centroid height, or a run of small gaps, within the same tolerance of the
-    object's lowest height, that holds no rebound (rolling, resting: a run around a rebound is
-    the ball passing near the surface on its way)."""
-    times, k = field.times, len(field.labels)
-    c, _, s_ref = mp.smoothed_motion(field.centroids, times, field.radius, cfg.phrase_smooth)
-    tol = cfg.contact_gap * np.asarray(field.radius, np.float64)
-    out = np.zeros((k, len(times)), bool)
-    lowest = np.zeros_like(out)
-    hits = rebounds(times, c @ field.up, s_ref, tol, cfg, lowest)
-    gl = list(field.gap_labels)
-    if 0 in gl:
-        g = np.asarray(field.gaps[:, gl.index(0)], np.float64)
-        near = mp.clean_runs(np.where(np.isfinite(g), g, np.inf) < tol[:, None],
-                             int(cfg.phrase_min_frames))  # fmt: skip
-        h = c @ field.up  # touching needs the object near its lowest height, too
-        near &= (h - h.min(axis=1, keepdims=True)) <= tol[:, None]
-        for j in range(k):  # a run of small gaps around a rebound is that rebound's
-            for s, e in episodes(near[j]):
-                if not lowest[j, s:e + 1].any():
-                    out[j, s:e + 1] = True
-    return out | hits
-
-
 #: Approaching / moving away from the background is falling / rising (the scene
 #: description's approach and separation events with the background: the height changes).
 _TOWARDS_GROUND = {"approaching": "falling", "moving away": "rising"}
@@ -168,7 +109,7 @@ _TOWARDS_GROUND = {"approaching": "falling", "moving away": "rising"}
 
 def field_timeline(field: Field, cfg) -> Timeline:
     """The timeline of `field`: M_phi's smoothed centroid height and speed, and the atoms
-    evaluated by the motion predicates (contact with the background: `ground_contact`)."""
+    read from the run's one state model (`sync4d.phase3.states`: motion states, contacts)."""
     c, vel, _ = mp.smoothed_motion(field.centroids, field.times, field.radius,
                                    cfg.phrase_smooth)  # fmt: skip
     memo: dict[tuple[str, int | None], np.ndarray] = {}
@@ -176,17 +117,13 @@ def field_timeline(field: Field, cfg) -> Timeline:
     def activation(a: Atom) -> np.ndarray:
         key = (a.name, a.target)
         if key not in memo:
-            if a.name == "contact" and a.target == 0:
-                memo[key] = ground_contact(field, cfg)
+            if a.name == "contact":
+                memo[key] = states.contact(field, cfg, a.target)
             else:
-                name = "touching" if a.name == "contact" else a.name
+                name = a.name
                 if a.target == 0 and name in _TOWARDS_GROUND:
                     name = _TOWARDS_GROUND[name]
-                pred = next(p for p in mp.PREDICATES if p.name == name)
-                m = mp.MatchedPredicate(pred, a.words, a.similarity, target=a.target)
-                memo[key] = mp.evaluate(m, field.features, field.centroids, field.gaps,
-                                        field.gap_labels, field.labels, field.radius,
-                                        field.up, field.right, field.times, cfg)  # fmt: skip
+                memo[key] = states.motion_state(field, cfg, name, a.target)
         return memo[key]
 
     return Timeline(np.asarray(field.times), c @ field.up, np.linalg.norm(vel, axis=-1),

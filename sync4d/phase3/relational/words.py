@@ -65,8 +65,6 @@ ATOM_STRONG = 0.6
 ATOM_EXTRA = 0.7
 #: Objects within this identity score of the best one form the class of a selection's subject.
 CLASS_MARGIN = 0.12
-#: Half-width (normalised time) of the interval reported for an instantaneous event.
-EVENT_WINDOW = 0.03
 #: A quantity varying by at most this fraction of the largest range among the compared
 #: objects has no peak of its own (extremes answer the whole clip for it).
 FLAT = 0.05
