@@ -93,7 +93,8 @@ def _queries(args: argparse.Namespace) -> int:
 
 def _relational(args: argparse.Namespace) -> int:
     """`eval RUN --queries QUESTIONS.json` with a relational question file: Acc (right
-    object), tIoU and count accuracy per question form, printed as a table."""
+    object), tIoU, count accuracy and plan accuracy (the question's form read, and its count
+    right) per question form, printed as a table."""
     from sync4d.phase3.encoders.encoder import EncoderError
     from sync4d.phase3.evaluation.annotations import AnnotationError
     from sync4d.phase3.evaluation.relational_eval import evaluate_relational
@@ -111,9 +112,10 @@ def _relational(args: argparse.Namespace) -> int:
     def cell(v: object) -> str:
         return "-" if v is None else f"{v:.3f}"
 
-    rows = [[form, str(m["n"]), cell(m["acc"]), cell(m["tiou"]), cell(m["count_acc"])]
+    rows = [[form, str(m["n"]), cell(m["acc"]), cell(m["tiou"]), cell(m["count_acc"]),
+             cell(m["plan_acc"])]
             for form, m in [*summary["forms"].items(), ("all", summary["all"])]]  # fmt: skip
-    print(align_table(["form", "questions", "Acc (object)", "tIoU", "count"], rows))
+    print(align_table(["form", "questions", "Acc (object)", "tIoU", "count", "plan"], rows))
     print(f"rows: {summary['rows_file']}")
     return 0
 

@@ -88,7 +88,9 @@ def main(args: argparse.Namespace) -> int:
             else ""
         print(f"\"{ans['query']}\" — {ans['scorer']} scorer, {ans['rule']} rule, encoder "
               f"{ans['encoder']}{vocab}")  # fmt: skip
-        if ans.get("plan"):
+        if ans.get("refusal"):
+            print(f"plan: {ans['plan']} -> no object: {ans['refusal']}")
+        elif ans.get("plan"):
             top = ans["objects"][0]
             spans = ", ".join(f"{iv['start']}-{iv['end']}" for iv in top["intervals"]) or "none"
             count = "" if ans.get("count") is None else f", count {ans['count']}"

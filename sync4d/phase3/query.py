@@ -245,6 +245,7 @@ def answer(
         "plan": None if plan is None else plan["plan"],
         "form": None if plan is None else plan["form"],
         "count": None if plan is None else plan["count"], "fallback": fallback,
+        "refusal": None if plan is None else plan["refusal"],
         "encoder": field.encoder.get("kind"),
         "closed_vocabulary": bool(field.encoder.get("closed_vocabulary", False)),
         "motion_phrases": [{"predicate": m.predicate.name, "phrase": m.phrase,

@@ -223,8 +223,8 @@ class RunTools:
     def query(self, text: str, scorer: str | None = None, rule: str | None = None,
               timeline: bool = False) -> dict:  # fmt: skip
         """The answer to `text` as `sync4d query --json` gives it: every object ranked with its
-        score and active intervals, the top one as `answer`; `timeline`: with each object's
-        per-frame similarity."""
+        score and active intervals, the top one as `answer` (None with a `refusal`: what was
+        asked for is not there); `timeline`: with each object's per-frame similarity."""
         from sync4d.phase3.encoders.encoder import EncoderError
         from sync4d.phase3.query import DEFAULT_SCORER, QueryError, TextCache, answer
 
@@ -239,7 +239,8 @@ class RunTools:
             except (QueryError, EncoderError, OSError) as e:
                 raise _problem(e) from None
         out = {k: v for k, v in ans.items() if k not in ("timeline", "active", "times")}
-        out["answer"] = ans["objects"][0] if ans["objects"] else None
+        # a refusal ("the fifth ball to land" of three) names no object
+        out["answer"] = ans["objects"][0] if ans["objects"] and not ans["refusal"] else None
         out["timeline"] = {"times": ans["times"], **ans["timeline"]} if timeline else None
         return out
 

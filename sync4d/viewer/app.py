@@ -257,6 +257,11 @@ class Viewer:
         except (FieldError, EncoderError, QueryError) as e:
             self.answer_md.content = f"**Cannot answer.** {e}"
             return
+        if ans.get("refusal"):
+            self.answer = None
+            self.answer_md.content = f"**{ans['query']}**\n\nNo object: {ans['refusal']}."
+            self.update()
+            return
         self.answer = ans
         rows = ["| # | object | score | active (times) |", "|---|---|---|---|"]
         for i, o in enumerate(ans["objects"], 1):

@@ -342,3 +342,63 @@ def test_a_bad_question_file_is_named(embedded_run, capsys, tmp_path):
          "times": []}]}))  # fmt: skip
     assert main(["eval", str(embedded_run), "--queries", str(bad)]) == 2
     assert "\"form\" must be one of" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# The grammar, completed: spans, phrases of several words, sentence-initial relations, refusals
+
+
+@pytest.mark.parametrize("text, plan, spans", [
+    ("the green ball prior to its landing",
+     "before(green ball: present before contact with background of it)", [(0, 35)]),
+    ("the red ball between its two bounces", "between(red ball: present between "
+     "first(contact with background) and nth[2](contact with background) of it)", [(21, 43)]),
+    ("the red ball between its first and second bounce", "between(red ball: present between "
+     "first(contact with background) and nth[2](contact with background) of it)", [(21, 43)]),
+    ("the red ball from its first bounce to its second bounce", "from(red ball: present from "
+     "first(contact with background) to nth[2](contact with background) of it)", [(20, 44)]),
+    ("the red ball since its first bounce",
+     "after(red ball: present after first(contact with background) of it)", [(20, 60)]),
+    ("the red ball as soon as it lands",
+     "after(red ball: present after contact with background of it)", [(20, 60)]),
+    ("the red ball between bounces",
+     "between(red ball: present between contact with background of it)", [(21, 43)]),
+])  # fmt: skip
+def test_spans_and_relation_phrases(bb, text, plan, spans):
+    ans, name, got = _top(bb, text)
+    assert ans["plan"] == plan and name == text.split()[1] + " ball" and got == spans
+
+
+def test_a_relation_that_opens_the_sentence_is_read(bb):
+    """"Before the red ball lands, which ball is highest?" is "which ball is highest before
+    the red ball lands", with the comma or without; "when does ..." stays a question."""
+    want = _plan(bb, "which ball is the highest before the red ball lands")
+    assert want.startswith("max(height, present before contact with background of {red ball})")
+    assert _plan(bb, "Before the red ball lands, which ball is the highest?") == want
+    assert _plan(bb, "before the red ball lands which ball is the highest") == want
+    assert _plan(bb, "When does the red ball hit the floor for the second time?") == \
+        "nth[2](contact with background) of red ball"
+
+
+@pytest.mark.parametrize("text, refusal", [
+    ("which ball is the fifth to land", "there are only 3 to rank (red ball, blue ball, "
+     "green ball): no fifth one (contact with background)"),
+    ("the fifth bounce of the red ball", "the red ball has only 2 episodes of contact with "
+     "background in the clip: no fifth one"),
+    ("the first time the blue ball rises", "the blue ball has no episode of rising in the "
+     "clip: no first one"),
+])  # fmt: skip
+def test_asking_for_what_is_not_there_is_refused_with_a_sentence(bb, text, refusal):
+    field, cache = bb
+    ans = answer(field, text, cache=cache)
+    assert ans["plan"] is not None and ans["refusal"] == refusal
+    assert all(o["score"] == 0.0 and not o["intervals"] for o in ans["objects"])
+    # a question within the count is answered
+    assert answer(field, "the third ball to land", cache=cache)["refusal"] is None
+
+
+def test_the_ball_with_the_longest_contact(bb):
+    """Contacts last as long as they do: the resting blue ball's is the longest."""
+    ans, name, spans = _top(bb, "the ball with the longest contact")
+    assert ans["plan"].startswith("max(duration, contact with background)")
+    assert name == "blue ball" and spans == [(0, T - 1)]

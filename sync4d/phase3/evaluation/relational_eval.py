@@ -16,9 +16,11 @@ A relational question file is our query format's sibling, told apart by ``"kind"
 of normalised time (a frame is in the answer when its time lies in one, with 1e-9 slack; an
 empty list: the answer holds at no frame); `count` is given for count questions. Each
 question is answered by `query.answer` (the default scorer, which reads the plan) and scored
-on the field's frames: Acc is whether the top object is the question's object; tIoU the
-temporal IoU of the top object's intervals and the true ones (0 when the object is wrong; 1
-when both are empty); for count questions, whether the count is right. The rows and the mean
+on the field's frames: Acc is whether the top object is the question's object (a refusal, "the
+fifth ball to land" of three, names none); tIoU the temporal IoU of the top object's
+intervals and the true ones (0 when the object is wrong; 1 when both are empty); for count
+questions, whether the count is right; plan accuracy whether the plan has the question's form
+(and, for counts, the right count). The rows and the mean
 per form go to ``RUN/phase3/eval-<name>-relational.json``.
 """
 
@@ -106,10 +108,12 @@ def evaluate_relational(run_dir: str | Path, path: str | Path, *, encoder=None) 
         top = ans["objects"][0]
         pred = np.asarray(ans["active"][top["name"]], bool)
         gt = _frames(q["times"], field.times)
-        right = top["name"] == q["object"]
+        name = None if ans["refusal"] else top["name"]
+        right = name == q["object"]
         row = {"question": q["question"], "form": q["form"], "plan": ans["plan"],
-               "fallback": ans["fallback"], "object": top["name"], "gt_object": q["object"],
-               "object_correct": right,
+               "fallback": ans["fallback"], "refusal": ans["refusal"], "object": name,
+               "gt_object": q["object"], "object_correct": right,
+               "read_form": ans["form"], "form_correct": ans["form"] == q["form"],
                "tiou": temporal_iou(pred, gt) if right else 0.0,
                "pred_intervals": [[iv["start"], iv["end"]] for iv in top["intervals"]],
                "gt_times": q["times"]}  # fmt: skip
@@ -123,7 +127,9 @@ def evaluate_relational(run_dir: str | Path, path: str | Path, *, encoder=None) 
         return {"n": len(rs), "acc": float(np.mean([r["object_correct"] for r in rs])),
                 "tiou": float(np.mean([r["tiou"] for r in rs])),
                 "count_acc": float(np.mean(counts)) if counts else None,
-                "parsed": float(np.mean([r["plan"] is not None for r in rs]))}  # fmt: skip
+                "parsed": float(np.mean([r["plan"] is not None for r in rs])),
+                "plan_acc": float(np.mean([r["form_correct"] and r.get("count_correct", True)
+                                           for r in rs]))}  # fmt: skip
 
     forms = {f: mean([r for r in rows if r["form"] == f]) for f in FORMS
              if any(r["form"] == f for r in rows)}  # fmt: skip

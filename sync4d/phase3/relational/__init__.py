@@ -80,9 +80,10 @@ from sync4d.phase3.relational.reading import parse
 from sync4d.phase3.relational.timeline import (
     Timeline,
     clause_active,
-    episodes,
     field_timeline,
+    nth_episode,
     relate,
+    span,
 )
 from sync4d.phase3.relational.words import ATOMS, EXTREMES, ORDINALS, RELATIONS
 
@@ -100,6 +101,14 @@ def _atoms_text(c: Clause) -> str:
     return f"not({a})" if c.negated else a
 
 
+def _ranked_text(c: Clause) -> str:
+    """A relation clause's atoms, inside its rank word when it names one episode."""
+    b = _atoms_text(c)
+    if c.ordinal is None:
+        return b
+    return f"{ {1: 'first', -1: 'last'}.get(c.ordinal, f'nth[{c.ordinal}]')}({b})"
+
+
 def _objects_text(c: Clause, names: list[str]) -> str:
     return "{" + ", ".join(names[k] for k in c.objects) + "}"
 
@@ -111,10 +120,13 @@ def plan_text(plan: Plan) -> str:
     if plan.relation is not None:
         word, other = plan.relation
         who = "it" if other.pronoun or not other.identity else _objects_text(other, names)
-        b = _atoms_text(other)
-        if other.ordinal is not None:
-            b = f"{ {1: 'first', -1: 'last'}.get(other.ordinal, f'nth[{other.ordinal}]')}({b})"
-        inner = f"{inner} {word} {b} of {who}"
+        b = _ranked_text(other)
+        if other.then is not None:
+            c = _ranked_text(other.then)
+            join = "and" if word == "between" else "to"
+            inner = f"{inner} {word} {b} {join} {c} of {who}"
+        else:
+            inner = f"{inner} {word} {b} of {who}"
     over = f"over {_objects_text(s, names)}"
     of = f"of {names[s.objects[0]]}" if s.objects else over
     nth = {1: "first", -1: "last"}.get(plan.n or 0, f"nth[{plan.n}]")
@@ -129,26 +141,41 @@ def evaluate_plan(plan: Plan, tl: Timeline) -> Selected:
     if plan.relation is not None:
         word, other = plan.relation
         b = clause_active(other, tl)
+        then = other.then
+        c = clause_active(then, tl) if then is not None else None
         has_atoms = bool(plan.subject.atoms) or plan.subject.negated
+
+        def of(clause: Clause, frames: np.ndarray, k: int) -> np.ndarray:
+            """The clause's frames as object k relates to them: its own ("it"), else those
+            of the clause's object(s)."""
+            if clause.pronoun or not clause.identity:
+                return frames[k]
+            return np.any(frames[clause.objects], axis=0)
+
         for k in range(act.shape[0]):
-            row_b = b[k] if (other.pronoun or not other.identity) else \
-                np.any(b[other.objects], axis=0)
-            if other.ordinal is not None:
-                eps = episodes(row_b)
-                n = other.ordinal
-                row_b = np.zeros_like(row_b)
-                if eps and (n == -1 or n <= len(eps)):
-                    s, e = eps[-1] if n == -1 else eps[n - 1]
-                    row_b[s:e + 1] = True
             row_a = act[k] if has_atoms else np.ones_like(act[k])
+            row_b = of(other, b, k)
+            if word in ("between", "from"):
+                row_c = of(then, c, k) if then is not None else None
+                nx = other.ordinal if then is not None else None
+                act[k] = row_a & span(row_b, row_c, word, nx,
+                                      then.ordinal if then is not None else None)
+                continue
+            if other.ordinal is not None:
+                ep = nth_episode(row_b, other.ordinal)
+                row_b = np.zeros_like(row_b)
+                if ep is not None:
+                    row_b[ep[0]:ep[1] + 1] = True
             act[k] = relate(row_a, row_b, word, tl.onset_frames())
     return select(plan, act, tl)
 
 
 def answer_relational(field: Field, text: str, cache: TextCache, cfg) -> dict | None:
     """The relational answer to `text` as `query.answer`'s fields (objects ranked with their
-    intervals, the per-frame activation) plus ``plan`` and ``count``; None when `text` is no
-    relational question. RelationalError when it is one that cannot be read."""
+    intervals, the per-frame activation) plus ``plan``, ``count`` and ``refusal`` (the
+    sentence saying that what was asked for is not there, e.g. a fifth ball of three: then no
+    object has a score or a frame); None when `text` is no relational question.
+    RelationalError when it is one that cannot be read."""
     plan = parse(text, field, cache, cfg)
     if plan is None:
         return None
@@ -164,7 +191,10 @@ def answer_relational(field: Field, text: str, cache: TextCache, cfg) -> dict | 
     score = np.zeros(k)
     for r, j in enumerate(sel.order):
         score[j] = 1.0 / (r + 1)
-    if not sel.spans.get(sel.order[0]) and plan.form not in ("count", "count-select"):
+    if sel.refusal is not None:
+        score[:] = 0.0  # what was asked for is not there: no object is the answer
+    elif not sel.spans.get(sel.order[0]) and plan.form not in ("count", "count-select"):
         score[sel.order[0]] = 0.5  # nothing holds: the best reading, with half the weight
     return {"plan": plan_text(plan), "form": plan.form, "count": sel.count,
-            "order": order, "score": score, "active": active}  # fmt: skip
+            "order": order, "score": score, "active": active,
+            "refusal": sel.refusal}  # fmt: skip

@@ -9,72 +9,24 @@ over a count ("the most bounces") is a count selection."""
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, ClassVar
-
 import numpy as np
 
-from sync4d.phase3.relational.plan import Clause, Plan, RelationalError, Selected
-from sync4d.phase3.relational.timeline import Timeline, episodes, peak_run
+from sync4d.phase3.relational.plan import Plan, RelationalError, Selected
+from sync4d.phase3.relational.registry import (
+    FORMS,
+    Form,
+    atoms_said,
+    forms_by_order,
+    need_atom,
+    nth_word,
+    ranked,
+    register_form,
+    select,
+)
+from sync4d.phase3.relational.timeline import peak_run
 
-if TYPE_CHECKING:
-    from sync4d.phase3.relational.reading import Reading
-
-__all__ = ["FORMS", "Form", "forms_by_order", "need_atom", "register_form", "select"]
-
-
-def need_atom(text: str, c: Clause, what: str) -> None:
-    """RelationalError unless clause `c` has an atom for `what` to count."""
-    if not c.atoms:
-        raise RelationalError(f"{text!r}: {what} counts episodes of a state or event, and "
-                              f"none was read in {c.text!r}; name one (\"bounces\", \"is "
-                              "falling\", \"at rest\", \"touches the blue ball\")")  # fmt: skip
-
-
-def ranked(cands: list[int], key: dict[int, float], reverse: bool = False) -> list[int]:
-    """`cands` by `key` (descending with `reverse`), ties in their own order."""
-    return sorted(cands, key=lambda k: (-key[k] if reverse else key[k], cands.index(k)))
-
-
-class Form(ABC):
-    """A question form. `name` is what `Plan.form` and question files say; `order` ranks the
-    claims (lower first; the first plan returned wins)."""
-
-    name: ClassVar[str]
-    order: ClassVar[int]
-
-    @abstractmethod
-    def claim(self, r: Reading, subject: Clause, relation: tuple[str, Clause] | None,
-              names: list[str], text: str) -> Plan | None:  # fmt: skip
-        """The plan of the reading `r` when this form answers it, else None."""
-
-    @abstractmethod
-    def text(self, plan: Plan, inner: str, over: str, of: str, nth: str) -> str:
-        """The plan as one line, given the subject's atoms and relation (`inner`), its
-        objects (`over`), its one object (`of`) and the rank word (`nth`)."""
-
-    @abstractmethod
-    def select(self, plan: Plan, act: np.ndarray, tl: Timeline,
-               eps: dict[int, list[tuple[int, int]]]) -> Selected:  # fmt: skip
-        """Objects ranked and their intervals from the subject's related frames `act` [K, T]
-        (`eps`: each candidate's episodes of them)."""
-
-
-#: The registered forms by name, in the order question files and summaries list them.
-FORMS: dict[str, Form] = {}
-
-
-def register_form(form: type[Form]) -> type[Form]:
-    """Register `form` (a class decorator, or one call) under its `name`."""
-    if form.name in FORMS:
-        raise ValueError(f"form {form.name!r} is registered twice")
-    FORMS[form.name] = form()
-    return form
-
-
-def forms_by_order() -> list[Form]:
-    """The registered forms in the order their claims are tried."""
-    return sorted(FORMS.values(), key=lambda f: f.order)
+__all__ = ["FORMS", "Count", "CountSelect", "Extreme", "Form", "Negation", "OrdinalEpisodes",
+           "OrdinalObjects", "Relation", "forms_by_order", "register_form", "select"]
 
 
 class OrdinalObjects(Form):
@@ -106,12 +58,20 @@ class OrdinalObjects(Form):
                        key=lambda k: (start[k], cands.index(k)))  # fmt: skip
         n = plan.n or 1
         onset = [k for k in order if start[k] < t] or order
-        if order:
-            pick = onset[-1] if n == -1 else order[min(n, len(order)) - 1]
+        refusal = None
+        names = ", ".join(plan.names[k] for k in cands)
+        if n > len(cands):
+            refusal = (f"there are only {len(cands)} to rank ({names}): no {nth_word(n)} "
+                       f"one ({atoms_said(plan.subject)})")  # fmt: skip
+        elif n != -1 and n > len(order):
+            refusal = (f"only {len(order)} of {names} show {atoms_said(plan.subject)} in the "
+                       f"clip: no {nth_word(n)} one")  # fmt: skip
+        if order and refusal is None:
+            pick = onset[-1] if n == -1 else order[n - 1]
             order = [pick] + [k for k in order if k != pick]
         order += [k for k in cands if k not in order]
-        return Selected(order, {k: eps[k][:1] for k in cands}, None,
-                        {k: -start[k] for k in cands})  # fmt: skip
+        spans = {} if refusal else {k: eps[k][:1] for k in cands}
+        return Selected(order, spans, None, {k: -start[k] for k in cands}, refusal)
 
 
 class OrdinalEpisodes(Form):
@@ -136,7 +96,12 @@ class OrdinalEpisodes(Form):
         n = plan.n or 1
         e = eps[k]
         pick = ([e[-1]] if n == -1 else [e[n - 1]]) if e and (n == -1 or n <= len(e)) else []
-        return Selected([k], {k: pick}, None, {k: float(bool(pick))})
+        refusal = None
+        if not pick:
+            had = f"only {len(e)} episode{'s' if len(e) != 1 else ''}" if e else "no episode"
+            refusal = (f"the {plan.names[k]} has {had} of {atoms_said(plan.subject)} "
+                       f"in the clip: no {nth_word(n)} one")  # fmt: skip
+        return Selected([k], {k: pick}, None, {k: float(bool(pick))}, refusal)
 
 
 class Count(Form):
@@ -292,9 +257,3 @@ class Negation(Form):
 
 for _form in (OrdinalObjects, OrdinalEpisodes, Count, CountSelect, Relation, Extreme, Negation):
     register_form(_form)
-
-
-def select(plan: Plan, act: np.ndarray, tl: Timeline) -> Selected:
-    """Apply `plan`'s selection to the subject's (already related) frames `act` [K, T]."""
-    eps = {k: episodes(act[k]) for k in plan.subject.objects}
-    return FORMS[plan.form].select(plan, act, tl, eps)

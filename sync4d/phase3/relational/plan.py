@@ -47,6 +47,8 @@ class Clause:
     pronoun: bool = False
     specific: bool = True
     ordinal: int | None = None  # in a relation's other clause: only its nth episode
+    #: "between X and Y" / "from X to Y": the second clause (Y); this clause is X.
+    then: Clause | None = None
 
 
 @dataclass
@@ -72,3 +74,6 @@ class Selected:
     spans: dict[int, list[tuple[int, int]]]
     count: int | None = None
     keys: dict[int, float] = dc_field(default_factory=dict)
+    #: Set when the question asks for what is not there ("the fifth ball to land" of three
+    #: balls): the sentence that says so; the answer then names no object.
+    refusal: str | None = None

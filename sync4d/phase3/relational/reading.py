@@ -18,7 +18,10 @@ from sync4d.phase3.relational.words import (
     NUMBERS,
     ORDINALS,
     OTHERS,
+    QUESTION_WORDS,
+    RELATION_PHRASES,
     RELATIONS,
+    SPAN_JOINS,
     STOP,
 )
 from sync4d.phase3.relational.words import words as split_words
@@ -44,11 +47,74 @@ class Reading:
     never: bool = False
     which: bool = False
     right_ordinal: int | None = None
+    #: "between X and Y", "from X to Y": Y's words (`right` holds X's) and Y's ordinal.
+    then: list[str] | None = None
+    then_ordinal: int | None = None
+
+
+#: Auxiliaries after which an opening "when" asks a question ("when does it land") rather than
+#: opening a relation clause ("when the red ball lands, ...").
+_AUXILIARIES = ("does", "do", "did", "is", "are", "was", "were", "will", "can", "would")
+#: Words before "from" that make it part of a motion phrase ("moving away from"), not a span.
+_NOT_SPAN = ("away", "farther", "further", "receding", "off", "apart")
+
+
+def _joined(words: list[str]) -> list[str]:
+    """`words` with each relation phrase of several words (`RELATION_PHRASES`: "prior to",
+    "as soon as") replaced by its relation word."""
+    out, i = [], 0
+    while i < len(words):
+        hit = next(((ph, rel) for ph, rel in RELATION_PHRASES.items()
+                    if tuple(words[i:i + len(ph)]) == ph), None)  # fmt: skip
+        if hit is None:
+            out.append(words[i])
+            i += 1
+        else:
+            out.append(hit[1])
+            i += len(hit[0])
+    return out
+
+
+def _words_in_order(text: str) -> list[str]:
+    """The question's words with a relation clause that opens the sentence moved after the
+    main clause ("Before the red ball lands, which ball is highest?" reads as "which ball is
+    highest before the red ball lands"): the opening clause ends at the first comma, else
+    before the first question word."""
+    words = _joined(split_words(text))
+    if not words or words[0] not in RELATIONS:
+        return words
+    if words[0] == "when" and len(words) > 1 and words[1] in _AUXILIARIES:
+        return words  # "when does the red ball land": a question, not a relation
+    if "," in text:
+        head, tail = text.split(",", 1)
+        front, main = _joined(split_words(head)), _joined(split_words(tail))
+        if front and front[0] in RELATIONS and main:
+            return main + front
+    j = next((i for i, w in enumerate(words) if i > 1 and w in QUESTION_WORDS
+              and w != "when"), None)  # fmt: skip
+    return words[j:] + words[:j] if j is not None else words
+
+
+def _span(words: list[str], i: int) -> tuple[list[str], list[str]] | None:
+    """(X's words, Y's words) of "between X and Y" / "from X to Y" at `words[i]`; "between its
+    two bounces" is X = its first bounce, Y = its second. None when it is no span."""
+    w, rest = words[i], words[i + 1:]
+    if w == "from" and (i == 0 or words[i - 1] in _NOT_SPAN):
+        return None
+    joins = [j for j, x in enumerate(rest) if x in SPAN_JOINS.get(w, ())]
+    if joins:
+        return rest[:joins[0]], rest[joins[0] + 1:]
+    if w == "between":
+        pair = [j for j, x in enumerate(rest) if x in ("two", "both")]
+        if pair:
+            x = rest[:pair[0]] + rest[pair[0] + 1:]
+            return ["first", *x], ["second", *x]
+    return None
 
 
 def split(text: str) -> Reading | None:
     """The question's function words; None when it has none (not a relational question)."""
-    words = split_words(text)
+    words = _words_in_order(text)
     which = bool(words) and words[0] in ("which", "what", "who")
     words = [w for i, w in enumerate(words)
              if not (w in HEDGES and i + 1 < len(words) and words[i + 1] in RELATIONS)]
@@ -57,12 +123,17 @@ def split(text: str) -> Reading | None:
                 x in OTHERS or x in ("any", "all", "every") for x in words[i + 2:]):
             words = words[:i] + [COMPARATIVES[w]]
             break
-    rel, right, left = None, None, words
+    rel, right, left, then = None, None, words, None
     for i, w in enumerate(words):
+        if w in SPAN_JOINS and i > 0:
+            span = _span(words, i)
+            if span is not None:
+                rel, left, (right, then) = w, words[:i], span
+                break
         if w in RELATIONS and i > 0:
             rel, left, right = RELATIONS[w], words[:i], words[i + 1:]
             break
-    r = Reading(left=list(left), right=right, relation=rel, which=which)
+    r = Reading(left=list(left), right=right, relation=rel, which=which, then=then)
     out: list[str] = []
     i = 0
     lw = r.left
@@ -107,17 +178,24 @@ def split(text: str) -> Reading | None:
         r.ordinal = 1 if r.relation == "before" else -1
         r.relation, r.right, r.which = None, None, True
     if r.right is not None:
-        rest = []
-        for w in r.right:
-            if w in ORDINALS and r.right_ordinal is None:
-                r.right_ordinal = ORDINALS[w]
-            else:
-                rest.append(w)
-        r.right = rest
+        r.right, r.right_ordinal = _ordinal_apart(r.right)
+    if r.then is not None:
+        r.then, r.then_ordinal = _ordinal_apart(r.then)
     if r.relation is None and not (r.ordinal or r.count_ask or r.count_n or r.extreme
                                    or r.never):  # fmt: skip
         return None
     return r
+
+
+def _ordinal_apart(words: list[str]) -> tuple[list[str], int | None]:
+    """`words` without their first ordinal word, and its rank (None: none)."""
+    rest, rank = [], None
+    for w in words:
+        if w in ORDINALS and rank is None:
+            rank = ORDINALS[w]
+        else:
+            rest.append(w)
+    return rest, rank
 
 
 def parse(text: str, field: Field, cache: TextCache, cfg) -> Plan | None:
@@ -149,9 +227,19 @@ def parse(text: str, field: Field, cache: TextCache, cfg) -> Plan | None:
     if r.relation is not None:
         other = read_clause(r.right or [], field, cache, cfg, generic=False)
         other.ordinal = r.right_ordinal
+        if r.then is not None:  # between X and Y, from X to Y: each borrows the other's atoms
+            then = read_clause(r.then, field, cache, cfg, generic=False)
+            then.ordinal = r.then_ordinal
+            if not other.atoms and then.atoms:  # "between its first and second bounce"
+                other.atoms = _copy(then.atoms)
+            if not then.atoms and other.atoms:
+                then.atoms = _copy(other.atoms)
+            if not other.identity and then.identity:
+                other.objects, other.identity, other.pronoun = \
+                    then.objects, then.identity, then.pronoun  # fmt: skip
+            other.then = then
         if not other.atoms and subject.atoms:  # "... before the blue ball does"
-            other.atoms = [Atom(a.name, a.words, a.similarity, a.target, a.target_text)
-                           for a in subject.atoms]  # fmt: skip
+            other.atoms = _copy(subject.atoms)
         if not other.atoms and not other.negated:
             raise RelationalError(
                 f"{text!r}: \"{r.relation}\" needs a state or event after it (\"... while "
@@ -167,6 +255,10 @@ def parse(text: str, field: Field, cache: TextCache, cfg) -> Plan | None:
         if plan is not None:
             return plan
     raise RelationalError(f"{text!r}: no question form reads it")  # no catch-all registered
+
+
+def _copy(atoms: list[Atom]) -> list[Atom]:
+    return [Atom(a.name, a.words, a.similarity, a.target, a.target_text) for a in atoms]
 
 
 def _op_word(r: Reading) -> str:

@@ -20,7 +20,8 @@ if TYPE_CHECKING:
     from sync4d.phase3.relational.plan import Atom, Clause
     from sync4d.phase3.store import Field
 
-__all__ = ["Timeline", "clause_active", "episodes", "field_timeline", "peak_run", "relate"]
+__all__ = ["Timeline", "clause_active", "episodes", "field_timeline", "nth_episode", "peak_run",
+           "relate", "span"]
 
 
 @dataclass
@@ -82,6 +83,43 @@ def relate(a: np.ndarray, b: np.ndarray, word: str, lead: int = 1) -> np.ndarray
             return a & (idx >= onsets[0])
         return a & (idx > iv[0][1]) if iv else np.zeros(t, bool)
     raise ValueError(f"unknown relation {word!r}")
+
+
+def nth_episode(row: np.ndarray, n: int | None, after: int = -1) -> tuple[int, int] | None:
+    """Episode `n` of `row` [T] (1-based, -1 the last; None: the first that starts after
+    frame `after`), None when there is no such episode."""
+    eps = episodes(row)
+    if n is None:
+        return next((ep for ep in eps if ep[0] > after), None)
+    if n == -1:
+        return eps[-1] if eps else None
+    return eps[n - 1] if 0 < n <= len(eps) else None
+
+
+def span(x: np.ndarray, y: np.ndarray | None, word: str, nx: int | None = None,
+         ny: int | None = None) -> np.ndarray:
+    """Frames [T] of "between X and Y" (after X's episode ends, before Y's begins) or "from X
+    to Y" (from X's start to Y's end) for the activations `x`, `y` [T]: X's episode `nx`
+    (default its first), Y's episode `ny` (default its first one after X's). Without `y`,
+    "between" is every gap between two consecutive episodes of `x` ("between bounces")."""
+    t = len(x)
+    out = np.zeros(t, bool)
+    if y is None:
+        eps = episodes(x)
+        for (_, e), (s, _) in zip(eps, eps[1:], strict=False):
+            out[e + 1:s] = True
+        return out
+    first = nth_episode(x, nx)
+    if first is None:
+        return out
+    second = nth_episode(y, ny, first[1] if word == "between" else first[0] - 1)
+    if second is None:
+        return out
+    if word == "between":
+        out[first[1] + 1:second[0]] = True
+    else:
+        out[first[0]:second[1] + 1] = True
+    return out
 
 
 def peak_run(q: np.ndarray, direction: str, scale: float = 0.0) -> tuple[float, tuple[int, int]]:

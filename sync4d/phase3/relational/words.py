@@ -12,14 +12,22 @@ from sync4d.phase3 import motion_phrases as mp
 
 __all__ = ["ATOMS", "COMPARATIVES", "CONTACT_WORDS", "COUNT_WORDS", "DETERMINERS", "ENDINGS",
            "EXTREMES", "HEDGES", "NEGATIONS", "NUMBERS", "ORDINALS", "OTHERS", "PRONOUNS",
-           "RELATIONS", "STOP", "AtomDef", "stems", "words"]  # fmt: skip
+           "QUESTION_WORDS", "RELATIONS", "RELATION_PHRASES", "SPAN_JOINS", "STOP", "AtomDef",
+           "stems", "words"]  # fmt: skip
 
 #: Ordinal words and their rank (-1: the last).
 ORDINALS = {"first": 1, "second": 2, "third": 3, "fourth": 4, "fifth": 5, "sixth": 6,
             "1st": 1, "2nd": 2, "3rd": 3, "4th": 4, "5th": 5, "last": -1, "final": -1}
 #: Relation words between two clauses.
 RELATIONS = {"while": "while", "whilst": "while", "when": "while", "during": "during",
-             "before": "before", "after": "after", "until": "until", "till": "until"}
+             "before": "before", "after": "after", "until": "until", "till": "until",
+             "since": "after", "between": "between"}
+#: Relation phrases of several words, read as one relation word.
+RELATION_PHRASES = {("prior", "to"): "before", ("as", "soon", "as"): "after",
+                    ("up", "to"): "until", ("by", "the", "time"): "until"}
+#: "between X and Y" (the frames after X ends and before Y begins) and "from X to Y" (from X's
+#: start to Y's end): the words that join the two clauses.
+SPAN_JOINS = {"between": ("and",), "from": ("to", "until", "till")}
 #: Superlatives: (quantity, direction).
 EXTREMES = {"highest": ("height", "max"), "lowest": ("height", "min"),
             "fastest": ("speed", "max"), "quickest": ("speed", "max"),
@@ -53,6 +61,9 @@ DETERMINERS = ("the", "a", "an", "which", "what", "each", "every", "any")
 #: the clause means its negation (alone, "stops" is a content word: it reads as "at rest").
 ENDINGS = ("stop", "stops", "stopped", "stopping", "cease", "ceases", "ceased", "quit", "quits",
            "finish", "finishes", "finished")
+#: Words that open the main clause after a sentence-initial relation without a comma
+#: ("before the red ball lands which ball is highest").
+QUESTION_WORDS = ("which", "what", "who", "how", "where", "when")
 #: Pronouns that refer back to the subject.
 PRONOUNS = ("it", "itself", "they", "them", "its")
 
