@@ -402,3 +402,11 @@ def test_the_ball_with_the_longest_contact(bb):
     ans, name, spans = _top(bb, "the ball with the longest contact")
     assert ans["plan"].startswith("max(duration, contact with background)")
     assert name == "blue ball" and spans == [(0, T - 1)]
+
+
+def test_a_motion_onto_a_surface_is_the_contact(bb):
+    """"drops onto the floor" ends on the floor: a contact, not a fall; "drops" alone falls."""
+    assert _plan(bb, "how many times does the red ball drop onto the floor").startswith(
+        "count(contact with background) of red ball")  # fmt: skip
+    assert _plan(bb, "how many times does the red ball drop").startswith(
+        "count(falling) of red ball")  # fmt: skip

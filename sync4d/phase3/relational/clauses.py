@@ -19,8 +19,10 @@ from sync4d.phase3.relational.words import (
     DETERMINERS,
     ENDINGS,
     NEGATIONS,
+    ONTO,
     PRONOUNS,
     STOP,
+    TOWARDS,
     stems,
 )
 from sync4d.phase3.texts import TextCache, identity, names_score, resolve_target
@@ -113,6 +115,15 @@ def read_clause(words: list[str], field: Field, cache: TextCache, cfg, *,
         else:
             i += 1
     found.sort(key=lambda f: f[0])
+    # "comes down onto the plate": a motion towards something that ends on it is the contact
+    for n, (s, e, a) in enumerate(found):
+        if a.name not in TOWARDS:
+            continue
+        if any(w in ONTO for w in words[s:e]):  # the span read already holds it
+            found[n] = (s, e, Atom("contact", a.words, a.similarity))
+        elif e < len(words) and words[e] in ONTO:
+            role[e] = "atom"
+            found[n] = (s, e + 1, Atom("contact", f"{a.words} {words[e]}", a.similarity))
     # targets: identity / background words right after a relational atom
     subject_words: list[str] = []
     pronoun = any(w in PRONOUNS for w in words)

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from sync4d.phase3 import motion_phrases as mp
 
 __all__ = ["ATOMS", "COMPARATIVES", "CONTACT_WORDS", "COUNT_WORDS", "DETERMINERS", "ENDINGS",
-           "EXTREMES", "HEDGES", "NEGATIONS", "NUMBERS", "ORDINALS", "OTHERS", "PRONOUNS",
-           "QUESTION_WORDS", "RELATIONS", "RELATION_PHRASES", "SPAN_JOINS", "STOP", "AtomDef",
-           "stems", "words"]  # fmt: skip
+           "EXTREMES", "HEDGES", "NEGATIONS", "NUMBERS", "ONTO", "ORDINALS", "OTHERS",
+           "PRONOUNS", "QUESTION_WORDS", "RELATIONS", "RELATION_PHRASES", "SPAN_JOINS", "STOP",
+           "TOWARDS", "AtomDef", "stems", "words"]  # fmt: skip
 
 #: Ordinal words and their rank (-1: the last).
 ORDINALS = {"first": 1, "second": 2, "third": 3, "fourth": 4, "fifth": 5, "sixth": 6,
@@ -79,8 +79,15 @@ CLASS_MARGIN = 0.12
 #: A quantity varying by at most this fraction of the largest range among the compared
 #: objects has no peak of its own (extremes answer the whole clip for it).
 FLAT = 0.05
-#: Names of the contact event (the scene description's "contact", "rebound").
-CONTACT_WORDS = ("contact", "rebound", "bounce")
+#: Names of the contact event (the scene description's "contact", "rebound"); "reach" was
+#: added after measuring the paraphrase set (2026-12-06: "which ball reaches the plate first"
+#: read as approaching; docs/phase3-queries.md says so).
+CONTACT_WORDS = ("contact", "rebound", "bounce", "reach")
+#: Telic prepositions: a motion towards a surface or object followed by one of these ("comes
+#: down onto the plate", "falls into the box") means the motion's end there, the contact.
+ONTO = ("onto", "into")
+#: The atoms a telic preposition turns into a contact.
+TOWARDS = ("falling", "moving", "approaching")
 
 
 @dataclass(frozen=True)
