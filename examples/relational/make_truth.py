@@ -10,9 +10,9 @@ smoothness prior over time; no reconstruction of ours is read).
 
 Each question below is written with its meaning by hand (the form, the subject, the state or
 event, the relation), independently of how `sync4d.phase3.relational` reads the wording; the
-answer is then computed by the grammar's operators (`evaluate_plan`, the documented semantics)
-on a timeline of the *true* states, and stored as the object, its time ranges (normalised
-time, half a truth frame of slack each side) and, for counts, the number.
+answer is then computed by operators of this folder's own (`truth_ops.py`, the documented
+semantics, no code of the method) on the *true* states, and stored as the object, its time
+ranges (normalised time, half a truth frame of slack each side) and, for counts, the number.
 """
 
 from __future__ import annotations
@@ -20,17 +20,13 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
+import truth_ops
 
 from sync4d.data import synthetic as syn
-from sync4d.phase3 import motion_phrases as mp
-from sync4d.phase3.config import Phase3Config
-from sync4d.phase3.relational import Atom, Clause, Plan, Timeline, evaluate_plan
 
 HERE = Path(__file__).resolve().parent
-CFG = Phase3Config()
 
 
 def Q(question, form, subject=None, atoms=(), n=None, quantity=None, direction=None,
@@ -43,62 +39,20 @@ def Q(question, form, subject=None, atoms=(), n=None, quantity=None, direction=N
                 target=target)  # fmt: skip
 
 
-def _clause(names, subject, atoms, negated, target):
-    objs = list(range(len(names))) if subject is None else [names.index(subject)]
-    return Clause(text="", identity=subject or "", objects=objs,
-                  atoms=[Atom(a, a, 1.0, target=target if a == "contact" else None)
-                         for a in atoms], negated=negated, pronoun=subject is None,
-                  specific=subject is not None)  # fmt: skip
-
-
-def truth_answer(spec, names, tl):
-    subj = _clause(names, spec["subject"], spec["atoms"], spec["negated"], spec["target"])
-    rel = None
-    if spec["relation"]:
-        word, other, atoms, neg, *nth = spec["relation"]
-        oc = _clause(names, other, atoms, neg, 0)
-        oc.ordinal = nth[0] if nth else None
-        if other is None:
-            oc.pronoun, oc.identity = True, ""
-        elif not subj.specific:
-            subj.objects = [k for k in subj.objects if k not in oc.objects]
-        rel = (word, oc)
-    plan = Plan(spec["form"], subj, rel, spec["n"], spec["quantity"], spec["direction"],
-                list(names))  # fmt: skip
-    sel = evaluate_plan(plan, tl)
-    k = sel.order[0]
-    dt = float(np.median(np.diff(tl.times)))
-    times = [[max(0.0, float(tl.times[s]) - dt / 2), min(1.0, float(tl.times[e]) + dt / 2)]
-             for s, e in sel.spans.get(k, [])]  # fmt: skip
+def truth_answer(spec, names, times, centres, states):
+    """The stored answer of question `spec` (`truth_ops.answer` on the true states): the
+    object, its time ranges (half a frame of slack each side) and, for counts, the number."""
+    height = centres[..., 2]
+    speed = np.linalg.norm(np.gradient(centres, times, axis=1), axis=-1)
+    k, spans, count = truth_ops.answer(spec, names, states, height, speed)
+    dt = float(np.median(np.diff(times)))
+    ranges = [[max(0.0, float(times[s]) - dt / 2), min(1.0, float(times[e]) + dt / 2)]
+              for s, e in spans]  # fmt: skip
     out = {"question": spec["question"], "form": spec["form"], "object": names[k],
-           "times": times}  # fmt: skip
+           "times": ranges}  # fmt: skip
     if spec["form"] in ("count", "count-select"):
-        out["count"] = sel.count
+        out["count"] = count
     return out
-
-
-def timeline(times, centres, radius, contact, extra=None):
-    """A truth timeline: motion states by the query's predicates (`motion_phrases`, the
-    Phase 3 defaults) on the true centres, contact with the ground from `contact` [K, T]."""
-    cfg = SimpleNamespace(**{k: getattr(CFG, k) for k in (
-        "moving_speed", "rest_speed", "vertical_speed", "closing_speed", "contact_gap",
-        "phrase_smooth", "phrase_min_frames")})  # fmt: skip
-    up = np.array([0.0, 0.0, 1.0])
-    c, vel, s_ref = mp.smoothed_motion(centres, times, radius, cfg.phrase_smooth)
-    k, t = centres.shape[:2]
-    feats = np.zeros((k, t, 28))
-    feats[..., 2] = (extra or {}).get("turning", np.zeros((k, t)))
-
-    def activation(a):
-        if a.name == "contact":
-            return contact
-        pred = next(p for p in mp.PREDICATES if p.name == a.name)
-        m = mp.MatchedPredicate(pred, a.name, 1.0, target=a.target)
-        return mp.evaluate(m, feats, centres, np.zeros((k, 0, t)), [], list(range(1, k + 1)),
-                           radius, up, np.array([1.0, 0.0, 0.0]), times, cfg)  # fmt: skip
-
-    return Timeline(times, c @ up, np.linalg.norm(vel, axis=-1), activation,
-                    cfg.phrase_min_frames)  # fmt: skip
 
 
 # --- the embedded scene ----------------------------------------------------------------------
@@ -175,11 +129,12 @@ def embedded_truth() -> dict:
     turning[0] = 1.0  # the ball rolls throughout
     s = (times - syn.SLIDE[0]) / (syn.SLIDE[1] - syn.SLIDE[0])
     turning[1] = ((s > 0) & (s < 1)).astype(float)
-    tl = timeline(times, centres, radius, contact, {"turning": turning})
+    states = truth_ops.true_states(times, centres, radius, contact, turning)
     return {"version": 1, "kind": "relational", "scene": "embedded synthetic scene",
             "truth": "sync4d.data.synthetic.object_poses (true poses) and STATES, on 201 "
                      "times; examples/relational/make_truth.py",
-            "questions": [truth_answer(q, names, tl) for q in EMBEDDED]}  # fmt: skip
+            "questions": [truth_answer(q, names, times, centres, states)
+                          for q in EMBEDDED]}  # fmt: skip
 
 
 # --- bouncingballs ---------------------------------------------------------------------------
@@ -365,14 +320,15 @@ BB_PARAPHRASES = [
 def bb_truth(root: Path, questions: list[dict] | None = None) -> dict:
     times, centres, radii = triangulate(root)
     contact = true_contacts(centres[..., 2], radii)
-    tl = timeline(times, centres, radii, contact)
+    states = truth_ops.true_states(times, centres, radii, contact)
     return {"version": 1, "kind": "relational", "scene": "D-NeRF bouncingballs",
             "truth": "ball centres triangulated from the instance masks of the 150 training "
                      "views (masks/train, labels.json) with a smoothness prior; contact: "
                      "within 5 % of the ball's radius of its height at each bounce "
                      "(true_contacts); "
                      "examples/relational/make_truth.py",
-            "questions": [truth_answer(q, BB_NAMES, tl) for q in questions or BB]}  # fmt: skip
+            "questions": [truth_answer(q, BB_NAMES, times, centres, states)
+                           for q in questions or BB]}  # fmt: skip
 
 
 def main() -> None:
