@@ -28,7 +28,14 @@ from sync4d.phase3.activation import activate, intervals
 from sync4d.phase3.encoders.encoder import Encoder
 from sync4d.phase3.field import query_scores
 from sync4d.phase3.store import Field, FieldError, load_field
-from sync4d.phase3.texts import TextCache, identity, names_score, resolve_target
+from sync4d.phase3.texts import (
+    QueryError,
+    TextCache,
+    identity,
+    names_score,
+    resolve_target,
+    text_problem,
+)
 
 if TYPE_CHECKING:
     from sync4d.phase3.config import Phase3Config
@@ -36,10 +43,6 @@ if TYPE_CHECKING:
 __all__ = ["DEFAULT_SCORER", "SCORERS", "SCORER_TABLE", "QueryError", "Scorer", "TextCache",
            "field_settings",
            "answer", "query"]
-
-
-class QueryError(ValueError):
-    """A query that cannot be answered (empty text, unknown scorer); the message says why."""
 
 
 @dataclass
@@ -204,6 +207,9 @@ def answer(
     text = " ".join(str(text).split())
     if not text:
         raise QueryError("empty query: give a text such as \"the red ball while it is falling\"")
+    problem = text_problem(text)
+    if problem:
+        raise QueryError(problem)
     if scorer not in SCORERS:
         raise QueryError(f"unknown scorer {scorer!r}: expected one of {', '.join(SCORERS)}")
     cfg = cfg or field_settings(field)

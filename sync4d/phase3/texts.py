@@ -23,7 +23,28 @@ from sync4d.runs.names import FIELD_DIR, TEXT_CACHE
 if TYPE_CHECKING:
     from sync4d.phase3.config import Phase3Config
 
-__all__ = ["TextCache", "identity", "names_score", "resolve_target"]
+__all__ = ["QueryError", "TextCache", "identity", "names_score", "resolve_target",
+           "text_problem"]
+
+
+class QueryError(ValueError):
+    """A query that cannot be answered (empty text, unknown scorer, bytes that are not text);
+    the message says why."""
+
+
+def text_problem(text: str) -> str | None:
+    """Why `text` cannot be encoded, or None: the code points Python makes of bytes that are
+    not UTF-8 (surrogate escapes, from a command line, a file name or a JSON escape) have no
+    UTF-8 form, and a tokenizer cannot read them."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = text.encode("utf-8", "backslashreplace").decode("ascii", "backslashreplace")
+        if len(shown) > 60:
+            shown = shown[:57] + "..."
+        return (f"the text \"{shown}\" holds bytes that are not UTF-8 (an undecodable byte in "
+                "the command line, a file or a JSON escape); give the query as UTF-8 text")
+    return None
 
 
 class TextCache:
@@ -63,6 +84,10 @@ class TextCache:
     def get(self, texts: list[str]) -> np.ndarray:
         """Unit embeddings [n, D] of `texts`, encoding only those not cached."""
         missing = sorted({t for t in texts if t not in self.texts})
+        for t in missing:
+            problem = text_problem(t)
+            if problem:
+                raise QueryError(problem)
         if missing:
             emb = self.encoder().encode_texts(missing)
             for t, e in zip(missing, emb, strict=True):

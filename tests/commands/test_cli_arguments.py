@@ -16,6 +16,7 @@ import argparse
 import contextlib
 import importlib
 import io
+import json
 import os
 import subprocess
 import sys
@@ -261,3 +262,32 @@ def test_bytes_that_are_not_text_through_a_real_process(argv, world):
     err = proc.stderr.decode("utf-8", "replace")
     assert "Traceback" not in err, err[-3000:]
     assert proc.returncode == 0 or err.strip(), err
+
+
+@pytest.fixture(scope="module")
+def offline_run(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """The oracle run with its field built by the default encoder (offline: MiniLM's
+    tokenizer and text model read every new text)."""
+    return str(oracle_run_folder(tmp_path_factory.mktemp("offline") / "oracle",
+                                 encoder="offline"))  # fmt: skip
+
+
+@pytest.mark.parametrize("value", VALUES)
+def test_any_text_through_the_default_encoder(value, offline_run, tmp_path):
+    """A query of any text on a field of the default encoder (the stub of the test above fails
+    before a tokenizer is reached): an answer, or one sentence and a non-zero exit; the same
+    text in a relational question file for `eval --queries`."""
+    code, out, err = _run(["query", offline_run, "--no-plot", "--", value])
+    assert _clear(code, err, "query") and "Traceback" not in err + out, err[-1500:]
+    questions = tmp_path / "questions.json"
+    questions.write_text(json.dumps({
+        "version": 1, "kind": "relational", "questions": [
+            {"question": value, "form": "relation", "object": "red ball", "times": []}]}))
+    code, out, err = _run(["eval", offline_run, "--queries", str(questions)])
+    assert _clear(code, err, "eval") and "Traceback" not in err + out, err[-1500:]
+    if value.strip():  # a vocabulary entry of the same text, through export
+        vocab = tmp_path / "vocab.json"
+        vocab.write_text(json.dumps([value]))
+        code, out, err = _run(["export", offline_run, "--vocab", str(vocab), "--scene",
+                               str(tmp_path / "scene.json"), "--threads", "1"])  # fmt: skip
+        assert _clear(code, err, "export") and "Traceback" not in err + out, err[-1500:]

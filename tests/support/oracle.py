@@ -116,20 +116,22 @@ def oracle_phase2_run(
     return run, root
 
 
-def oracle_run_folder(tmp: Path, queries: tuple[str, ...] = (), motion: str = "gaussians"
-                      ) -> Path:  # fmt: skip
+def oracle_run_folder(tmp: Path, queries: tuple[str, ...] = (), motion: str = "gaussians",
+                      encoder: str | None = None) -> Path:  # fmt: skip
     """The oracle Phase 2 run saved as a run folder (`oracle_phase2_run(save=True)`) with its
     language field built by the colour encoder (`support.encoders.ColourEncoder`), and the
     texts of `queries` already in the field's text cache, so the run's own query code answers
     them without loading an encoder (the colour encoder is no registered kind). `motion`:
-    as in `oracle_phase2_run`."""
+    as in `oracle_phase2_run`; `encoder`: a registered encoder ("offline") to build the field
+    with instead, which every later query then loads."""
     from support.encoders import ColourEncoder
     from sync4d.phase3.build import build_field
     from sync4d.phase3.config import Phase3Config
+    from sync4d.phase3.encoders.encoder import load_encoder
     from sync4d.phase3.query import TextCache, answer
 
     run, _ = oracle_phase2_run(tmp, save=True, motion=motion)
-    enc = ColourEncoder()
+    enc = ColourEncoder() if encoder is None else load_encoder(encoder)
     field = build_field(run, Phase3Config(), enc, threads=1)
     field.save(run.path)
     cache = TextCache(run.path, field, enc)
