@@ -121,6 +121,25 @@ class NodeConfig:
     #: A node whose summed blend weight over all Gaussians is below this is removed.
     prune_weight: float = ranged(0.5, 0.0)
 
+    def combination_problem(self) -> str | None:
+        """What is wrong with these settings together (each is within its own range), or None;
+        `sync4d.config.validate` calls it once all overrides are applied."""
+        if self.neighbours > self.count:
+            return (f"neighbours = {self.neighbours} exceeds count = {self.count}: a Gaussian "
+                    "blends at most count nodes; lower phase1.nodes.neighbours or raise "
+                    "phase1.nodes.count")  # fmt: skip
+        graph = self.arap_weight > 0 or self.strain_weight > 0
+        if graph and self.arap_neighbours >= self.count:
+            return (f"arap_neighbours = {self.arap_neighbours} needs at least "
+                    f"{self.arap_neighbours + 1} nodes (count = {self.count}): the ARAP and "
+                    "strain losses compare each node with that many others; lower "
+                    "phase1.nodes.arap_neighbours, raise phase1.nodes.count, or set "
+                    "phase1.nodes.arap_weight = 0")  # fmt: skip
+        if self.max_count < self.count:
+            return (f"max_count = {self.max_count} is below count = {self.count}: nodes are "
+                    "never added beyond max_count; raise phase1.nodes.max_count")
+        return None
+
 
 def knn(points: Tensor, refs: Tensor, k: int, chunk: int = 8_192,
         exclude_self: bool = False) -> Tensor:  # fmt: skip
@@ -278,6 +297,8 @@ def arap_loss(positions: Tensor, edges: Tensor, motion_a: tuple[Tensor, Tensor, 
     `motion_*`: `node_transforms`' (q, dx, dl) at the two times."""
     qa, dxa, _ = motion_a
     qb, dxb, _ = motion_b
+    if edges.numel() == 0:  # one node left (pruning): no edge to keep rigid
+        return (dxa.sum() + dxb.sum()) * 0.0
     ya, yb = positions + dxa, positions + dxb
     ea = ya[edges] - ya.unsqueeze(1)  # [M, E, 3]
     eb = yb[edges] - yb.unsqueeze(1)
@@ -298,6 +319,8 @@ def strain_loss(positions: Tensor, edges: Tensor, motion: tuple[Tensor, Tensor, 
     touching parts count as much as long ones; scale-free. Rotations are free (unlike
     `arap_loss`)."""
     _, dx, _ = motion
+    if edges.numel() == 0:  # one node left (pruning): no edge to strain
+        return dx.sum() * 0.0
     y = positions + dx
     length = (y[edges] - y.unsqueeze(1)).norm(dim=-1)  # [M, E]
     canon = (positions[edges] - positions.unsqueeze(1)).norm(dim=-1)

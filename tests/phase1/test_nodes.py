@@ -331,3 +331,32 @@ def test_node_settings_scale_with_the_budget() -> None:
     small = with_budget(cfg, 3000).phase1.nodes
     assert small.init_after == round(NodeConfig().init_after / 3)
     assert small.count == NodeConfig().count
+
+
+def test_one_node_left_has_no_graph_loss_and_configs_that_cannot_work_are_refused() -> None:
+    """A single node (pruning can leave one) has no graph edge: ARAP and strain are 0, not the
+    NaN of a mean over nothing; settings whose counts cannot go together are refused when the
+    config is read, each naming the setting to change."""
+    from sync4d.config import ConfigError, RunConfig, apply_overrides
+
+    pos = torch.zeros(1, 3, dtype=F64, requires_grad=True)
+    edges = knn(pos, pos, 4, exclude_self=True)
+    motion = (torch.tensor([[1.0, 0, 0, 0]], dtype=F64), pos * 2.0, pos[:, 0] * 0)
+    assert edges.shape == (1, 0)
+    loss = arap_loss(pos, edges, motion, motion) + strain_loss(pos, edges, motion)
+    assert float(loss.detach()) == 0.0
+    loss.backward()
+    assert torch.isfinite(pos.grad).all()
+    cases = {
+        "phase1.nodes.count=1": "neighbours = 8 exceeds count = 1",
+        "phase1.nodes.count=4": "neighbours = 8 exceeds count = 4",
+        "phase1.nodes.max_count=100": "max_count = 100 is below count = 512",
+    }
+    for override, message in cases.items():
+        with pytest.raises(ConfigError, match=message):
+            apply_overrides(RunConfig(), [override])
+    with pytest.raises(ConfigError, match="arap_neighbours = 8 needs at least 9 nodes"):
+        apply_overrides(RunConfig(), ["phase1.nodes.count=8", "phase1.nodes.neighbours=4"])
+    # without the graph losses, 8 nodes and 4 neighbours go together
+    apply_overrides(RunConfig(), ["phase1.nodes.count=8", "phase1.nodes.neighbours=4",
+                                  "phase1.nodes.arap_weight=0"])
