@@ -129,12 +129,11 @@ class NodeConfig:
                     "blends at most count nodes; lower phase1.nodes.neighbours or raise "
                     "phase1.nodes.count")  # fmt: skip
         graph = self.arap_weight > 0 or self.strain_weight > 0
-        if graph and self.arap_neighbours >= self.count:
-            return (f"arap_neighbours = {self.arap_neighbours} needs at least "
-                    f"{self.arap_neighbours + 1} nodes (count = {self.count}): the ARAP and "
-                    "strain losses compare each node with that many others; lower "
-                    "phase1.nodes.arap_neighbours, raise phase1.nodes.count, or set "
-                    "phase1.nodes.arap_weight = 0")  # fmt: skip
+        if graph and self.count < 2:
+            return (f"count = {self.count} needs at least 2 nodes for the ARAP and strain "
+                    "losses (each node is compared with its graph neighbours, at most count - "
+                    "1 of them); raise phase1.nodes.count or set phase1.nodes.arap_weight = 0 "
+                    "and phase1.nodes.strain_weight = 0")  # fmt: skip
         if self.max_count < self.count:
             return (f"max_count = {self.max_count} is below count = {self.count}: nodes are "
                     "never added beyond max_count; raise phase1.nodes.max_count")

@@ -355,8 +355,9 @@ def test_one_node_left_has_no_graph_loss_and_configs_that_cannot_work_are_refuse
     for override, message in cases.items():
         with pytest.raises(ConfigError, match=message):
             apply_overrides(RunConfig(), [override])
-    with pytest.raises(ConfigError, match="arap_neighbours = 8 needs at least 9 nodes"):
-        apply_overrides(RunConfig(), ["phase1.nodes.count=8", "phase1.nodes.neighbours=4"])
-    # without the graph losses, 8 nodes and 4 neighbours go together
-    apply_overrides(RunConfig(), ["phase1.nodes.count=8", "phase1.nodes.neighbours=4",
+    with pytest.raises(ConfigError, match="count = 1 needs at least 2 nodes for the ARAP"):
+        apply_overrides(RunConfig(), ["phase1.nodes.count=1", "phase1.nodes.neighbours=1"])
+    # without the graph losses one node works; 8 nodes take 8 neighbours (ARAP's 7 others)
+    apply_overrides(RunConfig(), ["phase1.nodes.count=1", "phase1.nodes.neighbours=1",
                                   "phase1.nodes.arap_weight=0"])
+    apply_overrides(RunConfig(), ["phase1.nodes.count=8"])
