@@ -206,7 +206,13 @@ def _coerce(value: Any, like: Any, full: str) -> Any:
         return value
     parts = [value]
     if isinstance(like, tuple):
-        parts = value.split(",") if isinstance(value, str) else value
+        if isinstance(value, str):  # "0,0,0", or TOML's own "[0, 0, 0]" (or "(0, 0, 0)")
+            text = value.strip()
+            if len(text) >= 2 and (text[0], text[-1]) in (("[", "]"), ("(", ")")):
+                text = text[1:-1]
+            parts = text.split(",")
+        else:
+            parts = value
         parts = parts if isinstance(parts, list) else [parts]
     flags = [_flag(p) for p in parts if _flag(p) is not None]
     if flags:
@@ -218,6 +224,10 @@ def _coerce(value: Any, like: Any, full: str) -> Any:
         if isinstance(like, int | float):
             return _number(value, like)
     except (TypeError, ValueError, OverflowError):
+        if isinstance(like, tuple):
+            form = ",".join(str(x) for x in like)
+            raise ConfigError(f"{full}: cannot use {value!r} as {len(like)} numbers; write "
+                              f"them as {form} (or [{form}])") from None
         raise ConfigError(f"{full}: cannot use {value!r} as a {type(like).__name__}") from None
     return value
 

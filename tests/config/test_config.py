@@ -126,3 +126,13 @@ def test_every_iteration_count_of_phase1_and_the_run_is_marked_to_scale() -> Non
     fields = dict(walk(RunConfig(), ""))
     assert len(fields) >= 12, fields
     assert not [k for k, floor in fields.items() if floor is None], fields
+
+
+def test_a_list_is_taken_in_toml_s_own_syntax_and_a_bad_one_shows_the_form() -> None:
+    """`--set phase1.background=[0,0,0]` (TOML's list) is `0,0,0`; a value that is no list of
+    numbers is refused with the form that works."""
+    for text in ("[0,0,0]", "0,0,0", "(0, 0, 0)", " [0, 0, 0] "):
+        assert load_config(None, [f"phase1.background={text}"]).phase1.background == (0.0,) * 3
+    with pytest.raises(ConfigError, match=r"as 3 numbers; write them as 1.0,1.0,1.0 \(or "
+                                          r"\[1.0,1.0,1.0\]\)"):  # fmt: skip
+        load_config(None, ["phase1.background=black"])
