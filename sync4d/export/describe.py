@@ -165,7 +165,6 @@ def pairwise_events(field: Field, cfg) -> list[dict]:
     closing_tol = cfg.closing_speed * s_ref
     minf = int(cfg.phrase_min_frames)
     t = len(times)
-    gl = list(field.gap_labels)
     events: list[dict] = []
 
     def rate(d: np.ndarray) -> np.ndarray:
@@ -180,17 +179,9 @@ def pairwise_events(field: Field, cfg) -> list[dict]:
                 ev["evidence"] = evidence[i]
             events.append(ev)
 
-    def height_gap(k: int) -> np.ndarray | None:
-        """Object k's height above the surface under it [T] (unmeasured frames filled)."""
-        if 0 not in gl:
-            return None
-        g = np.asarray(field.gaps[k, gl.index(0)], np.float64)
-        ok = np.isfinite(g)
-        return np.where(ok, g, np.interp(times, times[ok], g[ok])) if ok.any() else None
-
     found = states.contacts(field, cfg)
     for k, a in enumerate(labels):
-        g = height_gap(k)
+        g = states.support_gap(field, k)
         if g is not None:
             gs = mp.smooth_in_time(g[None], times, cfg.phrase_smooth)[0]
             add("approach", a, 0, _runs(-rate(gs) > closing_tol, minf), g)

@@ -206,17 +206,15 @@ def clean_runs(active: np.ndarray, min_frames: int) -> np.ndarray:
 
 
 def evaluate(
-    m: MatchedPredicate, features: np.ndarray, centroids: np.ndarray, gaps: np.ndarray,
-    gap_labels: list[int], labels: list[int], radius: np.ndarray, up: np.ndarray,
-    right: np.ndarray, times: np.ndarray, cfg,
+    m: MatchedPredicate, features: np.ndarray, centroids: np.ndarray, labels: list[int],
+    radius: np.ndarray, up: np.ndarray, right: np.ndarray, times: np.ndarray, cfg,
 ) -> np.ndarray:  # fmt: skip
     """Truth of predicate `m` per object and frame [K, T] (bool). `features` [K, T, 28],
-    `centroids` [K, T, 3] (M_phi's), `gaps` [K, L, T] to `gap_labels` (0: height above the
-    background surface), `labels` [K] the objects' labels, `radius` [K], `up` and `right` [3]
-    unit vectors, `times` [T], `cfg` a Phase3Config. Motion is read from the centroids smoothed
-    in time (`cfg.phrase_smooth`), and the result keeps only runs of `cfg.phrase_min_frames`."""
-    raw = _evaluate(m, features, centroids, gaps, gap_labels, labels, radius, up, right,
-                    times, cfg)  # fmt: skip
+    `centroids` [K, T, 3] (M_phi's), `labels` [K] the objects' labels, `radius` [K], `up` and
+    `right` [3] unit vectors, `times` [T], `cfg` a Phase3Config. Motion is read from the
+    centroids smoothed in time (`cfg.phrase_smooth`), and the result keeps only runs of
+    `cfg.phrase_min_frames`. Touching is a contact: `sync4d.phase3.states` reads it."""
+    raw = _evaluate(m, features, centroids, labels, radius, up, right, times, cfg)
     return clean_runs(raw, cfg.phrase_min_frames)
 
 
@@ -237,7 +235,7 @@ def smoothed_motion(
     return c, vel, s_ref
 
 
-def _evaluate(m, features, centroids, gaps, gap_labels, labels, radius, up, right, times, cfg):
+def _evaluate(m, features, centroids, labels, radius, up, right, times, cfg):
     k, t = centroids.shape[:2]
     c, vel, s_ref = smoothed_motion(centroids, times, radius, cfg.phrase_smooth)
     speed = np.linalg.norm(vel, axis=-1)

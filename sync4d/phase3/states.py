@@ -52,7 +52,7 @@ if TYPE_CHECKING:
     from sync4d.phase3.store import Field
 
 __all__ = ["CONTACT_DEFAULTS", "MOTION_STATES", "Contact", "contact", "contacts", "holds",
-           "motion_state", "settings"]  # fmt: skip
+           "motion_state", "settings", "support_gap"]  # fmt: skip
 
 #: The motion states a description lists per object, in its order.
 MOTION_STATES = ("at rest", "moving", "rising", "falling", "turning")
@@ -84,11 +84,6 @@ class Contact:
         """How many stored frames the contact spans."""
         return self.end - self.start + 1
 
-    @property
-    def duration(self) -> float:
-        """Its length in normalised time (`t1 - t0`)."""
-        return self.t1 - self.t0
-
 
 def settings(cfg) -> dict[str, float]:
     """The contact settings of `cfg` (a Phase3Config or a field's settings), with the defaults
@@ -100,44 +95,45 @@ def _by_name(name: str) -> mp.Predicate:
     return next(p for p in mp.PREDICATES if p.name == name)
 
 
-def motion_state(field: Field, cfg, name: str, target: int | None = None) -> np.ndarray:
-    """Frames [K, T] of motion state `name` (a `motion_phrases` predicate other than touching;
-    `target`: the other object of approaching / moving away, 0 the background, None any)."""
-    if name == "touching":
-        return contact(field, cfg, target)
-    m = mp.MatchedPredicate(_by_name(name), name, 1.0, target=target)
-    return mp.evaluate(m, field.features, field.centroids, field.gaps, field.gap_labels,
-                       field.labels, field.radius, field.up, field.right, field.times, cfg)
-
-
 def holds(field: Field, m: mp.MatchedPredicate, cfg) -> np.ndarray:
     """Frames [K, T] where the matched predicate `m` holds (what a query's motion phrase
     reads): contacts from this module, every other state from `motion_phrases`."""
     if m.predicate.name == "touching":
         return contact(field, cfg, m.target)
-    return mp.evaluate(m, field.features, field.centroids, field.gaps, field.gap_labels,
-                       field.labels, field.radius, field.up, field.right, field.times, cfg)
+    return mp.evaluate(m, field.features, field.centroids, field.labels, field.radius,
+                       field.up, field.right, field.times, cfg)  # fmt: skip
 
 
-def _filled(g: np.ndarray, times: np.ndarray) -> np.ndarray | None:
-    """`g` [T] with non-finite frames interpolated in time; None when none is finite."""
+def motion_state(field: Field, cfg, name: str, target: int | None = None) -> np.ndarray:
+    """Frames [K, T] of state `name` (a `motion_phrases` predicate; `target`: the other object
+    of approaching / moving away / touching, 0 the background, None any)."""
+    return holds(field, mp.MatchedPredicate(_by_name(name), name, 1.0, target=target), cfg)
+
+
+def support_gap(field: Field, k: int) -> np.ndarray | None:
+    """Object k's height above the background surface under it [T] (`gaps[:, 0]`), the frames
+    where it was not measured interpolated in time; None when it never was (or the field has
+    no background gap)."""
+    gl = list(field.gap_labels)
+    if 0 not in gl:
+        return None
+    g = np.asarray(field.gaps[k, gl.index(0)], np.float64)
     ok = np.isfinite(g)
     if not ok.any():
         return None
+    times = np.asarray(field.times, np.float64)
     return np.where(ok, g, np.interp(times, times[ok], g[ok]))
 
 
-def _turns(height: np.ndarray, times: np.ndarray, s_ref: float, cfg) -> list[int]:
+def _turns(height: np.ndarray, vertical: np.ndarray, s_ref: float, cfg) -> list[int]:
     """Frames where the height [T] stops falling and starts rising: the lowest frame between a
-    fall run and the next rise run (vertical speed beyond `vertical_speed` s_ref, as "falling"
-    and "rising" read it)."""
-    t = len(times)
-    if t < 3:
+    fall run and the next rise run of the vertical velocity `vertical` [T] (beyond
+    `vertical_speed` s_ref, as "falling" and "rising" read it)."""
+    if len(height) < 3:
         return []
-    vu = np.gradient(height, times)
     minf = int(cfg.phrase_min_frames)
-    fall = mp.clean_runs((-vu > cfg.vertical_speed * s_ref)[None], minf)[0]
-    rise = mp.clean_runs((vu > cfg.vertical_speed * s_ref)[None], minf)[0]
+    fall = mp.clean_runs((-vertical > cfg.vertical_speed * s_ref)[None], minf)[0]
+    rise = mp.clean_runs((vertical > cfg.vertical_speed * s_ref)[None], minf)[0]
     rises = intervals(rise)
     out = []
     for _, e in intervals(fall):
@@ -165,24 +161,23 @@ def _band(f: int, width: float, *series: np.ndarray) -> tuple[int, int]:
 def ground_contacts(field: Field, cfg) -> list[Contact]:
     """Each object's contacts with the background (see the module notes), in time order."""
     times = np.asarray(field.times, np.float64)
-    c, _, s_ref = mp.smoothed_motion(field.centroids, times, field.radius, cfg.phrase_smooth)
+    c, vel, s_ref = mp.smoothed_motion(field.centroids, times, field.radius,
+                                       cfg.phrase_smooth)  # fmt: skip
     up = np.asarray(field.up, np.float64)
     st = settings(cfg)
     minf = int(cfg.phrase_min_frames)
-    gl = list(field.gap_labels)
     out: list[Contact] = []
     for k, label in enumerate(field.labels):
         r = float(field.radius[k])
         h = c[k] @ up
         near_low = max(cfg.contact_gap * r, st["rebound_height"] * float(np.ptp(h)))
-        raw = _filled(np.asarray(field.gaps[k, gl.index(0)], np.float64), times) \
-            if 0 in gl else None
+        raw = support_gap(field, k)
         # the surface is measured: its gap; else the height over the lowest (a flat floor)
         g = mp.smooth_in_time(raw[None], times, cfg.phrase_smooth)[0] if raw is not None \
             else h - h.min()
         mask = np.zeros(len(times), bool)
         found: list[tuple[int, int, str, int]] = []
-        for f in _turns(h, times, s_ref, cfg):
+        for f in _turns(h, vel[k] @ up, s_ref, cfg):
             if h[f] - h.min() > near_low or g[f] > st["rebound_gap"] * r:
                 continue  # a turn in mid-air
             # the gap and the centroid's height both (plate Gaussians that cling to a ball

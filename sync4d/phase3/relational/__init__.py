@@ -77,6 +77,7 @@ import numpy as np
 from sync4d.phase3.relational.forms import FORMS, Form, register_form, select
 from sync4d.phase3.relational.plan import Atom, Clause, Plan, RelationalError, Selected
 from sync4d.phase3.relational.reading import parse
+from sync4d.phase3.relational.registry import atoms_text
 from sync4d.phase3.relational.timeline import (
     Timeline,
     clause_active,
@@ -96,14 +97,9 @@ __all__ = ["ATOMS", "EXTREMES", "FORMS", "ORDINALS", "RELATIONS", "Atom", "Claus
            "evaluate_plan", "parse", "plan_text", "register_form", "relate", "select"]  # fmt: skip
 
 
-def _atoms_text(c: Clause) -> str:
-    a = " & ".join(str(x) for x in c.atoms) or "present"
-    return f"not({a})" if c.negated else a
-
-
 def _ranked_text(c: Clause) -> str:
     """A relation clause's atoms, inside its rank word when it names one episode."""
-    b = _atoms_text(c)
+    b = atoms_text(c)
     if c.ordinal is None:
         return b
     return f"{ {1: 'first', -1: 'last'}.get(c.ordinal, f'nth[{c.ordinal}]')}({b})"
@@ -116,7 +112,7 @@ def _objects_text(c: Clause, names: list[str]) -> str:
 def plan_text(plan: Plan) -> str:
     """The plan as one line, e.g. ``first(contact with background) over {red ball, ...}``."""
     s, names = plan.subject, plan.names
-    inner = _atoms_text(s)
+    inner = atoms_text(s)
     if plan.relation is not None:
         word, other = plan.relation
         who = "it" if other.pronoun or not other.identity else _objects_text(other, names)

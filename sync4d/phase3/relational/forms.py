@@ -15,7 +15,7 @@ from sync4d.phase3.relational.plan import Plan, RelationalError, Selected
 from sync4d.phase3.relational.registry import (
     FORMS,
     Form,
-    atoms_said,
+    atoms_text,
     forms_by_order,
     need_atom,
     nth_word,
@@ -62,9 +62,9 @@ class OrdinalObjects(Form):
         names = ", ".join(plan.names[k] for k in cands)
         if n > len(cands):
             refusal = (f"there are only {len(cands)} to rank ({names}): no {nth_word(n)} "
-                       f"one ({atoms_said(plan.subject)})")  # fmt: skip
+                       f"one ({atoms_text(plan.subject)})")  # fmt: skip
         elif n != -1 and n > len(order):
-            refusal = (f"only {len(order)} of {names} show {atoms_said(plan.subject)} in the "
+            refusal = (f"only {len(order)} of {names} show {atoms_text(plan.subject)} in the "
                        f"clip: no {nth_word(n)} one")  # fmt: skip
         if order and refusal is None:
             pick = onset[-1] if n == -1 else order[n - 1]
@@ -99,7 +99,7 @@ class OrdinalEpisodes(Form):
         refusal = None
         if not pick:
             had = f"only {len(e)} episode{'s' if len(e) != 1 else ''}" if e else "no episode"
-            refusal = (f"the {plan.names[k]} has {had} of {atoms_said(plan.subject)} "
+            refusal = (f"the {plan.names[k]} has {had} of {atoms_text(plan.subject)} "
                        f"in the clip: no {nth_word(n)} one")  # fmt: skip
         return Selected([k], {k: pick}, None, {k: float(bool(pick))}, refusal)
 

@@ -4,6 +4,7 @@ first registered form (`forms.forms_by_order`) that claims the reading."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -231,15 +232,15 @@ def parse(text: str, field: Field, cache: TextCache, cfg) -> Plan | None:
             then = read_clause(r.then, field, cache, cfg, generic=False)
             then.ordinal = r.then_ordinal
             if not other.atoms and then.atoms:  # "between its first and second bounce"
-                other.atoms = _copy(then.atoms)
+                other.atoms = _copies(then.atoms)
             if not then.atoms and other.atoms:
-                then.atoms = _copy(other.atoms)
+                then.atoms = _copies(other.atoms)
             if not other.identity and then.identity:
                 other.objects, other.identity, other.pronoun = \
                     then.objects, then.identity, then.pronoun  # fmt: skip
             other.then = then
         if not other.atoms and subject.atoms:  # "... before the blue ball does"
-            other.atoms = _copy(subject.atoms)
+            other.atoms = _copies(subject.atoms)
         if not other.atoms and not other.negated:
             raise RelationalError(
                 f"{text!r}: \"{r.relation}\" needs a state or event after it (\"... while "
@@ -257,8 +258,8 @@ def parse(text: str, field: Field, cache: TextCache, cfg) -> Plan | None:
     raise RelationalError(f"{text!r}: no question form reads it")  # no catch-all registered
 
 
-def _copy(atoms: list[Atom]) -> list[Atom]:
-    return [Atom(a.name, a.words, a.similarity, a.target, a.target_text) for a in atoms]
+def _copies(atoms: list[Atom]) -> list[Atom]:
+    return [dataclasses.replace(a) for a in atoms]
 
 
 def _op_word(r: Reading) -> str:

@@ -15,7 +15,7 @@ from sync4d.phase3.relational.timeline import Timeline, episodes
 if TYPE_CHECKING:
     from sync4d.phase3.relational.reading import Reading
 
-__all__ = ["FORMS", "Form", "atoms_said", "forms_by_order", "need_atom", "nth_word", "ranked",
+__all__ = ["FORMS", "Form", "atoms_text", "forms_by_order", "need_atom", "nth_word", "ranked",
            "register_form", "select"]
 
 
@@ -34,9 +34,11 @@ def nth_word(n: int) -> str:
     return words.get(n, f"{n}th")
 
 
-def atoms_said(c: Clause) -> str:
-    """A clause's atoms as the plan prints them ("contact with background and falling")."""
-    return " and ".join(str(a) for a in c.atoms) or "present"
+def atoms_text(c: Clause) -> str:
+    """A clause's atoms as the plan prints them ("contact with background & falling",
+    "not(falling)"; "present" without an atom)."""
+    a = " & ".join(str(x) for x in c.atoms) or "present"
+    return f"not({a})" if c.negated else a
 
 
 def ranked(cands: list[int], key: dict[int, float], reverse: bool = False) -> list[int]:
