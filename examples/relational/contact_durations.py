@@ -28,13 +28,16 @@ from make_truth import BB_NAMES, triangulate, true_contacts  # noqa: E402
 from sync4d.phase3 import states  # noqa: E402
 from sync4d.phase3.activation import intervals  # noqa: E402
 from sync4d.phase3.query import field_settings  # noqa: E402
-from sync4d.phase3.store import load_field  # noqa: E402
+from sync4d.phase3.store import FieldError, load_field  # noqa: E402
 from sync4d.report import align_table  # noqa: E402
 
 
 def rows(run: Path, data: Path) -> list[dict]:
     """One row per true bounce (and per found contact that matches none)."""
     field = load_field(run)
+    if not set(BB_NAMES) <= set(field.names):
+        raise FieldError(f"{run}: its objects are {', '.join(field.names)}; this compares "
+                         f"bouncingballs' {', '.join(BB_NAMES)}")  # fmt: skip
     cfg = field_settings(field)
     times, centres, radii = triangulate(data)
     truth = true_contacts(centres[..., 2], radii)
@@ -71,7 +74,14 @@ def main() -> None:
     ap.add_argument("--out", default=str(HERE.parents[1] / "docs" / "bench" /
                                          "contact-durations-bouncingballs.json"))  # fmt: skip
     args = ap.parse_args()
-    rs = rows(Path(args.run), Path(args.data))
+    masks = Path(args.data) / "masks" / "train"
+    if not masks.is_dir():
+        sys.exit(f"contact_durations: {masks} is missing; give the bouncingballs folder with "
+                 "its instance masks as --data")  # fmt: skip
+    try:
+        rs = rows(Path(args.run), Path(args.data))
+    except FieldError as e:
+        sys.exit(f"contact_durations: {e}")
 
     def cell(r: dict, k: str) -> str:
         v = r.get(k)
