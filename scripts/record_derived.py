@@ -47,6 +47,29 @@ def raster_run_pairs(record: dict) -> dict:
     }
 
 
+def raster_run_counts(record: dict) -> dict:
+    """raster_run_pairs plus the mean evaluated and blended pairs per frame (skips.md's
+    Rasterizer table: a run's counts over its test frames)."""
+    default = [r for r in record["results"] if r.get("variant", "default") == "default"]
+    out = raster_run_pairs(record)
+    out["rule"] += ("; evaluated_mean, blended_mean = mean over those frames of "
+                    "counters.evaluated, counters.blended")  # fmt: skip
+    out["evaluated_mean"] = sum(r["counters"]["evaluated"] for r in default) / len(default)
+    out["blended_mean"] = sum(r["counters"]["blended"] for r in default) / len(default)
+    return out
+
+
+def sigkill_delay_range(record: dict) -> dict:
+    """The range of the kills' delays after a save started (run-contract.md's SIGKILL row)."""
+    delays = record["delay_after_save_start_ms"]
+    return {
+        "rule": "delay_ms_min, delay_ms_max = min, max of delay_after_save_start_ms",
+        "script": "scripts/record_derived.py",
+        "delay_ms_min": min(delays),
+        "delay_ms_max": max(delays),
+    }
+
+
 def raster_run_before_after() -> dict:
     """Mean over 3 test frames x 2 rounds of the median forward and forward+backward times of
     each build, and the change after/before, per scene (skips.md's masked-stores table)."""
@@ -85,6 +108,38 @@ def raster_run_before_after() -> dict:
     }
 
 
+def phase3_claims_hidden_right(record: dict) -> dict:
+    """docs/results/phase3.md's kinematic-claim table prints hidden frames right as a count."""
+
+    def counts(entries: dict, hidden: int) -> dict:
+        return {name: {rule: round(v[rule]["hidden_accuracy"] * hidden)
+                       for rule in ("half-peak", "mean") if v[rule]["hidden_accuracy"] is not None}
+                for name, v in entries.items() if isinstance(v, dict)}  # fmt: skip
+
+    return {
+        "rule": "hidden_frames_right[i] (table, in its order) and sweep[set][field][rule] = "
+        "round(hidden_accuracy * hidden_frames) of that field and rule",
+        "script": "scripts/record_derived.py",
+        "hidden_frames_right": [
+            {"field": name} | c
+            for name, c in counts(record["table"], record["hidden_frames"]).items()
+        ],
+        "sweep": {name: counts(s, s["hidden_frames"]) for name, s in record["sweep"].items()},
+    }
+
+
+def phase3_paraphrases_right(record: dict) -> dict:
+    """docs/results/phase3.md's paraphrase table prints the objects ranked right as a count."""
+    return {
+        "rule": "object_right[k] = the number of queries of lexicon_words / paraphrases whose "
+        "`right` is true",
+        "script": "scripts/record_derived.py",
+        "object_right": {
+            k: sum(bool(q["right"]) for q in record[k]) for k in ("lexicon_words", "paraphrases")
+        },
+    }
+
+
 def _date() -> str:
     import datetime
 
@@ -102,7 +157,10 @@ def main() -> int:
     for name in FIT_SPEEDUP:
         write(BENCH / name, fit_speedups)
     for path in sorted((BENCH / "raster-run").glob("*-[12].json")):
-        write(path, raster_run_pairs)
+        write(path, raster_run_counts)
+    write(BENCH / "run-contract-sigkill.json", sigkill_delay_range)
+    write(BENCH / "phase3-claims.json", phase3_claims_hidden_right)
+    write(BENCH / "phase3-paraphrases.json", phase3_paraphrases_right)
     out = BENCH / "raster-run" / "derived.json"
     out.write_text(json.dumps(raster_run_before_after(), indent=2) + "\n")
     print(f"{out.relative_to(ROOT)} written")
