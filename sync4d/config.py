@@ -213,7 +213,7 @@ def _coerce(value: Any, like: Any, full: str) -> Any:
             parts = text.split(",")
         else:
             parts = value
-        parts = parts if isinstance(parts, list) else [parts]
+        parts = list(parts) if isinstance(parts, list | tuple) else [parts]  # a tuple in code
     flags = [_flag(p) for p in parts if _flag(p) is not None]
     if flags:
         kind = {int: "an integer", float: "a number"}.get(type(like), "numbers")
@@ -245,15 +245,13 @@ def _check(field: dataclasses.Field, value: Any, key: str) -> None:
 def validate(cfg: RunConfig, source: str | None = None) -> None:
     """Raise ConfigError naming the key, the value and the allowed values when a value of `cfg`
     (any section) is outside its field's declared range or choices (`sync4d.settings`), a flag
-    is not a bool, or a section's settings do not go together (its `combination_problem`);
-    `source` (a file name, "--set") leads the message. The one place ranges are checked: the
-    trainers take their configs as given."""
+    is not a bool, or a section's settings do not go together (its `combination_problem`,
+    asked once the section's values are each in range: the rules that span two settings,
+    listed in each section's docs); `source` (a file name, "--set") leads the message. The
+    one place ranges are checked: the trainers take their configs as given."""
     prefix = f"{source}: " if source else ""
 
     def walk(obj: Any, path: str) -> None:
-        combination = getattr(obj, "combination_problem", None)
-        if combination is not None and (problem := combination()) is not None:
-            raise ConfigError(f"{prefix}{path}{problem}")
         for f in dataclasses.fields(obj):
             value = getattr(obj, f.name)
             key = f"{path}{f.name}"
@@ -263,6 +261,10 @@ def validate(cfg: RunConfig, source: str | None = None) -> None:
                 raise ConfigError(f"{prefix}{key}: must be true or false, got {value!r}")
             else:
                 _check(f, value, f"{prefix}{key}")
+        # after every value's own range, so a rule may assume them in range
+        combination = getattr(obj, "combination_problem", None)
+        if combination is not None and (problem := combination()) is not None:
+            raise ConfigError(f"{prefix}{path}{problem}")
 
     walk(cfg, "")
 

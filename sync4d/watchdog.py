@@ -30,8 +30,14 @@ parameters after the optimizer step, or of the inputs (which the previous step's
 produced), does not save: the checkpoint on disk is the last good one. Never a poisoned
 checkpoint.
 
-Each message names the settings that move the tensor (`SETTINGS`; every one a real key of
-`RunConfig`, which `tests/pipeline/test_watchdog.py` checks).
+Each message names the settings its evidence points to (`advice`; every one a real key of
+`RunConfig`, which `tests/pipeline/test_watchdog.py` checks). The watchdog keeps, per phase,
+each watched tensor's range when it was first seen (before any optimizer step moved it) and
+after the last good step, and the live parameters: a size (the Gaussians' scales, the nodes'
+radii) already collapsed or exploded before any step names its initial setting
+(`phase1.init_scale`, `phase1.nodes.radius_scale`), not a rate; a node graph of coinciding
+nodes names the node settings; otherwise the learning rates that move the tensor
+(`SETTINGS`), with how far its magnitude grew over the steps when it did.
 
 Tests inject a NaN with `injected(phase, iteration, target)`: target ``"loss"``, ``"grad:NAME"``,
 ``"param:NAME"`` or ``"input:NAME"`` (a watched tensor's name) at that iteration of that phase.
@@ -40,16 +46,19 @@ Tests inject a NaN with `injected(phase, iteration, target)`: target ``"loss"``,
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
+import math
 from collections.abc import Iterator, Mapping
 
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["DIVERGED", "DIVERGED_WORLD", "HINTS", "INPUTS", "SETTINGS", "NonFinite",
-           "check_array", "check_grads", "check_inputs", "check_loss", "check_params",
-           "injected", "limits", "settings_for"]  # fmt: skip
+__all__ = ["DIVERGED", "DIVERGED_WORLD", "HINTS", "INPUTS", "SETTINGS", "SIZES", "Advice",
+           "Evidence", "NonFinite", "advice", "check_array", "check_grads", "check_inputs",
+           "check_loss", "check_params", "forget", "injected", "limits",
+           "settings_for"]  # fmt: skip
 
 #: What to try, per phase.
 HINTS = {
@@ -125,6 +134,139 @@ EXPONENTIATED = frozenset({"log_scales", "nodes.log_radii", "input:node_log_scal
 
 _INJECT: dict[tuple[str, int | None], str] = {}
 
+#: The sizes whose initial value a setting gives: the log-valued parameter, the input that is
+#: its exp (or ""), the setting, and what it sizes (in messages).
+SIZES: tuple[tuple[str, str, str, str], ...] = (
+    ("log_scales", "input:scales", "phase1.init_scale", "the Gaussians' scales"),
+    ("nodes.log_radii", "", "phase1.nodes.radius_scale", "the nodes' radii"),
+)
+#: A size below this many times the scene's scale has collapsed (1e-9), above it exploded.
+COLLAPSED, EXPLODED = math.log(1e-9), math.log(DIVERGED_WORLD)
+#: The node settings a degenerate node graph (fewer than 2 distinct nodes) names.
+NODE_SETTINGS = ("phase1.nodes.count", "phase1.nodes.init_min_opacity",
+                 "phase1.nodes.prune_weight")  # fmt: skip
+#: A magnitude that grew this many times over the steps is a rate's doing.
+GROWTH = 10.0
+
+
+@dataclasses.dataclass
+class Evidence:
+    """What the watchdog saw of a phase's run at its stop: each watched tensor's (min, max)
+    when `first` seen (before any optimizer step moved it; ``input:NAME`` for the inputs,
+    gradients not kept) and after the `last` good optimizer step (parameters), the live
+    parameter `values`, and the scene's `scale` (world units; None: 1)."""
+
+    first: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    last: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    values: Mapping[str, Tensor] = dataclasses.field(default_factory=dict)
+    scale: float | None = None
+    #: The iteration of the last check (a lower one starts a new run's evidence).
+    iteration: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class Advice:
+    """What a stop's message says to try: the `settings` named and the sentence `text`."""
+
+    settings: tuple[str, ...]
+    text: str
+
+
+def _size_range(ev: Evidence, log_name: str, exp_name: str) -> tuple[float, float] | None:
+    """The (min, max) log of a size relative to the scene's scale when first seen, or None."""
+    shift = math.log(ev.scale) if ev.scale and ev.scale > 0 else 0.0
+    if log_name in ev.first:
+        lo, hi = ev.first[log_name]
+    elif exp_name and exp_name in ev.first:
+        lo, hi = (math.log(v) if v > 0 else -math.inf for v in ev.first[exp_name])
+    else:
+        return None
+    return lo - shift, hi - shift
+
+
+def _degenerate_nodes(ev: Evidence) -> int | None:
+    """The count of distinct node positions when fewer than 2 (a graph without edges, or
+    of coinciding nodes: ARAP's mean edge is 0), else None."""
+    p = ev.values.get("nodes.positions")
+    if p is None or p.dim() != 2 or not bool(torch.isfinite(p).all()):
+        return None
+    distinct = int(torch.unique(p.detach(), dim=0).shape[0])
+    return distinct if distinct < 2 else None
+
+
+def advice(phase: str, key: str, ev: Evidence) -> Advice:
+    """What to try after `phase` stopped on watched tensor `key` ("loss", a parameter's name,
+    or ``input:NAME``), from the evidence `ev`: the initial-size setting when a size had
+    collapsed or exploded before any step (`SIZES`), the node settings when the nodes
+    coincide, else the learning rates that move `key` (`SETTINGS`) and the phase's hint."""
+    for log_name, exp_name, setting, what in SIZES:
+        related = key in ("loss", log_name, exp_name) or key.startswith("input:") \
+            or (log_name.startswith("nodes.") and "node" in key)  # fmt: skip
+        rng = _size_range(ev, log_name, exp_name)
+        if not related or rng is None:
+            continue
+        found = None
+        if rng[1] < COLLAPSED:
+            found = f"collapsed before any step moved them (at most {math.exp(rng[1]):.2g}"
+        elif rng[0] > EXPLODED:
+            found = f"exploded before any step moved them (at least {math.exp(rng[0]):.2g}"
+        if found is not None:
+            return Advice((setting,), f"{what} had {found} times the scene's scale), so the "
+                          f"setting that sizes them is the cause, not a rate: change it (--set "
+                          f"{setting}=...)")  # fmt: skip
+    if key == "loss" or key.startswith("nodes.") or "node" in key:
+        distinct = _degenerate_nodes(ev)
+        if distinct is not None:
+            named = ", ".join(f"--set {s}=..." for s in NODE_SETTINGS)
+            return Advice(NODE_SETTINGS, f"the control nodes lie at {distinct} distinct "
+                          f"position(s), a graph without edges: keep more nodes ({named})")
+    settings = settings_for(key)
+    hint = HINTS.get(phase, "lower the learning rates")
+    grew = ""
+    if key in ev.first and key in ev.last:
+        a = max(abs(v) for v in ev.first[key])
+        b = max(abs(v) for v in ev.last[key])
+        if math.isfinite(b) and b > GROWTH * max(a, 1e-12):
+            grew = f" (its magnitude grew from {a:.3g} to {b:.3g} over the steps)"
+    if settings:
+        named = ", ".join(f"--set {s}=..." for s in settings)
+        hint = f"lower the learning rates that move it{grew} ({named}); more generally, {hint}"
+    return Advice(settings, hint)
+
+
+#: Each phase's evidence so far (`Evidence`), for the stop's `advice`.
+_EVIDENCE: dict[str, Evidence] = {}
+
+
+def evidence(phase: str, iteration: int | None) -> Evidence:
+    """`phase`'s evidence, a fresh one when `iteration` is below the last seen (a new run;
+    a stop forgets its phase's evidence too, `_advice_at_stop`)."""
+    ev = _EVIDENCE.get(phase)
+    if ev is None or (iteration is not None and iteration < ev.iteration):
+        ev = _EVIDENCE[phase] = Evidence()
+    if iteration is not None:
+        ev.iteration = iteration
+    return ev
+
+
+def forget() -> None:
+    """Start every phase's evidence afresh (a training loop begins: what an earlier run in this
+    process saw says nothing of it)."""
+    _EVIDENCE.clear()
+
+
+def _advice_at_stop(phase: str, key: str, ev: Evidence) -> Advice:
+    """`advice` for a stop; the phase's evidence is forgotten (its run is over)."""
+    _EVIDENCE.pop(phase, None)
+    return advice(phase, key, ev)
+
+
+def _first_seen(ev: Evidence, prefix: str, tensors: Mapping[str, Tensor]) -> None:
+    """Record the (min, max) of each of `tensors` not seen before (one pass, once each)."""
+    for k, v in tensors.items():
+        if prefix + k not in ev.first and v is not None and v.numel():
+            ev.first[prefix + k] = tuple(float(x) for x in torch.aminmax(v.detach().float()))
+
 
 def settings_for(name: str) -> tuple[str, ...]:
     """The settings `SETTINGS` names for watched tensor `name` (exact, else the longest
@@ -144,16 +286,17 @@ class NonFinite(FloatingPointError):
 
     def __init__(self, phase: str, iteration: int | None, name: str, rows: list[int],
                  count: int, unit: str, clean: bool, settings: tuple[str, ...] = (),
-                 problem: str = "is NaN or inf") -> None:  # fmt: skip
+                 problem: str = "is NaN or inf", hint: str | None = None) -> None:  # fmt: skip
         self.phase, self.iteration, self.name = phase, iteration, name
         self.rows, self.count, self.unit, self.clean = rows, count, unit, clean
         self.settings = settings
         shown = ", ".join(str(r) for r in rows) + (", ..." if count > len(rows) else "")
         where = f" in {count} {unit} ({shown})" if rows else ""
-        hint = HINTS.get(phase, "lower the learning rates")
-        if settings:
-            named = ", ".join(f"--set {s}=..." for s in settings)
-            hint = f"lower the learning rates that move it ({named}); more generally, {hint}"
+        if hint is None:  # no evidence (`advice`): the rates that move it
+            hint = HINTS.get(phase, "lower the learning rates")
+            if settings:
+                named = ", ".join(f"--set {s}=..." for s in settings)
+                hint = f"lower the learning rates that move it ({named}); more generally, {hint}"
         super().__init__(
             f"{phase} stopped{'' if iteration is None else f' at iteration {iteration}'}: "
             f"{name} {problem}{where}. Try: {hint}"
@@ -224,11 +367,19 @@ def _check(phase: str, iteration: int | None, tensors: Mapping[str, Tensor | Non
     present = {k: v for k, v in tensors.items() if v is not None and v.numel()}
     if not present:
         return
+    ev = evidence(phase, iteration)
+    if scale:
+        ev.scale = scale
     ends = _ends(present)
+    if what == "input":
+        _first_seen(ev, "input:", present)
     bounds = limits(list(present), kind, scale)
     ok = (ends[:, 0] >= bounds[:, 0]) & (ends[:, 1] <= bounds[:, 1])  # False for NaN
     ok &= torch.isfinite(ends).all(1)
     if bool(ok.all()):
+        if what == "value":  # after a good optimizer step: the parameters' latest ranges
+            ev.values = tensors  # type: ignore[assignment]
+            ev.last.update(zip(present, (tuple(r) for r in ends.tolist()), strict=True))
         return
     i = int((~ok).nonzero()[0])
     name = list(present)[i]
@@ -248,22 +399,30 @@ def _check(phase: str, iteration: int | None, tensors: Mapping[str, Tensor | Non
         bound = (f"{DIVERGED_WORLD:.0e} times the scene's scale ({scale:.3g})" if key in WORLD
                  else f"{DIVERGED:.0e}")  # fmt: skip
         problem = f"diverged (finite, but beyond +-{bound}, where no trained scene goes)"
+    a = _advice_at_stop(phase, key, ev)
     raise NonFinite(phase, iteration, label, rows, count, units.get(name, "elements"), clean,
-                    settings_for(key), problem)  # fmt: skip
+                    a.settings, problem, a.text)  # fmt: skip
 
 
 def check_loss(phase: str, iteration: int, loss: Tensor) -> Tensor:
-    """NonFinite (clean) unless the loss is finite; returns it (NaN when a test injects one)."""
+    """NonFinite (clean) unless the loss is finite; returns it (NaN when a test injects one).
+    The advice reads the phase's evidence (`advice`): the loss names no tensor itself."""
     if _INJECT.get((phase, iteration)) == "loss":
         loss = loss * float("nan")
     if not bool(torch.isfinite(loss.detach()).all()):
-        raise NonFinite(phase, iteration, "the loss", [], 0, "", clean=True)
+        a = _advice_at_stop(phase, "loss", evidence(phase, iteration))
+        raise NonFinite(phase, iteration, "the loss", [], 0, "", clean=True,
+                        settings=a.settings, hint=a.text)  # fmt: skip
     return loss
 
 
 def check_grads(phase: str, iteration: int, params: Mapping[str, Tensor],
                 units: Mapping[str, str] | None = None) -> None:  # fmt: skip
-    """NonFinite (clean: nothing updated yet) unless every gradient of `params` is finite."""
+    """NonFinite (clean: nothing updated yet) unless every gradient of `params` is finite.
+    The first time a parameter is seen its values' range is kept (`Evidence.first`)."""
+    ev = evidence(phase, iteration)
+    _first_seen(ev, "", params)
+    ev.values = params
     _inject(phase, iteration, "grad", params)
     _check(phase, iteration, {k: p.grad for k, p in params.items()}, "gradient", units or {},
            clean=True)  # fmt: skip

@@ -24,7 +24,16 @@ __all__ = ["Phase1Config"]
 class Phase1Config:
     """Phase 1: the model (SH degree, D_theta, initial Gaussians, near plane), the length of
     training, learning rates (3DGS values for Gaussian attributes; 5e-4 for D_theta and
-    embeddings, Appendix A), schedules and loss weights."""
+    embeddings, Appendix A), schedules and loss weights.
+
+    Settings that must go together (checked when the config is read, `combination_problem`):
+    `lambda_l1` and `lambda_dssim` are not both 0 (no photometric loss: nothing is learnt);
+    `static_warmup` is below `iterations` (else D_theta never trains); with densification on
+    (`densify.stop` > 0) `densify.start` is below `densify.stop` and below `iterations` (else
+    no iteration densifies); with `motion = "nodes"`, `nodes.init_after` is below
+    `iterations` (else the nodes never take over); with `static.enabled`, `static.start` is
+    at most `iterations` (else no Gaussian is ever checked). `fit --iters` scales these
+    counts together, so a config that passes keeps passing at any budget."""
 
     #: Training iterations (Appendix A: 30k).
     iterations: int = ranged(30_000, 1)
@@ -94,7 +103,8 @@ class Phase1Config:
     sh_degree_interval: int = ranged(1_000, 1, scales=1)
     #: Iterations at the start that train the canonical Gaussians alone, D_theta off (the
     #: static warm-up of Deformable-3DGS): the static scene settles first, so its gradients do
-    #: not drown D_theta's time signal. 0 disables it.
+    #: not drown D_theta's time signal. 0 disables it; below `iterations` (else D_theta
+    #: never trains: refused when the config is read).
     static_warmup: int = ranged(0, 0, scales=0)
     #: Iterations (after the static warm-up) over which D_theta's and the embeddings' learning
     #: rates ramp linearly from 0 to their schedule. 0 (the paper) starts them at full rate.
@@ -105,7 +115,7 @@ class Phase1Config:
     lr_deform_warmup: int = ranged(0, 0, scales=0)
     #: Weight of the L1 term of the photometric loss.
     lambda_l1: float = ranged(0.8, 0.0)
-    #: Weight of the D-SSIM term of the photometric loss.
+    #: Weight of the D-SSIM term of the photometric loss (not 0 with `lambda_l1`: refused).
     lambda_dssim: float = ranged(0.2, 0.0)
     #: RGB in [0, 1] composited behind the Gaussians and into RGBA training images.
     background: tuple[float, float, float] = ranged((1.0, 1.0, 1.0), 0.0, 1.0, length=3)
@@ -127,3 +137,32 @@ class Phase1Config:
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     #: Static Gaussians skip D_theta (`sync4d.phase1.static`; off by default).
     static: StaticConfig = field(default_factory=StaticConfig)
+
+    def combination_problem(self) -> str | None:
+        """What is wrong with these settings together (each is within its own range), or None;
+        `sync4d.config.validate` calls it once all overrides are applied. Each rule refuses a
+        combination that trains without effect (the window it sets is empty)."""
+        it, d = self.iterations, self.densify
+        if self.lambda_l1 == 0 and self.lambda_dssim == 0:
+            return ("lambda_l1 = 0 and lambda_dssim = 0 leave no photometric loss, so nothing is "
+                    "learnt from the images; raise phase1.lambda_l1 or phase1.lambda_dssim")
+        if self.static_warmup >= it:
+            return (f"static_warmup = {self.static_warmup} is not below iterations = {it}, so "
+                    "D_theta never trains; lower phase1.static_warmup")
+        if d.stop > 0 and d.start >= d.stop:
+            return (f"densify.start = {d.start} is not below densify.stop = {d.stop}, so no "
+                    "iteration densifies; lower phase1.densify.start, raise "
+                    "phase1.densify.stop, or set phase1.densify.stop = 0 to turn it off")
+        if d.stop > 0 and d.start >= it:
+            return (f"densify.start = {d.start} is not below iterations = {it}, so no iteration "
+                    "densifies; lower phase1.densify.start (fit --iters scales it with the run) "
+                    "or set phase1.densify.stop = 0 to turn it off")
+        if self.motion == "nodes" and self.nodes.init_after >= it:
+            return (f"nodes.init_after = {self.nodes.init_after} is not below iterations = "
+                    f"{it}, so the control nodes never take over (motion = \"nodes\"); lower "
+                    "phase1.nodes.init_after")
+        if self.static.enabled and self.static.start > it:
+            return (f"static.start = {self.static.start} is after iterations = {it}, so no "
+                    "Gaussian is ever checked; lower phase1.static.start or set "
+                    "phase1.static.enabled = false")
+        return None

@@ -27,9 +27,10 @@ class DensifyConfig:
 
     #: Mean screen-space gradient norm of a Gaussian's centre above which it is cloned or split.
     grad_threshold: float = ranged(2e-4, 0.0, lo_open=True)
-    #: First iteration of densification.
+    #: First iteration of densification (below `stop` and `phase1.iterations` while `stop` >
+    #: 0, else no iteration densifies: refused when the config is read).
     start: int = ranged(500, 0, scales=0)
-    #: Last iteration of densification.
+    #: Last iteration of densification (0: none).
     stop: int = ranged(15_000, 0, scales=0)
     #: Iterations between densification steps.
     interval: int = ranged(100, 1, scales=10)

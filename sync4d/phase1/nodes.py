@@ -76,12 +76,17 @@ BLENDS = ("linear", "dual_quaternion")
 
 @dataclass(frozen=True)
 class NodeConfig:
-    """Control nodes that carry the motion (`Phase1Config.motion = "nodes"`)."""
+    """Control nodes that carry the motion (`Phase1Config.motion = "nodes"`).
+
+    Settings that must go together (checked when the config is read, `combination_problem`):
+    `neighbours` at most `count`; `count` at least 2 while `arap_weight` or `strain_weight` is
+    above 0; `max_count` at least `count`; and a falling ARAP weight (`arap_until` > 0,
+    `arap_weight` > 0) ends after `init_after` (else it is zero before the nodes start)."""
 
     #: Nodes sampled by farthest-point sampling when the coarse stage ends (SC-GS: 512).
     count: int = ranged(512, 1)
     #: Iterations of per-Gaussian D_theta before the nodes take over (the coarse stage;
-    #: scaled with `fit --iters`).
+    #: scaled with `fit --iters`); below `phase1.iterations` with `motion = "nodes"`.
     init_after: int = ranged(1_000, 0, scales=0)
     #: Nodes are sampled among the Gaussians at least this opaque (all when too few are).
     init_min_opacity: float = ranged(0.05, 0.0, 1.0)
@@ -98,6 +103,7 @@ class NodeConfig:
     arap_weight: float = ranged(1e-3, 0.0)
     #: The ARAP weight falls linearly from `arap_weight` when the coarse stage ends to zero at
     #: this iteration and stays zero after (scaled with `fit --iters`); 0 keeps it constant.
+    #: Otherwise after `init_after` (checked when the config is read).
     arap_until: int = ranged(0, 0, scales=0)
     #: Graph neighbours of each node in the ARAP and strain losses.
     arap_neighbours: int = ranged(8, 1, 64)
@@ -137,6 +143,10 @@ class NodeConfig:
         if self.max_count < self.count:
             return (f"max_count = {self.max_count} is below count = {self.count}: nodes are "
                     "never added beyond max_count; raise phase1.nodes.max_count")
+        if self.arap_weight > 0 and 0 < self.arap_until <= self.init_after:
+            return (f"arap_until = {self.arap_until} is not after init_after = "
+                    f"{self.init_after}, so the ARAP weight is already 0 when the nodes start; "
+                    "raise phase1.nodes.arap_until, or set it to 0 for a constant weight")
         return None
 
 

@@ -52,7 +52,8 @@ class StaticConfig:
     #: Mark Gaussians that D_theta does not move as static and skip D_theta for them.
     enabled: bool = False
     #: Iteration of the first check (scaled with `fit --iters`); D_theta must have learnt
-    #: the motion by then, or moving Gaussians look static.
+    #: the motion by then, or moving Gaussians look static. At most `phase1.iterations` while
+    #: `enabled` (checked when the config is read).
     start: int = ranged(3_000, 1, scales=1)
     #: Iterations between checks (scaled with `fit --iters`); the last densification also
     #: triggers one.

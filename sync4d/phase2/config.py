@@ -17,7 +17,13 @@ __all__ = ["Phase2Config"]
 
 @dataclass(frozen=True)
 class Phase2Config:
-    """Phase 2 hyperparameters (Appendix A; the paper's values as defaults) and ablations."""
+    """Phase 2 hyperparameters (Appendix A; the paper's values as defaults) and ablations.
+
+    Settings that must go together (checked when the config is read, `combination_problem`):
+    `warmup_end` is not below `warmup_start`; and unless `simultaneous`, with `iterations` >
+    0 and `use_motion`, `motion_start` and the start of every term whose weight is above 0
+    (`velocity_start` for `lambda_vel`, `residual_start` for `lambda_res`) are at most
+    `iterations` (else M_phi, or that term, never acts)."""
 
     #: Phase 2 iterations after Phase 1 (Appendix A: 20k; 0: only M_phi's start, its
     #: closed-form fit and refinement).
@@ -40,13 +46,14 @@ class Phase2Config:
     eta: float = ranged(0.95, 0.0, 1.0)
     #: Epsilon in the rigid share's denominator (metres).
     share_eps: float = ranged(1e-6, 0.0, lo_open=True)
-    #: Iteration from which M_phi trains and the smoothness, rigid-share and identity terms act.
+    #: Iteration from which M_phi trains and the smoothness, rigid-share and identity terms act
+    #: (at most `iterations`; like every term's start, checked when the config is read).
     motion_start: int = ranged(200, 0, scales=0)
     #: Iteration from which the velocity coherence term acts.
     velocity_start: int = ranged(300, 0, scales=0)
     #: Start of the linear warm-up of the auxiliary terms' gradient into the scene.
     warmup_start: int = ranged(500, 0, scales=0)
-    #: End of that warm-up (full weight from here).
+    #: End of that warm-up (full weight from here; not below `warmup_start`).
     warmup_end: int = ranged(1000, 0, scales=0)
     #: Iteration from which the modulated residual energy acts.
     residual_start: int = ranged(600, 0, scales=0)
@@ -99,3 +106,25 @@ class Phase2Config:
     hinge: bool = True
     #: Ablation: every term from iteration 0, no warm-up (the paper's failing variant).
     simultaneous: bool = False
+
+    def combination_problem(self) -> str | None:
+        """What is wrong with these settings together (each is within its own range), or None;
+        `sync4d.config.validate` calls it once all overrides are applied."""
+        from sync4d.phase2.terms import TERMS  # the terms' weight and start keys
+
+        if self.warmup_end < self.warmup_start:
+            return (f"warmup_end = {self.warmup_end} is below warmup_start = "
+                    f"{self.warmup_start}, so there is no warm-up; raise phase2.warmup_end")
+        if self.simultaneous or not self.use_motion or self.iterations == 0:
+            return None
+        it = self.iterations
+        if self.motion_start > it:
+            return (f"motion_start = {self.motion_start} is after iterations = {it}, so M_phi "
+                    "never trains; lower phase2.motion_start")
+        for term in TERMS:
+            weight, start = getattr(self, term.weight_key), getattr(self, term.start_key)
+            if weight > 0 and start > it:
+                return (f"{term.start_key} = {start} is after iterations = {it}, so "
+                        f"{term.weight_key} never acts; lower phase2.{term.start_key} or set "
+                        f"phase2.{term.weight_key} = 0")
+        return None

@@ -55,7 +55,13 @@ MOTION_KINDS = ("se3", "affine", "mlp")
 @dataclass(frozen=True)
 class MotionConfig:
     """M_phi's parameterisation and optimisation (Appendix A: per-frame SE(3), init sigma 1e-4,
-    learning rate cosine-annealed 1e-3 -> 1e-5)."""
+    learning rate cosine-annealed 1e-3 -> 1e-5).
+
+    Settings that must go together (checked when the config is read, `combination_problem`):
+    `init = "fit"` needs a kind with a closed-form start; `refine_steps` > 0 needs `init =
+    "fit"` and `kind = "se3"`; the refinement's options (`refine_texture_rounds`,
+    `refine_retrack_steps`, `refine_restart_jump`) need `refine_steps` > 0; and
+    `refine_lr_final` is at most `refine_lr` (the rate only anneals down)."""
 
     #: M_phi's parameterisation: "se3" (per-frame table of rotations and translations), "affine"
     #: (per-frame affine table) or "mlp".
@@ -77,7 +83,8 @@ class MotionConfig:
     #: Adam learning rate of the refinement (radians and metres per step) at each frame's first
     #: step; it is cosine-annealed to `refine_lr_final` over the frame's steps.
     refine_lr: float = ranged(0.01, 0.0, lo_open=True)
-    #: Learning rate at each frame's last refinement step (at most `refine_lr`). Equal to
+    #: Learning rate at each frame's last refinement step (at most `refine_lr`, checked when
+    #: the config is read). Equal to
     #: `refine_lr` is a constant rate, as before 2026-12-01: Adam's steps then stay ~0.01 rad
     #: (0.6 degrees) to the end and the result is wherever the last one-view steps left it
     #: (box 2.04 against 1.28 degrees annealed, docs/results/phase2-robustness.md).
@@ -91,6 +98,7 @@ class MotionConfig:
     #: are averaged over a morph, so the rigidly turned template is blurred where the object
     #: turned most and pulls those poses toward the blur (embedded scene, phase1.seed 42: ball
     #: 2.00 -> 0.85 degrees with one round, docs/results/phase2-robustness.md). Not in the paper.
+    #: Like `refine_retrack_steps` and `refine_restart_jump`, it needs `refine_steps` > 0.
     refine_texture_rounds: int = ranged(0, 0, scales=0)
     #: Adam learning rate of the texture fit (SH DC units per step).
     refine_colour_lr: float = ranged(0.005, 0.0, lo_open=True)
@@ -137,6 +145,16 @@ class MotionConfig:
             return ("refine_steps refines the fitted SE(3) table: it needs "
                     f"phase2.motion.init=fit and kind=se3 (got init={self.init!r}, "
                     f"kind={self.kind!r})")  # fmt: skip
+        if self.refine_steps == 0:
+            for key in ("refine_texture_rounds", "refine_retrack_steps", "refine_restart_jump"):
+                if getattr(self, key) > 0:
+                    return (f"{key} = {getattr(self, key)} acts only in the refinement, which "
+                            "refine_steps = 0 turns off; set phase2.motion.refine_steps > 0 "
+                            f"or phase2.motion.{key} = 0")  # fmt: skip
+        elif self.refine_lr_final > self.refine_lr:
+            return (f"refine_lr_final = {self.refine_lr_final} is above refine_lr = "
+                    f"{self.refine_lr}, and the refinement's rate only anneals down; lower "
+                    "phase2.motion.refine_lr_final to at most phase2.motion.refine_lr")
         return None
 
 

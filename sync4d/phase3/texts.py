@@ -3,11 +3,16 @@ the encoder's fingerprint, so a repeated text loads no encoder and encodes nothi
 object a text names: Eq. 15's identity score (`identity`), the similarity to the object names
 (`names_score`) and a motion phrase's target (`resolve_target`). The scorers of `query` and
 the relational planner of `relational` both stand on it.
+
+The cache grows with every new text unless given a `limit` (a long-lived reader such as
+`sync4d serve` keeps at most that many texts, the least recently used dropped first) and may be
+kept in memory only (`persist=False`: nothing is written to the run folder).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -49,14 +54,21 @@ def text_problem(text: str) -> str | None:
 
 class TextCache:
     """Text embeddings of one run's field, keyed by text, stored in ``RUN/phase3/texts.json``;
-    the encoder is loaded only when a text is missing."""
+    the encoder is loaded only when a text is missing. `limit`: the most texts kept (the least
+    recently used dropped first; None: all, as the run's file keeps them); `persist`: False
+    keeps new texts in memory only (`save` writes nothing)."""
 
-    def __init__(self, run_dir: str | Path, field: Field, encoder: Encoder | str | None = None):
+    def __init__(self, run_dir: str | Path, field: Field, encoder: Encoder | str | None = None,
+                 *, limit: int | None = None, persist: bool = True) -> None:  # fmt: skip
+        if limit is not None and limit < 1:
+            raise ValueError(f"limit: expected a positive number of texts or None, got {limit}")
         self.path = Path(run_dir) / FIELD_DIR / TEXT_CACHE
         self.field = field
         self._encoder = encoder if isinstance(encoder, Encoder) else None
         self._spec = None if isinstance(encoder, Encoder) else encoder
         self.fingerprint = field.encoder.get("fingerprint", "")
+        self.limit = limit
+        self.persist = persist
         self.texts: dict[str, list[float]] = {}
         self.encoded = 0
         try:
@@ -65,6 +77,18 @@ class TextCache:
                 self.texts = dict(data.get("texts", {}))
         except (OSError, ValueError, AttributeError):
             pass  # no cache, or an unreadable one: it is rebuilt
+        self._bound()
+
+    def _bound(self, used: Sequence[str] = ()) -> None:
+        """With a `limit`: mark `used` as the most recent (dicts keep insertion order), then
+        drop the least recently used texts beyond the limit."""
+        if self.limit is None:
+            return
+        for t in used:
+            if t in self.texts:
+                self.texts[t] = self.texts.pop(t)
+        while len(self.texts) > self.limit:
+            del self.texts[next(iter(self.texts))]
 
     def encoder(self) -> Encoder:
         """The field's encoder (loaded on first use); EncoderError when it is not the one the
@@ -94,15 +118,17 @@ class TextCache:
                 self.texts[t] = [float(x) for x in e]
             self.encoded += len(missing)
             self.save()
-        return np.asarray([self.texts[t] for t in texts], dtype=np.float64)
+        out = np.asarray([self.texts[t] for t in texts], dtype=np.float64)
+        self._bound(texts)
+        return out
 
     def similarity(self, a: list[str], b: list[str]) -> np.ndarray:
         """Cosine similarities [len(a), len(b)] of two text lists."""
         return self.get(a) @ self.get(b).T
 
     def save(self) -> None:
-        """Write the cache atomically (beside the field)."""
-        if self.path.parent.is_dir():
+        """Write the cache atomically (beside the field); nothing when not `persist`."""
+        if self.persist and self.path.parent.is_dir():
             write_text_atomic(self.path, json.dumps(
                 {"fingerprint": self.fingerprint, "texts": self.texts}) + "\n")
 

@@ -16,9 +16,15 @@ Design:
   name); the caller can read it and correct the call. A resource that cannot be read answers
   a protocol error with that sentence (`ResourceError`). Anything else is a crash: logged
   here, reported to the caller without its text (the SDK's rule).
+* **Render errors as results.** A render the watchdog stops (a NaN or a diverged value in
+  what the rasterizer would receive), that the rasterizer refuses, or whose image is not
+  finite is a `ToolProblem` too (`sync4d.serve.tools.render_problem`): one sentence, not a
+  crash.
 * **Fast start.** Importing this module imports the SDK, pydantic and the query registries
-  (numpy: the scorers' and rules' names become the schema's choices), not torch; `RunTools`
-  loads the field and the run on first use.
+  (numpy: the scorers' and rules' names become the schema's choices), not torch; `serve`
+  starts `RunTools.prepare` (the description, kept between starts, then the field and the
+  run, on a background thread) before it accepts the client, so the first `describe` (an
+  agent's first call) does not wait for torch. `build_server` alone prepares nothing.
 """
 
 from __future__ import annotations
@@ -320,8 +326,10 @@ def build_server(tools: RunTools) -> MCPServer:
 
 def serve(tools: RunTools, http: tuple[str, int] | None = None, sse: bool = False) -> None:
     """Serve `tools`' run: over stdio, or with `http` (host, port) over streamable HTTP at
-    ``/mcp`` (`sse`: the SSE transport at ``/sse``). Returns when the client disconnects
-    (stdio) or on Ctrl-C (HTTP)."""
+    ``/mcp`` (`sse`: the SSE transport at ``/sse``). What the first calls need is prepared
+    on a background thread from the start (`RunTools.prepare`). Returns when the client
+    disconnects (stdio) or on Ctrl-C (HTTP)."""
+    tools.prepare()
     server = build_server(tools)
     if http is None:
         server.run("stdio")

@@ -11,15 +11,33 @@ Design:
   resources say exactly what the exported files say. Queries go through
   `sync4d.phase3.query.answer`, as `sync4d query` does (whatever that learns, the server
   answers too).
-* **Lazy and torch-free until needed.** Nothing is read at construction; the field (numpy) is
-  loaded by the first query, the run (torch) by the first description or render, each once, and
-  a render or description imports torch only then. A query never imports torch.
+* **Ready at start.** `prepare` (which `sync4d serve` calls as it starts) builds what the
+  first calls need on a background thread while the client connects: the scene description
+  (the first thing an agent asks for), then the field, and the run (torch) once a first call
+  is answered, so that its import does not slow that call. The description is also
+  kept outside the run folder (`sync4d.serve.cache`, keyed by the run's files and the code), so
+  a server started again on the same run reads it back in milliseconds instead of importing
+  torch and describing every frame (seconds). A call that needs something still being built
+  waits for that build, never starts a second one. Without `prepare` nothing is read at
+  construction: the field (numpy) loads on the first query, the run (torch) on the first
+  description or render, and a query never imports torch.
 * **Clear refusals.** Every argument a caller can get wrong (an unknown object, a time outside
   [0, 1], an interval backwards, an unknown camera, kind or scorer) and every run that cannot
   answer (no Phase 2, no language field: the message names the command to run) raises
   `ToolProblem` with one sentence saying what to do; the server turns it into an error result.
-* **Thread-safe.** The protocol runs synchronous tools on worker threads; one lock serialises
-  the loads and the calls (torch and the rasterizer use every core anyway).
+  So does a render that fails: the watchdog's stop on what the rasterizer would receive (a
+  NaN or a diverged value in the checkpoint at that time), the rasterizer's refusal, or an
+  image with NaN or inf pixels.
+* **Read-only and bounded.** Nothing is written to the run folder: the query texts the server
+  encodes are kept in memory (at most `TEXT_CACHE_SIZE`, the least recently used dropped
+  first; the run's own ``phase3/texts.json`` is read, never written), and the last
+  `RENDER_CACHE_SIZE` renders are kept for a repeated call. Nothing else grows per call.
+* **Thread-safe.** The protocol runs synchronous tools on worker threads. A lock per resource
+  serialises its load (the field, the run, the description: a call waits for the one it
+  needs, never loads it twice) and its use (the query text cache, the renders), so a query
+  does not wait for a render, nor `track`, `events` or `describe` (which read the finished
+  description) for either. Renders are the bottleneck under load (torch and the rasterizer;
+  docs/results/benchmarks.md compares it with the single lock of every call it replaced).
 
 Times are the run's normalised times, 0 to 1 (the description's `metadata.units.time`); frames
 are the stored frames of the field and M_phi, intervals inclusive [start, end].
@@ -28,19 +46,28 @@ are the stored frames of the field and M_phi, intervals inclusive [start, end].
 from __future__ import annotations
 
 import io
+import json
+import logging
 import tempfile
 import threading
+from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sync4d.runs.names import CHECKPOINT_NAME
+from sync4d.serve.cache import description_key, read_description, write_description
 
 if TYPE_CHECKING:  # torch-free at run time: the run and the field load on first use
+    from sync4d.phase3.encoders.encoder import Encoder
     from sync4d.phase3.query import TextCache
     from sync4d.phase3.store import Field
     from sync4d.runs import Run
 
-__all__ = ["EVENT_KINDS", "PROMPT_URI", "SCENE_URI", "RunTools", "ToolProblem", "pick_camera"]
+__all__ = ["EVENT_KINDS", "PROMPT_URI", "RENDER_CACHE_SIZE", "SCENE_URI", "TEXT_CACHE_SIZE",
+           "RunTools", "ToolProblem", "pick_camera", "render_problem"]  # fmt: skip
+
+_log = logging.getLogger(__name__)
 
 #: The resources' addresses: the scene description JSON and the LLM prompt.
 SCENE_URI = "sync4d://scene.json"
@@ -49,6 +76,13 @@ PROMPT_URI = "sync4d://prompt.txt"
 EVENT_KINDS = ("approach", "contact", "separation")
 #: Slack on time bounds (rounding of the stored frame times).
 _EPS = 1e-6
+#: Query texts whose embeddings a server keeps in memory (about 12 kB each at 384 dimensions;
+#: the least recently used dropped first).
+TEXT_CACHE_SIZE = 1024
+#: Renders (PNG and what they show) kept for a repeated call, by time and camera.
+RENDER_CACHE_SIZE = 32
+#: Seconds `prepare` waits for a first answer before it loads the run anyway.
+PRELOAD_AFTER_S = 10.0
 
 
 class ToolProblem(ValueError):
@@ -63,21 +97,31 @@ def _problem(e: BaseException) -> ToolProblem:
 class RunTools:
     """The tools of one run folder `run_dir`: `describe`, `query`, `track`, `events`, `render`,
     and the resources `scene_json` and `prompt`. `encoder`: the encoder the field was built
-    with, if it moved (as `query --encoder`); `threads`: torch's threads for renders and the
-    description (default: torch's own)."""
+    with, if it moved (as `query --encoder`; or an `Encoder`); `threads`: torch's threads for
+    renders and the description (default: torch's own)."""
 
-    def __init__(self, run_dir: str | Path, encoder: str | None = None,
+    def __init__(self, run_dir: str | Path, encoder: str | Encoder | None = None,
                  threads: int | None = None) -> None:  # fmt: skip
         self.run_dir = Path(run_dir)
         self.encoder = encoder
         self.threads = threads
-        self._lock = threading.RLock()
+        self._field_lock = threading.Lock()
+        self._run_lock = threading.Lock()
+        self._scene_lock = threading.Lock()
+        self._query_lock = threading.Lock()
+        self._render_lock = threading.Lock()
         self._field: Field | None = None
         self._cache: TextCache | None = None
         self._run: Run | None = None
         self._scene: dict | None = None
         self._scene_text: str | None = None
         self._prompt: str | None = None
+        #: Where the description came from: "built", "kept" (read back) or None (not yet).
+        self.scene_source: str | None = None
+        self._renders: OrderedDict[tuple[float, str], tuple[bytes, dict]] = OrderedDict()
+        self._prepared: threading.Thread | None = None
+        #: Set when a tool has answered (`prepare` then loads the run for renders).
+        self._answered = threading.Event()
 
     # -- loading --------------------------------------------------------------------------
     def check(self) -> None:
@@ -90,11 +134,30 @@ class RunTools:
                               f"training never saved); train it with `sync4d fit DATA --out "
                               f"{self.run_dir}`")  # fmt: skip
 
+    def prepare(self, renders: bool = True) -> threading.Thread:
+        """Build, on a background thread, what the first calls need: the scene description
+        (read back when kept, else built and kept), the field, and with `renders` the run
+        (torch) once the first call is answered (or after `PRELOAD_AFTER_S`), so that its
+        import does not slow the first `describe`. A run that cannot give one is left to the
+        call that needs it, which says why. Returns the thread (started once)."""
+        if self._prepared is None:
+            self._prepared = threading.Thread(target=self._prepare, args=(renders,),
+                                              name="sync4d-prepare", daemon=True)  # fmt: skip
+            self._prepared.start()
+        return self._prepared
+
+    def _prepare(self, renders: bool) -> None:
+        for step in (self.scene, self.field):
+            _quietly(step)
+        if renders:
+            self._answered.wait(PRELOAD_AFTER_S)
+            _quietly(self.run)
+
     def field(self) -> Field:
         """The run's language field (`load_field`, numpy only), loaded once."""
         from sync4d.phase3.store import FieldError, load_field
 
-        with self._lock:
+        with self._field_lock:
             if self._field is None:
                 try:
                     self._field = load_field(self.run_dir)
@@ -106,7 +169,7 @@ class RunTools:
         """The run (`load_run`: the model, M_phi, labels, cameras; imports torch), loaded once."""
         from sync4d.runs import CheckpointError, RunError, load_run
 
-        with self._lock:
+        with self._run_lock:
             if self._run is None:
                 if self.threads:
                     import torch
@@ -118,49 +181,56 @@ class RunTools:
                     raise _problem(e) from None
             return self._run
 
-    def _build_scene(self) -> None:
-        """The scene description and the prompt exactly as `export --scene --prompt` writes
-        them (through a temporary file), kept as text and as data."""
+    def _build_scene(self) -> tuple[str, str]:
+        """The scene description (JSON text) and the prompt exactly as `export --scene
+        --prompt` writes them (through a temporary file)."""
         from sync4d.export.describe import describe
         from sync4d.export.errors import ExportError
         from sync4d.export.prompt import prompt_text
-        from sync4d.export.scene import SceneError, load, write_scene
+        from sync4d.export.scene import SceneError, write_scene
         from sync4d.phase3.store import FieldError
 
-        field = self.field()
+        field = self.field()  # first: a run without a field is refused before torch loads
         run = self.run()
         try:
             doc, emb = describe(run, field)
             with tempfile.TemporaryDirectory() as tmp:
-                path = write_scene(Path(tmp) / "scene.json", doc, emb)
-                text = path.read_text(encoding="utf-8")
-                loaded = load(path, embeddings=False).doc
+                # write_scene rounds and checks the schema; the text is what export writes
+                text = write_scene(Path(tmp) / "scene.json", doc, emb).read_text(
+                    encoding="utf-8")
         except (SceneError, ExportError, FieldError, OSError) as e:
             raise _problem(e) from None
-        self._scene, self._scene_text = loaded, text
-        self._prompt = prompt_text(loaded)
+        return text, prompt_text(json.loads(text))
 
     def scene(self) -> dict:
-        """The scene description as data (numbers rounded as in the exported file)."""
-        with self._lock:
+        """The scene description as data (numbers rounded as in the exported file): kept from
+        an earlier start of the same run and code (`sync4d.serve.cache`), else built once and
+        kept."""
+        with self._scene_lock:
             if self._scene is None:
-                self._build_scene()
-            assert self._scene is not None
+                key = description_key(self.run_dir)
+                kept = read_description(key)
+                if kept is not None:
+                    text, prompt = kept
+                    self.scene_source = "kept"
+                else:
+                    text, prompt = self._build_scene()
+                    write_description(key, text, prompt)
+                    self.scene_source = "built"
+                self._scene, self._scene_text, self._prompt = json.loads(text), text, prompt
             return self._scene
 
     def scene_json(self) -> str:
         """The scene description as the JSON text `export --scene` writes."""
-        with self._lock:
-            self.scene()
-            assert self._scene_text is not None
-            return self._scene_text
+        self.scene()
+        assert self._scene_text is not None
+        return self._scene_text
 
     def prompt(self) -> str:
         """The plain-text summary for an LLM that `export --prompt` writes."""
-        with self._lock:
-            self.scene()
-            assert self._prompt is not None
-            return self._prompt
+        self.scene()
+        assert self._prompt is not None
+        return self._prompt
 
     # -- helpers --------------------------------------------------------------------------
     def _names(self) -> dict[int, str]:
@@ -218,6 +288,7 @@ class RunTools:
             "resources": [SCENE_URI, PROMPT_URI],
             "scene": doc if full else None,
         }  # fmt: skip
+        self._answered.set()
         return out
 
     def query(self, text: str, scorer: str | None = None, rule: str | None = None,
@@ -228,12 +299,12 @@ class RunTools:
         from sync4d.phase3.encoders.encoder import EncoderError
         from sync4d.phase3.query import DEFAULT_SCORER, QueryError, TextCache, answer
 
-        with self._lock:
-            field = self.field()
-            if self._cache is None:
-                self._cache = TextCache(self.run_dir, field, self.encoder)
+        field = self.field()
+        with self._query_lock:
+            if self._cache is None:  # read-only: new texts stay in memory, bounded
+                self._cache = TextCache(self.run_dir, field, self.encoder,
+                                        limit=TEXT_CACHE_SIZE, persist=False)  # fmt: skip
             try:
-                # the cache writes RUN/phase3/texts.json itself when it encodes a new text
                 ans = answer(field, text, cache=self._cache, scorer=scorer or DEFAULT_SCORER,
                              rule=rule)  # fmt: skip
             except (QueryError, EncoderError, OSError) as e:
@@ -242,6 +313,7 @@ class RunTools:
         # a refusal ("the fifth ball to land" of three) names no object
         out["answer"] = ans["objects"][0] if ans["objects"] and not ans["refusal"] else None
         out["timeline"] = {"times": ans["times"], **ans["timeline"]} if timeline else None
+        self._answered.set()
         return out
 
     def track(self, obj: str | int, t0: float | None = None, t1: float | None = None) -> dict:
@@ -249,6 +321,11 @@ class RunTools:
         inside, the frame nearest its middle) the centroid, rotation (quaternion w, x, y, z),
         translation, velocity, speed, acceleration and the box of its Gaussians (2nd-98th
         percentile, world axes), from M_phi and the Gaussians (the description's track)."""
+        out = self._track(obj, t0, t1)  # reads the finished description: no turn to wait for
+        self._answered.set()
+        return out
+
+    def _track(self, obj: str | int, t0: float | None, t1: float | None) -> dict:
         a, b = self._interval(t0, t1)
         o = self._object(obj)
         doc = self.scene()
@@ -280,6 +357,12 @@ class RunTools:
         """The contact / approach / separation events and the motion segments of the scene
         description that overlap [t0, t1], of object `obj` if given (as either party of an
         event), of `kind` if given (an event kind, or a motion state for the segments)."""
+        out = self._events(obj, kind, t0, t1)  # reads the finished description: no turn to wait for
+        self._answered.set()
+        return out
+
+    def _events(self, obj: str | int | None, kind: str | None, t0: float | None,
+                t1: float | None) -> dict:  # fmt: skip
         a, b = self._interval(t0, t1)
         doc = self.scene()
         names = self._names()
@@ -313,11 +396,18 @@ class RunTools:
     def render(self, t: float, camera: str | int | None = None) -> tuple[bytes, dict]:
         """A PNG of the run at time `t` seen by `camera` (``test:K``, ``train:K``, ``K``: the
         K-th test camera, or a frame name; default the first test camera, the run's default
-        view) and what was rendered (time, camera, split, width, height)."""
+        view) and what was rendered (time, camera, split, width, height). The last
+        `RENDER_CACHE_SIZE` renders are kept; a render that fails (the watchdog's stop, the
+        rasterizer's refusal, NaN or inf pixels) is a `ToolProblem` of one sentence."""
         _check_time("t", float(t))
-        with self._lock:
-            run = self.run()
-            rec = pick_camera(run.cameras, camera)
+        run = self.run()
+        rec = pick_camera(run.cameras, camera)
+        key = (round(float(t), 6), str(rec["name"]))
+        with self._render_lock:
+            hit = self._renders.get(key)
+            if hit is not None:
+                self._renders.move_to_end(key)
+                return hit
             import numpy as np
             import torch
             from PIL import Image
@@ -328,14 +418,61 @@ class RunTools:
             cam = Camera(vm, float(rec["fx"]), float(rec["fy"]), float(rec["cx"]),
                          float(rec["cy"]), int(rec["width"]), int(rec["height"]))  # fmt: skip
             bg = torch.as_tensor(run.background, dtype=torch.float32)
-            with torch.no_grad():
-                img = run.model.render(cam, float(t), background=bg, threads=self.threads)
-            rgb = (img.features.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+            try:
+                with torch.no_grad():
+                    img = run.model.render(cam, float(t), background=bg, threads=self.threads)
+                features = img.features
+                finite = bool(torch.isfinite(features).all())
+            except (FloatingPointError, ValueError, RuntimeError) as e:
+                raise render_problem(e, float(t), str(rec["name"])) from None
+        if not finite:
+            raise render_problem(None, float(t), str(rec["name"]))
+        rgb = (features.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
         buf = io.BytesIO()
-        Image.fromarray(rgb).save(buf, format="PNG")
+        Image.fromarray(rgb).save(buf, format="PNG")  # after its turn: no torch
         info = {"t": float(t), "camera": rec["name"], "split": rec["split"],
                 "width": int(rec["width"]), "height": int(rec["height"])}  # fmt: skip
-        return buf.getvalue(), info
+        out = (buf.getvalue(), info)
+        with self._render_lock:
+            self._renders[key] = out
+            while len(self._renders) > RENDER_CACHE_SIZE:
+                self._renders.popitem(last=False)
+        return out
+
+
+def render_problem(e: BaseException | None, t: float, camera: str) -> ToolProblem:
+    """One sentence for a render at time `t` from `camera` that failed: the watchdog's stop
+    (`NonFinite`, a FloatingPointError: its tensor and rows, and its hint), the rasterizer's
+    refusal (ValueError, RuntimeError), or, `e` None, an image with NaN or inf pixels."""
+    where = f"the render at t = {t:g} from camera {camera}"
+    retrain = ("train the run again with lower learning rates (fit --out RUN --force), or "
+               "render another time")  # fmt: skip
+    if e is None:
+        text = f"{where} has NaN or inf pixels (the checkpoint is not finite there); {retrain}"
+    elif isinstance(e, FloatingPointError):  # the watchdog's NonFinite
+        head, _, _hint = str(e).partition(". Try:")
+        what = head.split("stopped: ", 1)[-1] if "stopped: " in head else head
+        text = f"{where} stopped: {what}; {retrain}"
+    else:
+        text = (f"{where} failed ({e}); try another time or camera, or check the run with "
+                f"`sync4d render RUN --time {t:g}`")  # fmt: skip
+    return ToolProblem(_one_sentence(text))
+
+
+def _one_sentence(text: str) -> str:
+    """`text` on one line with no sentence break inside and no final full stop."""
+    flat = " ".join(text.split())
+    return flat.replace(". ", "; ").rstrip(".")
+
+
+def _quietly(step: Callable[[], object]) -> None:
+    """`step()` on the preparing thread: a problem is left to the call that needs it."""
+    try:
+        step()
+    except ToolProblem:
+        pass  # the call that needs it says why
+    except Exception:  # noqa: BLE001 - the call that needs it reports it
+        _log.warning("preparing %s failed", getattr(step, "__name__", step), exc_info=True)
 
 
 def _check_time(name: str, t: float) -> None:

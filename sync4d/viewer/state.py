@@ -6,6 +6,8 @@ a viser page; the tests and `bench view` use it directly.
 The browser draws splats from centres, covariances, colours and opacities: the colour is the
 SH DC band's (view-independent; the browser does not evaluate higher bands), so a render of
 the same view through sync4d (`render_view`) can show view-dependent shading the page does not.
+A render that fails (the watchdog's stop, the rasterizer's refusal, NaN or inf pixels) is a
+`RenderFailed` of one sentence, which the page shows in place of the file it would have written.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from sync4d.phase3.query import TextCache, answer
 from sync4d.phase3.store import Field, FieldError, load_field
 from sync4d.runs import CHECKPOINT_NAME, EVENTS_FILE, RENDERS_DIR, Run, load_run
 
-__all__ = ["HIGHLIGHT", "PALETTE", "ObjectInfo", "SplatArrays", "ViewerState"]
+__all__ = ["HIGHLIGHT", "PALETTE", "ObjectInfo", "RenderFailed", "SplatArrays", "ViewerState"]
 
 #: Object colours in the list and of the tracks (label 1, 2, ...; the background is grey).
 PALETTE = (
@@ -70,11 +72,38 @@ class SplatArrays:
                            self.opacities)  # fmt: skip
 
 
+class RenderFailed(ValueError):
+    """A render of the viewer that failed, in one sentence saying what to do (the page shows
+    it): the watchdog's stop on what the rasterizer would receive (a NaN or a diverged value
+    of the checkpoint at that time), the rasterizer's refusal, or NaN or inf pixels."""
+
+    @classmethod
+    def of(cls, e: BaseException | None, t: float) -> RenderFailed:
+        """The failure `e` (None: NaN or inf pixels) of a render at time `t`."""
+        where = f"the render at t = {t:.3f}"
+        retrain = ("train the run again with lower learning rates (fit --out RUN --force), or "
+                   "render another time")  # fmt: skip
+        if e is None:
+            text = f"{where} has NaN or inf pixels (the checkpoint is not finite there); {retrain}"
+        elif isinstance(e, FloatingPointError):  # the watchdog's NonFinite
+            head = str(e).partition(". Try:")[0]
+            what = head.split("stopped: ", 1)[-1]
+            text = f"{where} stopped: {what}; {retrain}"
+        else:
+            text = f"{where} failed ({e}); move the camera or the time and render again"
+        return cls(" ".join(text.split()).replace(". ", "; ").rstrip("."))
+
+
 def _covariances(quats: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
     """R diag(s^2) R^T [N, 3, 3] from quaternions w-x-y-z [N, 4] and log-scales [N, 3]."""
     r = quat_to_matrix(torch.as_tensor(quats, dtype=torch.float64)).numpy()
     s2 = np.exp(2.0 * log_scales)
     return np.einsum("nij,nj,nkj->nik", r, s2, r).astype(np.float32)
+
+
+#: Texts whose embeddings a viewer keeps in memory (the least recently asked dropped beyond it;
+#: `ask` still writes new ones to the run's text cache, as `query` does).
+TEXT_CACHE_SIZE = 1024
 
 
 class ViewerState:
@@ -116,7 +145,7 @@ class ViewerState:
         try:
             self.field = load_field(self.run_dir)
             self.field_message = ""
-            self._cache = TextCache(self.run_dir, self.field, self.encoder)
+            self._cache = TextCache(self.run_dir, self.field, self.encoder, limit=TEXT_CACHE_SIZE)
         except FieldError as e:
             self.field, self._cache = None, None
             self.field_message = str(e)
@@ -254,7 +283,8 @@ class ViewerState:
         """Render the camera at `position` [3] with orientation `wxyz` (camera-to-world, OpenCV
         axes: x right, y down, z forward), vertical field of view `fov` (radians) and `aspect`
         (width / height) at time `t` through sync4d's rasterizer; writes and returns
-        ``RUN/renders/view_t<t>_<n>.png``."""
+        ``RUN/renders/view_t<t>_<n>.png``. `RenderFailed` (one sentence, nothing written) when
+        the watchdog stops the render, the rasterizer refuses it or its image is not finite."""
         r = quat_to_matrix(torch.as_tensor(wxyz, dtype=torch.float64)).numpy()
         view = np.eye(4)
         view[:3, :3] = r.T
@@ -263,8 +293,14 @@ class ViewerState:
         f = 0.5 * height / math.tan(0.5 * fov)
         cam = Camera(view, f, f, width / 2.0, height / 2.0, width, height)
         bg = torch.as_tensor(self.run.background, dtype=torch.float32)
-        with torch.no_grad():
-            img = self.run.model.render(cam, float(t), background=bg, threads=threads)
+        try:
+            with torch.no_grad():
+                img = self.run.model.render(cam, float(t), background=bg, threads=threads)
+            finite = bool(torch.isfinite(img.features).all())
+        except (FloatingPointError, ValueError, RuntimeError) as e:  # the watchdog, the raster
+            raise RenderFailed.of(e, t) from None
+        if not finite:
+            raise RenderFailed.of(None, t)
         rgb = (img.features.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
         out = self.run_dir / RENDERS_DIR
         out.mkdir(parents=True, exist_ok=True)

@@ -89,6 +89,7 @@ STOPS = {
     "bench phase3": ("sync4d.bench.phase3.bench_run",),
     "bench step": ("sync4d.bench.step.bench_step",),
     "bench view": ("sync4d.bench.view.bench_view",),
+    "bench serve": ("sync4d.bench.serve.bench_serve",),
     "encoder convert": ("sync4d.phase3.encoders.siglip.export_pretrained",),
 }
 
@@ -127,6 +128,7 @@ def _bases(w: dict[str, str]) -> dict[str, tuple[list[str], dict[str, list[str]]
         "bench phase3": ([run], {"--out": [str(Path(w["tmp"]) / "p.json")]}),
         "bench step": ([run], {"--out": [str(Path(w["tmp"]) / "s.json")]}),
         "bench view": ([run], {"--out": [str(Path(w["tmp"]) / "v.json")]}),
+        "bench serve": ([run], {"--starts": ["0"], "--out": [str(Path(w["tmp"]) / "sv.json")]}),
         "encoder convert": ([], {"--out": [str(Path(w["tmp"]) / "enc")]}),
         "encoder info": ([str(Path(w["tmp"]) / "enc")], {}),
         "completion": (["bash"], {}),
@@ -291,3 +293,30 @@ def test_any_text_through_the_default_encoder(value, offline_run, tmp_path):
         code, out, err = _run(["export", offline_run, "--vocab", str(vocab), "--scene",
                                str(tmp_path / "scene.json"), "--threads", "1"])  # fmt: skip
         assert _clear(code, err, "export") and "Traceback" not in err + out, err[-1500:]
+
+
+#: Text an MCP client can send that a shell cannot: a lone surrogate (JSON "\ud800"), a NUL.
+PROTOCOL_TEXTS = ("\ud800 ball", "red\x00ball", "\udcff")
+
+
+@pytest.mark.parametrize("value", VALUES + PROTOCOL_TEXTS)
+def test_any_text_through_the_query_box_and_the_mcp_tool(value, offline_run):
+    """The viewer's query box and the MCP `query` tool on the default encoder's field: an
+    answer, or one sentence (QueryError in the viewer, ToolProblem in the tool), never an
+    exception of the tokenizer."""
+    from sync4d.phase3.texts import QueryError
+    from sync4d.serve.tools import RunTools, ToolProblem
+    from sync4d.viewer.state import ViewerState
+
+    state = ViewerState(offline_run)
+    try:
+        ans = state.ask(value)
+        assert ans["objects"] and ans["top_label"] == ans["objects"][0]["label"]
+    except QueryError as e:
+        assert str(e) and "\n" not in str(e).strip(), str(e)
+    tools = RunTools(offline_run)
+    try:
+        ans = tools.query(value)
+        assert ans["objects"]
+    except ToolProblem as e:
+        assert str(e) and "\n" not in str(e).strip(), str(e)

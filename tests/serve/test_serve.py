@@ -45,9 +45,10 @@ def run_dir(tmp_path_factory) -> Path:
 
 def _stdio(run: Path) -> Client:
     """A client of `python -m sync4d serve RUN` over stdio."""
+    env = {**ENV, "SYNC4D_SERVE_CACHE": os.environ["SYNC4D_SERVE_CACHE"]}  # conftest.py
     params = StdioServerParameters(command=sys.executable,
                                    args=["-m", "sync4d", "serve", str(run), "--threads", "1"],
-                                   env=ENV)  # fmt: skip
+                                   env=env)  # fmt: skip
     return Client(params, read_timeout_seconds=120)
 
 
