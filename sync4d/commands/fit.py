@@ -86,7 +86,7 @@ def _request(args: argparse.Namespace, run_dir: Path) -> FitRequest:
 def main(args: argparse.Namespace) -> int:
     """Run `fit` with parsed `args`; the exit status."""
     from sync4d.pipeline import FitInterrupted, TrainingDiverged
-    from sync4d.pipeline.request import fit_request, fresh_config, is_run
+    from sync4d.pipeline.request import fit_request, is_run
     from sync4d.runs import CheckpointError, RunError
     from sync4d.watchdog import NonFinite
 
@@ -103,9 +103,8 @@ def main(args: argparse.Namespace) -> int:
     created = not run_dir.exists()
     request = _request(args, run_dir)
     try:
-        fresh = fresh_config(request)
         with RunLock(run_dir, "fit"), TerminalRenderer().installed():
-            fit_request(request, fresh)
+            fit_request(request)  # reads the config the request needs, once
             return 0
     except (ConfigError, DatasetError, CheckpointError, RunError, RunBusy, WriteFailed,
             EncoderError, FieldError) as e:  # fmt: skip

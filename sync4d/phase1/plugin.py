@@ -19,6 +19,7 @@ of the last plug-in that names one (Phase 2's motion strategy: "sync4d.phase2").
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import TYPE_CHECKING
 
 from torch import Tensor
@@ -26,14 +27,22 @@ from torch import Tensor
 if TYPE_CHECKING:
     from sync4d.data.scene import Frame
 
-__all__ = ["TrainerPlugin"]
+__all__ = ["CheckpointKind", "TrainerPlugin"]
+
+
+class CheckpointKind(StrEnum):
+    """What trained a checkpoint, as its header's ``kind`` records it (a `str`: the header
+    holds the value itself)."""
+
+    PHASE1 = "sync4d.phase1"
+    PHASE2 = "sync4d.phase2"
 
 
 class TrainerPlugin:
     """A plug-in of `Phase1Trainer`: every hook does nothing unless overridden."""
 
     #: The checkpoint kind a trainer with this plug-in writes (None: Phase 1's).
-    kind: str | None = None
+    kind: CheckpointKind | None = None
     #: The name the watchdog gives the failures of a trainer with this plug-in (None: Phase 1).
     phase_name: str | None = None
 

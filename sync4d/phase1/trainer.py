@@ -34,7 +34,7 @@ from sync4d.phase1.densify import Densifier, DensifyConfig
 from sync4d.phase1.gaussians import PER_GAUSSIAN, DeformableGaussians
 from sync4d.phase1.init import scene_extent, scene_scale
 from sync4d.phase1.losses import photometric_loss
-from sync4d.phase1.plugin import TrainerPlugin
+from sync4d.phase1.plugin import CheckpointKind, TrainerPlugin
 from sync4d.phase1.static import StaticUpdate, motion_sparsity, update_static_set
 
 __all__ = ["FinishedSchedule", "Phase1Config", "Phase1Schedule", "Phase1Trainer"]
@@ -94,7 +94,7 @@ class Phase1Trainer:
     the training step; later phases plug into the step (`plug`, `sync4d.phase1.plugin`)."""
 
     #: The `kind` its checkpoints record without a plug-in that names another.
-    KIND = "sync4d.phase1"
+    KIND = CheckpointKind.PHASE1
 
     def __init__(
         self,
@@ -169,7 +169,7 @@ class Phase1Trainer:
         self.plugins.append(plugin)
 
     @property
-    def kind(self) -> str:
+    def kind(self) -> CheckpointKind:
         """The checkpoint kind: the last plug-in's that names one, else `KIND`."""
         return next((p.kind for p in reversed(self.plugins) if p.kind), self.KIND)
 

@@ -29,7 +29,7 @@ from torch import Tensor
 from sync4d import watchdog
 from sync4d.data.scene import Frame, Scene
 from sync4d.phase1.densify import DensifyConfig
-from sync4d.phase1.plugin import TrainerPlugin
+from sync4d.phase1.plugin import CheckpointKind, TrainerPlugin
 from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.assign import (
     Assignment,
@@ -78,7 +78,7 @@ class _Positions:
 class MotionStrategy(TrainerPlugin):
     """M_phi, the object assignment and the Phase 2 regularisers, plugged into `trainer`."""
 
-    kind = "sync4d.phase2"
+    kind = CheckpointKind.PHASE2
     phase_name = "Phase 2"
 
     def __init__(

@@ -33,7 +33,7 @@ from sync4d.phase3.encoders.encoder import Encoder
 from sync4d.phase3.kinematics import Tracks, kinematic_features, relational_counts
 from sync4d.phase3.observe import Observations, observe
 from sync4d.phase3.store import Field, FieldError, checkpoint_record, load_field
-from sync4d.runs import Run
+from sync4d.runs import CheckpointKind, Run
 
 __all__ = ["Field", "FieldError", "build_field", "load_field", "up_vector"]
 
@@ -71,7 +71,7 @@ def build_field(
     """The language field of the Phase 2 run `run` (its dataset from `data` or the folder it
     recorded) with `encoder` and the settings `cfg`; reports its progress and then
     `PhaseDone("phase3")` as `sync4d.events`."""
-    if run.kind != "sync4d.phase2" or run.motion is None:
+    if run.kind != CheckpointKind.PHASE2 or run.motion is None:
         raise FieldError(
             f"{run.checkpoint}: Phase 3 needs a Phase 2 run (this checkpoint is {run.kind}); "
             "run `fit --out RUN --phases 2` first"

@@ -1,8 +1,9 @@
 """The pipeline: fits Phases 1, 2 and 3 into a run folder and owns the resume policy.
 
 Above the phases, the config and the run folder; below the command line, which only parses,
-calls these and prints. `fit` runs Phase 1 then Phase 2 (checkpoints, resume, Ctrl-C),
-`phase3` builds the language field of a run, `record` holds the run record (dataset
+calls these and prints. `stages` holds each phase as a stage value (Phase 1, Phase 2 from
+its model, Phase 3's language field), `fit` loops over the selected stages (checkpoints,
+resume, Ctrl-C), `phase3` builds the language field of a run, `record` holds the run record (dataset
 fingerprint, stored config) and the checks that decide whether a run may continue,
 `evaluate` the image metrics of a run, `stop` the signals that end a loop between iterations,
 `request` what `sync4d fit` asks of a run folder and the resume policy that answers it. A

@@ -15,7 +15,8 @@ from sync4d.config import RunConfig, apply_overrides, load_config
 from sync4d.phase3.config import Phase3Config
 from sync4d.pipeline.record import read_record, recorded_config
 
-__all__ = ["Phase3Build", "build_phase3", "phase3_config", "resolved_encoder"]
+__all__ = ["Phase3Build", "build_phase3", "phase3_config", "phase3_run_config",
+           "resolved_encoder"]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -29,13 +30,19 @@ class Phase3Build:
     gaussians: int
 
 
-def phase3_config(run_dir: Path, config: str | Path | None = None,
-                  overrides: list[str] | tuple[str, ...] = ()) -> Phase3Config:  # fmt: skip
-    """Phase 3's settings for the run in `run_dir`: those it recorded (or `config`'s file),
-    then `overrides` (``phase3.*=...``)."""
+def phase3_run_config(run_dir: Path, config: str | Path | None = None,
+                      overrides: list[str] | tuple[str, ...] = ()) -> RunConfig:  # fmt: skip
+    """The config of the run in `run_dir` as Phase 3 rebuilds its field: the one it recorded
+    (or `config`'s file), then `overrides` (``phase3.*=...``)."""
     cfg: RunConfig = (load_config(config) if config
                       else recorded_config(read_record(run_dir), run_dir))  # fmt: skip
-    return apply_overrides(cfg, list(overrides)).phase3
+    return apply_overrides(cfg, list(overrides))
+
+
+def phase3_config(run_dir: Path, config: str | Path | None = None,
+                  overrides: list[str] | tuple[str, ...] = ()) -> Phase3Config:  # fmt: skip
+    """Phase 3's settings for the run in `run_dir` (`phase3_run_config`'s ``phase3``)."""
+    return phase3_run_config(run_dir, config, overrides).phase3
 
 
 def resolved_encoder(cfg3: Phase3Config) -> Phase3Config:

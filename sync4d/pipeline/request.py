@@ -34,16 +34,9 @@ from sync4d.config import (
     with_budget,
 )
 from sync4d.data.synthetic import default_scene_dir, ensure_default_scene
-from sync4d.events import (
-    FieldBuilt,
-    FitStarted,
-    Phase3Started,
-    SettingChanged,
-    Skipped,
-    emit,
-)
-from sync4d.pipeline.fit import FitData, event_log, resolve_data, restart_phase2, run_fit
-from sync4d.pipeline.phase3 import Phase3Build, build_phase3, phase3_config
+from sync4d.events import FitStarted, SettingChanged, emit
+from sync4d.pipeline.fit import FitData, FitOutcome, resolve_data, restart_phase2, run_stages
+from sync4d.pipeline.phase3 import phase3_run_config
 from sync4d.pipeline.record import (
     CADENCE_KEYS,
     config_differences,
@@ -51,6 +44,7 @@ from sync4d.pipeline.record import (
     read_record,
     recorded_config,
 )
+from sync4d.pipeline.stages import stages_for
 from sync4d.runs import (
     CHECKPOINT_NAME,
     EVAL_FILE,
@@ -62,6 +56,7 @@ from sync4d.runs import (
     RENDERS_DIR,
     RUN_FILE,
     TRAJECTORY_PLOT,
+    CheckpointKind,
     RunError,
     checkpoint_kind,
 )
@@ -108,16 +103,6 @@ class FitRequest:
                 "resume": self.resume, "force": self.force}  # fmt: skip
 
 
-@dataclass(frozen=True)
-class FitOutcome:
-    """What `fit_request` did: the training summary (`run_fit`'s; None for `--phases 3`
-    alone) and the language field it built (None without Phase 3)."""
-
-    run_dir: Path
-    summary: dict | None = None
-    phase3: Phase3Build | None = None
-
-
 def fresh_config(req: FitRequest) -> RunConfig:
     """The config of a new run: `req.config` (default: the shipped synthetic config without a
     dataset, the paper's values with one), scaled by `req.iters`, then the overrides."""
@@ -140,7 +125,7 @@ def continued_config(req: FitRequest, stored: RunConfig, kind: str | None, resta
             cfg = dataclasses.replace(cfg, phase2=phase2_budget(cfg.phase2, req.iters))
         elif req.config:
             cfg = with_budget(cfg, req.iters)
-        elif kind == "sync4d.phase2":
+        elif kind == CheckpointKind.PHASE2:
             cfg = dataclasses.replace(
                 cfg, phase2=dataclasses.replace(cfg.phase2, iterations=req.iters)
             )
@@ -224,20 +209,30 @@ def _continued(req: FitRequest, kind: str, restart: bool) -> tuple[RunConfig, Fi
     return cfg, data, list(record.get("command", {}).get("invocations", []))
 
 
+def _builds_only(phases: str) -> bool:
+    """Whether ``--phases`` selects no stage that trains (``3``: the language field alone)."""
+    try:
+        return all(s.kind is None for s in stages_for(parse_phases(phases)))
+    except ConfigError:
+        return False  # the config's own check names the bad value
+
+
 def fit_request(req: FitRequest, fresh: RunConfig | None = None) -> FitOutcome:
     """Do what `req` asks of its run folder (see the module's note): train or continue the
     phases, then build the language field when Phase 3 is among them. `fresh`: the config of
     a new run, when the caller already resolved it (`fresh_config(req)`)."""
     run_dir = req.run_dir
-    fresh = fresh_config(req) if fresh is None else fresh
     ckpt = run_dir / CHECKPOINT_NAME
     kind = checkpoint_kind(ckpt)
     if req.resume and kind is None:
         raise RunError(f"{ckpt}: no checkpoint to resume from")
-    phases = parse_phases(fresh.phases)
-    if phases == (3,):
+    if req.phases is not None and _builds_only(req.phases):  # the run's config, not a new one
         return fit_phase3_only(req, kind)
-    restart = phases[0] == 2 and not req.resume
+    fresh = fresh_config(req) if fresh is None else fresh
+    first = stages_for(parse_phases(fresh.phases))[0]
+    if first.kind is None:  # no stage trains: build on the run's model
+        return fit_phase3_only(req, kind)
+    restart = not first.fresh and not req.resume  # redo a later stage from the checkpoint
     if kind is not None and not (req.resume or req.force or restart):
         raise RunError(
             f"{run_dir} already holds a run; pass --resume to continue it, --force to start "
@@ -258,11 +253,7 @@ def fit_request(req: FitRequest, fresh: RunConfig | None = None) -> FitOutcome:
     scene, camera = data.scene, data.scene.train[0].camera
     emit(FitStarted(scene.name, len(scene.train), len(scene.test), camera.width, camera.height,
                     cfg.phase1.iterations, str(run_dir)))  # fmt: skip
-    summary = run_fit(data, cfg, run_dir, req.resume, req.threads, command=command)
-    built = None
-    if 3 in parse_phases(cfg.phases):
-        built = _build_phase3(run_dir, cfg.phase3, req.threads, data.path)
-    return FitOutcome(run_dir, summary, built)
+    return run_stages(data, cfg, run_dir, req.resume, req.threads, command=command)
 
 
 def fit_phase3_only(req: FitRequest, kind: str | None) -> FitOutcome:
@@ -270,7 +261,7 @@ def fit_phase3_only(req: FitRequest, kind: str | None) -> FitOutcome:
     run's recorded Phase 3 settings, then the config file's, then ``phase3.*`` overrides and
     the encoder."""
     run_dir = req.run_dir
-    if kind != "sync4d.phase2":
+    if kind != CheckpointKind.PHASE2:
         raise RunError(
             f"{run_dir / CHECKPOINT_NAME}: --phases 3 needs a Phase 2 checkpoint (found "
             f"{kind or 'none'}); run fit with --phases 2 (or 1,2) first"
@@ -285,22 +276,5 @@ def fit_phase3_only(req: FitRequest, kind: str | None) -> FitOutcome:
             f"apply ({', '.join(others) or '--resolution-scale'}); drop them"
         )
     overrides = [s for s in req.overrides() if not s.startswith("phases=")]
-    cfg3 = phase3_config(run_dir, req.config, overrides)
-    return FitOutcome(run_dir, None, _build_phase3(run_dir, cfg3, req.threads, req.data))
-
-
-def _build_phase3(run_dir: Path, cfg3, threads: int | None, data: Path | None) -> Phase3Build:
-    """Build and save the language field of the Phase 2 run in `run_dir`; its events go into
-    the run's event log too (another process follows the build)."""
-    from sync4d.phase3 import load_encoder
-
-    encoder = load_encoder(cfg3.encoder or None)
-    with event_log(run_dir):
-        emit(Phase3Started(encoder.kind, encoder.dim, bool(encoder.closed_vocabulary)))
-        built = build_phase3(run_dir, cfg3, threads=threads, data=data, encoder=encoder)
-        field, t = built.field, built.field.timings
-        emit(FieldBuilt(len(field.labels), len(field.times), int(t["crops"]),
-                        float(field.observed.mean()), t["total_s"], t["observe_s"],
-                        t["encode_s"], str(built.folder)))  # fmt: skip
-        emit(Skipped("phase3", dict(field.counts)))
-    return built
+    cfg = dataclasses.replace(phase3_run_config(run_dir, req.config, overrides), phases="3")
+    return run_stages(None, cfg, run_dir, threads=req.threads, data_path=req.data)

@@ -10,7 +10,7 @@ from sync4d.lazy import lazy_exports
 #: Public names and the module that defines each.
 _EXPORTS = {
     **dict.fromkeys(
-        ("CheckpointError", "camera_records", "checkpoint_kind", "load_model",
+        ("CheckpointError", "CheckpointKind", "camera_records", "checkpoint_kind", "load_model",
          "read_checkpoint", "save_checkpoint", "write_checkpoint"), "checkpoint"),
     **dict.fromkeys(
         ("CHECKPOINT_NAME", "EVAL_FILE", "EVENTS_FILE", "FIELD_DIR", "METRICS_FILE",

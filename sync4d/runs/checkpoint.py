@@ -26,9 +26,11 @@ from safetensors.torch import load_file, save_file
 from sync4d.data.scene import Scene
 from sync4d.files import write_atomic
 from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.plugin import CheckpointKind
 
 __all__ = [
     "CheckpointError",
+    "CheckpointKind",
     "FORMAT_VERSION",
     "camera_records",
     "checkpoint_kind",
@@ -129,7 +131,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
 
 
 #: The trainers whose checkpoints this format holds.
-KINDS = ("sync4d.phase1", "sync4d.phase2")
+KINDS = tuple(k.value for k in CheckpointKind)
 
 
 def _check_header(path: Path, meta: dict) -> None:
@@ -151,11 +153,11 @@ def _check_header(path: Path, meta: dict) -> None:
                               f"got {seconds!r}")  # fmt: skip
 
 
-def checkpoint_kind(path: Path) -> str | None:
-    """"sync4d.phase1" or "sync4d.phase2" for an existing checkpoint, None when absent."""
+def checkpoint_kind(path: Path) -> CheckpointKind | None:
+    """The kind of an existing checkpoint, None when absent."""
     if not path.exists():
         return None
-    return read_checkpoint(path)[1].get("kind", "sync4d.phase1")
+    return CheckpointKind(read_checkpoint(path)[1].get("kind", CheckpointKind.PHASE1))
 
 
 @contextmanager

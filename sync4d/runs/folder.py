@@ -14,6 +14,7 @@ import torch
 
 from sync4d.data import Scene, load_scene
 from sync4d.phase1.gaussians import DeformableGaussians
+from sync4d.phase1.plugin import CheckpointKind
 from sync4d.phase2.motion import MotionConfig, ObjectMotion, make_motion
 from sync4d.runs.checkpoint import CheckpointError, read_checkpoint, state_errors
 from sync4d.runs.names import (
@@ -57,7 +58,7 @@ class Run:
 
     path: Path
     checkpoint: Path
-    kind: str
+    kind: CheckpointKind
     model: DeformableGaussians
     meta: dict
     background: list[float]
@@ -115,11 +116,12 @@ def load_run(run_dir: str | Path) -> Run:
         model = DeformableGaussians.from_state(tensors, meta).requires_grad_(False)
     settings = meta.get("run", {})
     run = Run(
-        path=run_dir, checkpoint=ckpt, kind=meta.get("kind", "sync4d.phase1"), model=model,
-        meta=meta, background=list(meta.get("background", [1.0, 1.0, 1.0])),
+        path=run_dir, checkpoint=ckpt, model=model, meta=meta,
+        kind=CheckpointKind(meta.get("kind", CheckpointKind.PHASE1)),
+        background=list(meta.get("background", [1.0, 1.0, 1.0])),
         cameras=list(settings.get("cameras", [])), settings=settings,
     )  # fmt: skip
-    if run.kind != "sync4d.phase2":
+    if run.kind != CheckpointKind.PHASE2:
         return run
     with state_errors(ckpt):
         info = meta["phase2"]

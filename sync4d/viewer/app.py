@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,7 @@ from sync4d.geometry import matrix_to_rotvec
 from sync4d.phase3.encoders.encoder import EncoderError
 from sync4d.phase3.query import QueryError
 from sync4d.phase3.store import FieldError
-from sync4d.runs import CheckpointError, RunError
+from sync4d.runs import CheckpointError, CheckpointKind, RunError
 from sync4d.viewer.state import HIGHLIGHT, ViewerState
 
 __all__ = ["PLAY_SECONDS", "Viewer"]
@@ -30,6 +31,8 @@ __all__ = ["PLAY_SECONDS", "Viewer"]
 PLAY_SECONDS = 5.0
 #: Training cameras drawn at most (evenly chosen).
 MAX_CAMERAS = 24
+#: Slider latencies kept in `Viewer.latency` (the latest ones).
+LATENCIES_KEPT = 1000
 
 
 def _rgb255(c: tuple[float, float, float]) -> tuple[int, int, int]:
@@ -54,7 +57,7 @@ class Viewer:
         self.threads = threads
         self.t = 0.0
         self.answer: dict | None = None
-        self.latency: list[float] = []
+        self.latency: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         server.scene.set_up_direction(tuple(float(x) for x in state.up))
@@ -113,7 +116,7 @@ class Viewer:
 
     def _status_text(self) -> str:
         st = self.state
-        kind = "Phase 2" if st.run.kind == "sync4d.phase2" else "Phase 1"
+        kind = "Phase 2" if st.run.kind == CheckpointKind.PHASE2 else "Phase 1"
         field = "language field ready" if st.field is not None else "no language field"
         return (f"**{st.run_dir.name}**: {kind} checkpoint at iteration {st.iteration}, "
                 f"{len(st.objects)} objects, {len(st.times)} frames; {field}")
