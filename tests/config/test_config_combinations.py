@@ -87,3 +87,21 @@ def test_a_tuple_value_in_a_dict_is_accepted() -> None:
 
     cfg = config_from_dict({"phase1": {"background": (0.0, 0.5, 1.0)}}, "code")
     assert cfg.phase1.background == (0.0, 0.5, 1.0)
+
+
+def test_a_coarse_scale_below_the_ssim_window_is_refused_in_one_line(tmp_path, capsys) -> None:
+    """A setting against the images' size (known once the dataset is read): `coarse_scale`
+    shrinking the images below the loss's 3x3 SSIM window is refused before training, not a
+    traceback from the loss."""
+    from support.scenes import small_synthetic
+    from sync4d.cli import main
+    from sync4d.data import synthetic as syn
+
+    scene = syn.write_synthetic_scene(tmp_path / "scene", small_synthetic(size=24, train_cameras=2))
+    code = main(["fit", str(scene), "--out", str(tmp_path / "run"), "--iters", "8", "--threads",
+                 "1", "--phases", "1", "--set", "phase1.coarse_scale=0.001", "--set",
+                 "phase1.coarse_iterations=4"])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "Traceback" not in err, err
+    line = err.splitlines()[-1]
+    assert "phase1.coarse_scale" in line and "SSIM window" in line and "0.125" in line

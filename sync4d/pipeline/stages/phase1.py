@@ -7,15 +7,16 @@ from __future__ import annotations
 
 import torch
 
-from sync4d.config import RunConfig
+from sync4d.config import ConfigError, RunConfig
+from sync4d.data import Scene
 from sync4d.events import ScaleAdvice, emit
 from sync4d.phase1.init import initial_model, scene_extent, with_initial_points
 from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.pipeline.stages.base import FitState, Stage
 from sync4d.runs import CheckpointKind
 
-__all__ = ["LENGTH_TOLERANCE", "PHASE1", "REFERENCE_EXTENT", "Phase1Stage", "length_advice",
-           "phase1_skips"]  # fmt: skip
+__all__ = ["LENGTH_TOLERANCE", "PHASE1", "REFERENCE_EXTENT", "SSIM_WINDOW", "Phase1Stage",
+           "coarse_problem", "length_advice", "phase1_skips"]  # fmt: skip
 
 #: The scene extent (3DGS: 1.1 times the cameras' radius) the absolute lengths' defaults are
 #: for: D-NeRF's scenes (cameras 4.03 units from the objects) and the embedded one.
@@ -63,6 +64,26 @@ def phase1_skips(trainer: Phase1Trainer) -> dict[str, int | float]:
     return out
 
 
+#: The photometric loss's SSIM window (`sync4d.phase1.losses`): an image's smallest side.
+SSIM_WINDOW = 3
+
+
+def coarse_problem(scene: Scene, p1, iteration: int = 0) -> str | None:
+    """Why the coarse iterations cannot train on `scene`'s images (one sentence), or None:
+    `coarse_scale` shrinks the smallest training image below the SSIM window."""
+    if p1.coarse_scale >= 1.0 or p1.coarse_iterations <= iteration or not scene.train:
+        return None
+    small = min((f.camera for f in scene.train), key=lambda c: min(c.width, c.height))
+    coarse = small.scaled(p1.coarse_scale)
+    if min(coarse.width, coarse.height) >= SSIM_WINDOW:
+        return None
+    need = SSIM_WINDOW / min(small.width, small.height)
+    return (f"phase1.coarse_scale = {p1.coarse_scale:g} shrinks the {small.width}x{small.height} "
+            f"training images to {coarse.width}x{coarse.height} pixels, below the loss's "
+            f"{SSIM_WINDOW}x{SSIM_WINDOW} SSIM window; raise phase1.coarse_scale to at least "
+            f"{need:.3g} or set phase1.coarse_iterations = 0")
+
+
 class Phase1Stage(Stage):
     """Phase 1: a new model from the initial points, trained for `phase1.iterations`."""
 
@@ -77,6 +98,8 @@ class Phase1Stage(Stage):
 
     def start(self, fit: FitState) -> None:
         p1 = fit.cfg.phase1
+        if (problem := coarse_problem(fit.scene, p1)) is not None:
+            raise ConfigError(problem)
         scene = with_initial_points(fit.scene, p1, threads=torch.get_num_threads())
         model = initial_model(
             scene, p1.init_points, p1.sh_degree, p1.deform, p1.init_box_fraction, p1.seed,
@@ -90,8 +113,12 @@ class Phase1Stage(Stage):
 
     def resume(self, tensors, meta, scene, *, config=None, phase2=None,
                total_iterations=None, threads=None, near=None) -> Phase1Trainer:  # fmt: skip
-        return Phase1Trainer.from_state(tensors, meta, scene, config=config, threads=threads,
-                                        total_iterations=total_iterations, near=near)  # fmt: skip
+        trainer = Phase1Trainer.from_state(tensors, meta, scene, config=config,
+                                           threads=threads, total_iterations=total_iterations,
+                                           near=near)  # fmt: skip
+        if (problem := coarse_problem(scene, trainer.config, trainer.iteration)) is not None:
+            raise ConfigError(problem)
+        return trainer
 
     def counts(self, fit: FitState) -> dict:
         return phase1_skips(fit.trainer)
