@@ -95,20 +95,8 @@ fn main() {
         for (bi, backend) in ["cpu", "wgpu"].into_iter().enumerate() {
             let (fwd, full) = &mut times[bi];
             let t0 = Instant::now();
-            let mut p = Proj {
-                means2d: vec![0.0; 2 * n],
-                conics: vec![0.0; 3 * n],
-                depths: vec![0.0; n],
-                opacities: vec![0.0; n],
-                radii: vec![0; 2 * n],
-            };
-            let out = ProjectionMut {
-                means2d: &mut p.means2d,
-                conics: &mut p.conics,
-                depths: &mut p.depths,
-                opacities: &mut p.opacities,
-                radii: &mut p.radii,
-            };
+            let mut p = Proj::zeros(n);
+            let out = p.as_mut();
             let mut img = Image::zeros(npix, 3);
             let sp_feats = feats.clone();
             if backend == "cpu" {

@@ -41,14 +41,7 @@ fn gpu() -> Option<&'static Mutex<GpuRasterizer>> {
 /// invocation, atomic gradient sums), the CPU-adapter one (many pixels, row blocks, partial
 /// sums) and mixed ones; see [`layouts`] for the subgroup one.
 const LAYOUTS: [BlendLayout; 6] = [
-    BlendLayout {
-        pixels_per_invocation: 1,
-        partials: false,
-        block_rows: 0,
-        subgroup_sums: false,
-        column_halves: ColumnHalves::Never,
-        float_atomics: false,
-    },
+    BlendLayout::ONE_PIXEL,
     BlendLayout {
         pixels_per_invocation: 32,
         partials: true,
@@ -141,13 +134,7 @@ fn gpu_project(r: &mut GpuRasterizer, s: &Scene, ps: &ProjectSettings) -> (Proj<
         to_f32(&s.scales),
         to_f32(&s.opacities),
     );
-    let mut p = Proj {
-        means2d: vec![0.0; 2 * n],
-        conics: vec![0.0; 3 * n],
-        depths: vec![0.0; n],
-        opacities: vec![0.0; n],
-        radii: vec![0; 2 * n],
-    };
+    let mut p = Proj::zeros(n);
     let visible = r
         .project_forward(
             &Gaussians {
@@ -158,13 +145,7 @@ fn gpu_project(r: &mut GpuRasterizer, s: &Scene, ps: &ProjectSettings) -> (Proj<
             },
             &s.camera,
             ps,
-            ProjectionMut {
-                means2d: &mut p.means2d,
-                conics: &mut p.conics,
-                depths: &mut p.depths,
-                opacities: &mut p.opacities,
-                radii: &mut p.radii,
-            },
+            p.as_mut(),
         )
         .unwrap();
     (p, visible)

@@ -20,7 +20,7 @@
 use rayon::prelude::*;
 
 use sync4d_raster::error::{check_finite, check_len, RasterError, Result};
-use sync4d_raster::real::Real;
+use sync4d_scalar::Real;
 
 const C1: f64 = 0.01 * 0.01;
 const C2: f64 = 0.03 * 0.03;

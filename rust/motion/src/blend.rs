@@ -33,8 +33,8 @@
 //! gets equal weights on its nodes instead of NaN.
 
 use crate::error::{check_len, MotionError, Result};
-use crate::real::Real;
 use rayon::prelude::*;
+use sync4d_scalar::Real;
 
 /// Gaussians per parallel task of the forward.
 const ROWS: usize = 256;

@@ -28,8 +28,9 @@
 //! autograd bookkeeping; here it is one pass each way.
 
 use crate::error::{check_len, MotionError, Result};
-use crate::real::Real;
 use rayon::prelude::*;
+use sync4d_scalar::quat::{quat_conj, quat_mul};
+use sync4d_scalar::Real;
 
 /// Columns of a linear blend's row: A (9), t (3), p (4), dl (3).
 pub const LINEAR_COLUMNS: usize = 19;
@@ -91,22 +92,6 @@ impl<T: Real> LinearEpilogue<'_, T> {
         check_len("log_s0", self.log_s0, n * 3)?;
         Ok(n)
     }
-}
-
-/// Hamilton product a (x) b of quaternions (w, x, y, z).
-#[inline(always)]
-fn quat_mul<T: Real>(a: [T; 4], b: [T; 4]) -> [T; 4] {
-    [
-        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
-        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
-        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
-        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
-    ]
-}
-
-#[inline(always)]
-fn conj<T: Real>(q: [T; 4]) -> [T; 4] {
-    [q[0], -q[1], -q[2], -q[3]]
 }
 
 #[inline(always)]
@@ -225,8 +210,8 @@ pub fn linear_epilogue_backward<T: Real>(
                 } else {
                     [0, 1, 2, 3].map(|a| gq[a] / div)
                 };
-                gb[12..16].copy_from_slice(&quat_mul(gr, conj(q0)));
-                gq0.copy_from_slice(&quat_mul(conj(quat(&b[12..16])), gr));
+                gb[12..16].copy_from_slice(&quat_mul(gr, quat_conj(q0)));
+                gq0.copy_from_slice(&quat_mul(quat_conj(quat(&b[12..16])), gr));
                 // s = exp(l0 + dl)
                 for a in 0..3 {
                     let s = (e.log_s0[3 * i + a] + b[16 + a]).exp();

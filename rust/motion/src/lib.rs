@@ -14,7 +14,6 @@
 pub mod blend;
 pub mod epilogue;
 pub mod error;
-pub mod real;
 
 pub use blend::{
     node_weighted_sum_backward, node_weighted_sum_forward, NodeBlend, NodeBlendGradsMut, NodeIndex,
@@ -24,4 +23,4 @@ pub use epilogue::{
     LinearEpilogueOut, LINEAR_COLUMNS,
 };
 pub use error::{MotionError, Result};
-pub use real::Real;
+pub use sync4d_scalar::Real;

@@ -1,7 +1,8 @@
-//! Arrays and arguments between NumPy and the core: the float32/float64 dispatch, flat borrows
-//! of C-contiguous arrays (failing with the argument's name), freshly allocated outputs and
-//! their mutable views, the splat, image and gradient arrays by name, and the counters dict. Shared by
-//! every binding, so apart from all of them.
+//! Arrays and arguments between NumPy and the core: the float32/float64 dispatch, the
+//! `bindings!` that writes a forward and its backward over their shared arguments once, flat
+//! borrows of C-contiguous arrays (failing with the argument's name), freshly allocated outputs
+//! and their mutable views, the splat, image and gradient arrays by name, and the counters dict.
+//! Shared by every binding, so apart from all of them.
 
 use numpy::{Element, PyArray1, PyArrayMethods, PyReadonlyArrayDyn};
 use pyo3::exceptions::PyValueError;
@@ -31,6 +32,36 @@ macro_rules! with_float_type {
     }};
 }
 pub(crate) use with_float_type;
+
+/// `#[pyfunction]`s that share their leading arguments (a forward and its backward): each
+/// `fn name(own: type, ...) { body }` becomes `pub(crate) fn name<'py>(py, pos..., kw..., own...,
+/// threads) -> PyResult<PyObject>` with the Python signature `(pos..., *, kw..., own...,
+/// threads)`, where `$py` (the GIL token), the positional arguments `$pos`, the keyword
+/// arguments `$kw` and `$threads` are given once, first. Doc comments stay with each function.
+macro_rules! bindings {
+    ($shared:tt) => {};
+    ($shared:tt $(#[$doc:meta])* fn $name:ident $own:tt $body:block $($rest:tt)*) => {
+        bindings!(@one $shared $(#[$doc])* fn $name $own $body);
+        bindings!($shared $($rest)*);
+    };
+    (
+        @one ($py:ident, [$($pos:ident: $pty:ty),*], [$($kw:ident: $kty:ty),*], $threads:ident)
+        $(#[$doc:meta])* fn $name:ident($($own:ident: $oty:ty),*) $body:block
+    ) => {
+        $(#[$doc])*
+        #[pyo3::pyfunction]
+        #[pyo3(signature = ($($pos,)* *, $($kw,)* $($own,)* $threads))]
+        #[allow(clippy::too_many_arguments)]
+        pub(crate) fn $name<'py>(
+            $py: pyo3::Python<'py>,
+            $($pos: $pty,)*
+            $($kw: $kty,)*
+            $($own: $oty,)*
+            $threads: usize,
+        ) -> pyo3::PyResult<pyo3::PyObject> $body
+    };
+}
+pub(crate) use bindings;
 
 /// Any Python object holding a NumPy array.
 pub(crate) type AnyArr<'py> = Bound<'py, PyAny>;

@@ -7,13 +7,11 @@ use pyo3::prelude::*;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Mutex, OnceLock};
 
-use crate::arrays::{
-    alloc_image, alloc_splat_grads, counters_dict, extract_image_grads, extract_splats, flat,
-    image_grads, image_mut, splat_grads_mut, splats_of, to_object, AnyArr, Arr, ImageGradAny,
-    SplatAny,
+use crate::arrays::{extract_image_grads, extract_splats, Arr};
+use crate::composite::{
+    backward_with, compositor_context, forward_with, BackwardArgs, CompositeArgs,
 };
 use crate::runtime::{lock_recover, to_py};
-use crate::settings::CompositeSettings;
 
 /// The process-wide wgpu rasterizer (kernels compiled once), opened on first use on the adapter
 /// `AdapterChoice::Auto` picks (a discrete, then integrated GPU, then a CPU driver such as
@@ -72,118 +70,47 @@ pub(crate) fn wgpu_adapters(py: Python<'_>) -> Vec<(String, &'static str)> {
     })
 }
 
-/// The float32 compositor on the wgpu backend, with the device buffers its backward needs:
-/// one per in-flight render, like `RasterContext` (same method signatures; `threads` unused).
-#[pyclass(module = "sync4d._core")]
-pub(crate) struct WgpuContext {
-    state: Mutex<sync4d_gpu::GpuRasterState>,
-}
-
-#[pymethods]
-impl WgpuContext {
-    #[new]
-    fn new() -> Self {
-        WgpuContext {
-            state: Mutex::new(sync4d_gpu::GpuRasterState::new()),
-        }
-    }
-
+compositor_context!(
+    /// The float32 compositor on the wgpu backend, with the device buffers its backward needs:
+    /// one per in-flight render, like `RasterContext` (same method signatures; `threads` unused).
+    WgpuContext(sync4d_gpu::GpuRasterState),
+    forward:
     /// Composite float32 splats (see `RasterContext.forward`: the same keyword arguments).
-    #[pyo3(signature = (
-        *, means2d, conics, depths, opacities, radii, features, channels, background, settings,
-        threads
-    ))]
-    #[allow(clippy::too_many_arguments)]
-    fn forward<'py>(
-        &self,
-        py: Python<'py>,
-        means2d: AnyArr<'py>,
-        conics: AnyArr<'py>,
-        depths: AnyArr<'py>,
-        opacities: AnyArr<'py>,
-        radii: AnyArr<'py>,
-        features: AnyArr<'py>,
-        channels: usize,
-        background: AnyArr<'py>,
-        settings: CompositeSettings,
-        threads: usize,
-    ) -> PyResult<PyObject> {
-        let _ = threads;
-        let splats = SplatAny {
-            means2d,
-            conics,
-            depths,
-            opacities,
-            radii,
-            features,
-        };
-        let arrs = extract_splats::<f32>(&splats).map_err(|_| float32_only())?;
-        let sp = splats_of(&arrs, channels)?;
-        let bg: Arr<'py, f32> = background.extract().map_err(|_| float32_only())?;
-        let bg = flat(&bg, "background")?;
-        let img = alloc_image::<f32>(py, settings.pixels(), channels);
-        let out = image_mut(&img);
-        let (width, height, bs) = (settings.width, settings.height, settings.blend());
+    ,
+    backward:
+    /// Backward of `forward` (see `RasterContext.backward`: the same keyword arguments).
+    ,
+);
+
+impl WgpuContext {
+    /// `forward` on float32 arrays.
+    fn forward_any(&self, py: Python<'_>, args: &CompositeArgs<'_>) -> PyResult<PyObject> {
         let state = &self.state;
-        let counters = run_wgpu(py, |r| {
-            let mut st = lock_recover(state);
-            r.rasterize_forward(&sp, width, height, bg, &bs, &mut st, out)
-        })?;
-        to_object(py, (img.0, img.1, img.2, counters_dict(py, counters)?))
+        let arrs = extract_splats::<f32>(&args.splats).map_err(|_| float32_only())?;
+        let bg: Arr<'_, f32> = args.background.extract().map_err(|_| float32_only())?;
+        forward_with(py, (&arrs, &bg), args, |(sp, (w, h), bg, bs), out| {
+            run_wgpu(py, |r| {
+                r.rasterize_forward(&sp, w, h, bg, &bs, &mut lock_recover(state), out)
+            })
+        })
     }
 
-    /// Backward of `forward` (see `RasterContext.backward`: the same keyword arguments).
-    #[pyo3(signature = (
-        *, means2d, conics, depths, opacities, radii, features, channels, background, settings,
-        grad_features, grad_alpha, grad_depth, threads
-    ))]
-    #[allow(clippy::too_many_arguments)]
-    fn backward<'py>(
-        &self,
-        py: Python<'py>,
-        means2d: AnyArr<'py>,
-        conics: AnyArr<'py>,
-        depths: AnyArr<'py>,
-        opacities: AnyArr<'py>,
-        radii: AnyArr<'py>,
-        features: AnyArr<'py>,
-        channels: usize,
-        background: AnyArr<'py>,
-        settings: CompositeSettings,
-        grad_features: AnyArr<'py>,
-        grad_alpha: AnyArr<'py>,
-        grad_depth: AnyArr<'py>,
-        threads: usize,
-    ) -> PyResult<PyObject> {
-        let _ = threads;
-        let splats = SplatAny {
-            means2d,
-            conics,
-            depths,
-            opacities,
-            radii,
-            features,
-        };
-        let arrs = extract_splats::<f32>(&splats).map_err(|_| float32_only())?;
-        let sp = splats_of(&arrs, channels)?;
-        let bg: Arr<'py, f32> = background.extract().map_err(|_| float32_only())?;
-        let bg = flat(&bg, "background")?;
-        let grads = ImageGradAny {
-            features: grad_features,
-            alpha: grad_alpha,
-            depth: grad_depth,
-        };
-        let g = extract_image_grads::<f32>(&grads).map_err(|_| float32_only())?;
-        let v = image_grads(&g)?;
-        let out = alloc_splat_grads::<f32>(py, sp.len(), channels);
-        let gm = splat_grads_mut(&out);
-        let (width, height, bs) = (settings.width, settings.height, settings.blend());
-        let state = &self.state;
-        run_wgpu(py, |r| {
-            let mut st = lock_recover(state);
-            r.rasterize_backward(&sp, width, height, bg, &bs, &mut st, &v, gm)
-        })?;
-        to_object(py, out)
+    /// `backward` on float32 arrays.
+    fn backward_any(&self, py: Python<'_>, args: &BackwardArgs<'_>) -> PyResult<PyObject> {
+        let (call, state) = (&args.call, &self.state);
+        let arrs = extract_splats::<f32>(&call.splats).map_err(|_| float32_only())?;
+        let bg: Arr<'_, f32> = call.background.extract().map_err(|_| float32_only())?;
+        let g = extract_image_grads::<f32>(&args.grads).map_err(|_| float32_only())?;
+        backward_with(
+            py,
+            (&arrs, &bg, &g),
+            call,
+            |(sp, (w, h), bg, bs), v, out| {
+                run_wgpu(py, |r| {
+                    r.rasterize_backward(&sp, w, h, bg, &bs, &mut lock_recover(state), v, out)
+                })
+            },
+        )
     }
 }
 

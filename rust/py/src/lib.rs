@@ -3,14 +3,17 @@
 //! naming the argument, and a Rust panic becomes a `RuntimeError` instead of crossing into Python.
 //! Shapes are checked on the Python side (`sync4d/raster.py`); lengths again here by the core.
 //!
-//! One file per concern: `arrays` (NumPy arrays and argument conversion), `runtime` (threads,
-//! GIL release, error and panic mapping), `settings` (the settings objects the bindings take by
-//! name), `project`, `raster` (CPU compositing), `gpu` (the wgpu backend), `sh` and `loss` (the
-//! bindings; the loss itself is the sync4d-loss crate), `motion` (the node motion kernels of
-//! sync4d-motion), and here the module's registration. Every binding takes its settings, sizes,
-//! flags and `threads` by keyword (the compositing bindings their arrays too).
+//! One file per concern: `arrays` (NumPy arrays and argument conversion, and `bindings!`, the
+//! forward and backward pairs with shared arguments), `runtime` (threads, GIL release, error and
+//! panic mapping), `settings` (the settings objects the bindings take by name), `project`,
+//! `composite` (what the two compositing contexts share), `raster` (CPU compositing), `gpu` (the
+//! wgpu backend), `sh` and `loss` (the bindings; the loss itself is the sync4d-loss crate),
+//! `motion` (the node motion kernels of sync4d-motion), and here the module's registration.
+//! Every binding takes its settings, sizes, flags and `threads` by keyword (the compositing
+//! bindings their arrays too).
 
 mod arrays;
+mod composite;
 mod gpu;
 mod loss;
 mod motion;
@@ -35,6 +38,13 @@ use runtime::default_threads;
 use settings::{CompositeSettings, ProjectSettings};
 use sh::{sh_backward, sh_forward};
 
+/// Add each `#[pyfunction]` named to module `$m`.
+macro_rules! add_functions {
+    ($m:ident: $($f:ident),* $(,)?) => {
+        $($m.add_function(wrap_pyfunction!($f, $m)?)?;)*
+    };
+}
+
 /// The compiled core of sync4d.
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -42,18 +52,11 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<WgpuContext>()?;
     m.add_class::<ProjectSettings>()?;
     m.add_class::<CompositeSettings>()?;
-    m.add_function(wrap_pyfunction!(wgpu_adapter, m)?)?;
-    m.add_function(wrap_pyfunction!(wgpu_adapters, m)?)?;
-    m.add_function(wrap_pyfunction!(project_forward, m)?)?;
-    m.add_function(wrap_pyfunction!(project_backward, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_forward, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_backward, m)?)?;
-    m.add_function(wrap_pyfunction!(photometric_loss, m)?)?;
-    m.add_function(wrap_pyfunction!(node_weighted_sum_forward, m)?)?;
-    m.add_function(wrap_pyfunction!(node_weighted_sum_backward, m)?)?;
-    m.add_function(wrap_pyfunction!(linear_epilogue_forward, m)?)?;
-    m.add_function(wrap_pyfunction!(linear_epilogue_backward, m)?)?;
-    m.add_function(wrap_pyfunction!(default_threads, m)?)?;
+    add_functions! { m:
+        wgpu_adapter, wgpu_adapters, project_forward, project_backward, sh_forward, sh_backward,
+        photometric_loss, node_weighted_sum_forward, node_weighted_sum_backward,
+        linear_epilogue_forward, linear_epilogue_backward, default_threads,
+    }
     m.add("TILE_SIZE", core::TILE_SIZE)?;
     m.add("ALPHA_MIN", core::ALPHA_MIN)?;
     m.add("T_MIN", core::T_MIN)?;

@@ -4,7 +4,7 @@ use numpy::Element;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use sync4d_loss::{photometric_loss as loss, LossWeights};
-use sync4d_raster::real::Real;
+use sync4d_scalar::Real;
 
 use crate::arrays::{flat, slice_mut, to_object, with_float_type, zeros, AnyArr, Arr};
 use crate::runtime::run;

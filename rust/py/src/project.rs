@@ -4,9 +4,11 @@
 use numpy::Element;
 use pyo3::prelude::*;
 use sync4d_raster as core;
-use sync4d_raster::real::Real;
+use sync4d_scalar::Real;
 
-use crate::arrays::{flat, slice_mut, to_object, with_float_type, zeros, AnyArr, Arr, Out};
+use crate::arrays::{
+    bindings, flat, slice_mut, to_object, with_float_type, zeros, AnyArr, Arr, Out,
+};
 use crate::runtime::{run, to_py};
 use crate::settings::ProjectSettings;
 
@@ -81,7 +83,7 @@ fn project_fwd<'py, T: Real + Element>(
     settings: &ProjectSettings,
     threads: usize,
 ) -> PyResult<ProjOut<'py, T>> {
-    let ps = settings.0;
+    let ps = settings.core();
     let g = arrs.gaussians()?;
     let n = g.len();
     let (m2, co, de, op, ra) = (
@@ -110,7 +112,7 @@ fn project_bwd<'py, T: Real + Element>(
     grads: &ProjectionGradArrs<'py, T>,
     threads: usize,
 ) -> PyResult<Grads4<'py, T>> {
-    let ps = settings.0;
+    let ps = settings.core();
     let g = arrs.gaussians()?;
     let v = grads.grads()?;
     let n = g.len();
@@ -132,80 +134,55 @@ fn project_bwd<'py, T: Real + Element>(
     Ok((gm, gq, gs, go))
 }
 
-/// Project Gaussians (float32: fast path; float64: for gradient checks) through the pinhole
-/// camera `viewmat` (row-major world-to-camera 4x4), `fx`, `fy`, `cx`, `cy`, `width` x `height`
-/// with `settings` (a `ProjectSettings`). Returns (means2d, conics, depths, opacities, radii,
-/// visible) as flat arrays.
-#[pyfunction]
-#[pyo3(signature = (
-    means, quats, scales, opacities, *, viewmat, fx, fy, cx, cy, width, height, settings, threads
-))]
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn project_forward<'py>(
-    py: Python<'py>,
-    means: AnyArr<'py>,
-    quats: AnyArr<'py>,
-    scales: AnyArr<'py>,
-    opacities: AnyArr<'py>,
-    viewmat: Vec<f64>,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    width: u32,
-    height: u32,
-    settings: ProjectSettings,
-    threads: usize,
-) -> PyResult<PyObject> {
-    with_float_type!(means, "means", |T| {
-        let arrs = GaussianArrs::<T>::extract(&means, &quats, &scales, &opacities)?;
-        // Built after the arrays are extracted, as before: the same error wins when several
-        // arguments are wrong.
-        let cam = core::Camera::new(&viewmat, fx, fy, cx, cy, width, height).map_err(to_py)?;
-        let out = project_fwd::<T>(py, &arrs, &cam, &settings, threads)?;
-        to_object(py, out)
-    })
-}
+bindings! {
+    (
+        py,
+        [
+            means: AnyArr<'py>,
+            quats: AnyArr<'py>,
+            scales: AnyArr<'py>,
+            opacities: AnyArr<'py>
+        ],
+        [
+            viewmat: Vec<f64>, fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32,
+            settings: ProjectSettings
+        ],
+        threads
+    )
 
-/// Backward of the projection (the forward's arguments by the same names, plus the outputs'
-/// gradients `grad_means2d`, `grad_conics`, `grad_depths`, `grad_opacities`): returns
-/// dL/d(means, quats, scales, opacities).
-#[pyfunction]
-#[pyo3(signature = (
-    means, quats, scales, opacities, *, viewmat, fx, fy, cx, cy, width, height, settings,
-    grad_means2d, grad_conics, grad_depths, grad_opacities, threads
-))]
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn project_backward<'py>(
-    py: Python<'py>,
-    means: AnyArr<'py>,
-    quats: AnyArr<'py>,
-    scales: AnyArr<'py>,
-    opacities: AnyArr<'py>,
-    viewmat: Vec<f64>,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    width: u32,
-    height: u32,
-    settings: ProjectSettings,
-    grad_means2d: AnyArr<'py>,
-    grad_conics: AnyArr<'py>,
-    grad_depths: AnyArr<'py>,
-    grad_opacities: AnyArr<'py>,
-    threads: usize,
-) -> PyResult<PyObject> {
-    with_float_type!(means, "means", |T| {
-        let grads = ProjectionGradArrs::<T> {
-            means2d: grad_means2d.extract()?,
-            conics: grad_conics.extract()?,
-            depths: grad_depths.extract()?,
-            opacities: grad_opacities.extract()?,
-        };
-        let arrs = GaussianArrs::<T>::extract(&means, &quats, &scales, &opacities)?;
-        let cam = core::Camera::new(&viewmat, fx, fy, cx, cy, width, height).map_err(to_py)?;
-        let out = project_bwd::<T>(py, &arrs, &cam, &settings, &grads, threads)?;
-        to_object(py, out)
-    })
+    /// Project Gaussians (float32: fast path; float64: for gradient checks) through the pinhole
+    /// camera `viewmat` (row-major world-to-camera 4x4), `fx`, `fy`, `cx`, `cy`, `width` x
+    /// `height` with `settings` (a `ProjectSettings`). Returns (means2d, conics, depths,
+    /// opacities, radii, visible) as flat arrays.
+    fn project_forward() {
+        with_float_type!(means, "means", |T| {
+            let arrs = GaussianArrs::<T>::extract(&means, &quats, &scales, &opacities)?;
+            // Built after the arrays are extracted, as before: the same error wins when several
+            // arguments are wrong.
+            let cam = core::Camera::new(&viewmat, fx, fy, cx, cy, width, height).map_err(to_py)?;
+            to_object(py, project_fwd::<T>(py, &arrs, &cam, &settings, threads)?)
+        })
+    }
+
+    /// Backward of the projection (the forward's arguments by the same names, plus the outputs'
+    /// gradients `grad_means2d`, `grad_conics`, `grad_depths`, `grad_opacities`): returns
+    /// dL/d(means, quats, scales, opacities).
+    fn project_backward(
+        grad_means2d: AnyArr<'py>,
+        grad_conics: AnyArr<'py>,
+        grad_depths: AnyArr<'py>,
+        grad_opacities: AnyArr<'py>
+    ) {
+        with_float_type!(means, "means", |T| {
+            let grads = ProjectionGradArrs::<T> {
+                means2d: grad_means2d.extract()?,
+                conics: grad_conics.extract()?,
+                depths: grad_depths.extract()?,
+                opacities: grad_opacities.extract()?,
+            };
+            let arrs = GaussianArrs::<T>::extract(&means, &quats, &scales, &opacities)?;
+            let cam = core::Camera::new(&viewmat, fx, fy, cx, cy, width, height).map_err(to_py)?;
+            to_object(py, project_bwd::<T>(py, &arrs, &cam, &settings, &grads, threads)?)
+        })
+    }
 }

@@ -11,52 +11,52 @@ use sync4d_raster as core;
 /// antialiased=...)` (see `sync4d.raster.project_gaussians`).
 #[pyclass(module = "sync4d._core", frozen, eq)]
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub(crate) struct ProjectSettings(pub(crate) core::ProjectSettings);
+pub(crate) struct ProjectSettings {
+    /// Gaussians with camera depth `z <= near` are culled.
+    #[pyo3(get)]
+    near: f64,
+    /// Gaussians with `z >= far` are culled from rasterization.
+    #[pyo3(get)]
+    far: f64,
+    /// Screen-space blur added to the 2D covariance, pixels squared.
+    #[pyo3(get)]
+    eps2d: f64,
+    /// Whether opacities are compensated for the blur (antialiased 3DGS).
+    #[pyo3(get)]
+    antialiased: bool,
+}
 
 #[pymethods]
 impl ProjectSettings {
     #[new]
     #[pyo3(signature = (*, near, far, eps2d, antialiased))]
     fn new(near: f64, far: f64, eps2d: f64, antialiased: bool) -> Self {
-        ProjectSettings(core::ProjectSettings {
+        ProjectSettings {
             near,
             far,
             eps2d,
             antialiased,
-        })
-    }
-
-    /// Gaussians with camera depth `z <= near` are culled.
-    #[getter]
-    fn near(&self) -> f64 {
-        self.0.near
-    }
-
-    /// Gaussians with `z >= far` are culled from rasterization.
-    #[getter]
-    fn far(&self) -> f64 {
-        self.0.far
-    }
-
-    /// Screen-space blur added to the 2D covariance, pixels squared.
-    #[getter]
-    fn eps2d(&self) -> f64 {
-        self.0.eps2d
-    }
-
-    /// Whether opacities are compensated for the blur (antialiased 3DGS).
-    #[getter]
-    fn antialiased(&self) -> bool {
-        self.0.antialiased
+        }
     }
 
     fn __repr__(&self) -> String {
-        let s = self.0;
-        let aa = if s.antialiased { "True" } else { "False" };
+        let aa = if self.antialiased { "True" } else { "False" };
         format!(
             "ProjectSettings(near={:?}, far={:?}, eps2d={:?}, antialiased={aa})",
-            s.near, s.far, s.eps2d
+            self.near, self.far, self.eps2d
         )
+    }
+}
+
+impl ProjectSettings {
+    /// The core's projection settings.
+    pub(crate) fn core(&self) -> core::ProjectSettings {
+        core::ProjectSettings {
+            near: self.near,
+            far: self.far,
+            eps2d: self.eps2d,
+            antialiased: self.antialiased,
+        }
     }
 }
 

@@ -3,6 +3,7 @@
 
 use std::time::Instant;
 use sync4d_raster::*;
+use sync4d_testing::{grads_mut, splat_grad_bufs};
 
 fn main() {
     let args: Vec<usize> = std::env::args()
@@ -68,13 +69,7 @@ fn run(n: usize, w: u32, h: u32, iters: usize) {
     let (mut img, mut alpha, mut depth) =
         (vec![0f32; 3 * npix], vec![0f32; npix], vec![0f32; npix]);
     let mut state = RasterState::new();
-    let (mut g2, mut gc, mut gd, mut go, mut gf) = (
-        vec![0f32; 2 * n],
-        vec![0f32; 3 * n],
-        vec![0f32; n],
-        vec![0f32; n],
-        vec![0f32; 3 * n],
-    );
+    let mut bufs = splat_grad_bufs(n, 3);
     let (vi, va, vd) = (vec![1f32; 3 * npix], vec![1f32; npix], vec![0f32; npix]);
     for it in 0..iters {
         let t0 = Instant::now();
@@ -135,13 +130,7 @@ fn run(n: usize, w: u32, h: u32, iters: usize) {
                 alpha: &va,
                 depth: &vd,
             },
-            SplatGradsMut {
-                means2d: &mut g2,
-                conics: &mut gc,
-                depths: &mut gd,
-                opacities: &mut go,
-                features: &mut gf,
-            },
+            grads_mut(&mut bufs),
         )
         .unwrap();
         let t4 = Instant::now();

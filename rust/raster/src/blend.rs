@@ -22,9 +22,9 @@ use crate::error::{check_finite, check_len, RasterError, Result};
 use crate::lanes::{
     self, BackwardPixels, ForwardPixels, Limits, RowMasks, RowSplat, LANES, TILE_PIXELS,
 };
-use crate::real::Real;
 use crate::TILE_SIZE;
 use rayon::prelude::*;
+use sync4d_scalar::Real;
 
 /// Alpha below which a splat is skipped at a pixel (3DGS).
 pub const ALPHA_MIN: f64 = 1.0 / 255.0;

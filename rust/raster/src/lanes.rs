@@ -9,6 +9,7 @@
 #![allow(clippy::needless_bitwise_bool)]
 
 use crate::TILE_SIZE;
+use sync4d_scalar::exp::{exp_poly, EXP_HI, EXP_LO, EXP_P, LN2_HI, LN2_LO};
 
 /// Pixels per tile row.
 pub(crate) const LANES: usize = TILE_SIZE as usize;
@@ -98,31 +99,14 @@ pub fn fast_exp(x: f32) -> f32 {
     #[allow(clippy::manual_clamp)]
     let x = x.max(EXP_LO).min(EXP_HI);
     let n = (x * LOG2E + 0.5).floor();
-    let r = x - n * LN2_HI - n * LN2_LO;
-    let mut p = EXP_P[0];
-    for c in &EXP_P[1..] {
-        p = p * r + c;
-    }
-    let poly = p * r * r + r + 1.0;
+    let poly = exp_poly(x, n);
     // SAFETY: after the clamp (NaN included), n lies in [-126, 126], so the conversion is
     // exact and in range.
     let ni: i32 = unsafe { n.to_int_unchecked() };
     poly * f32::from_bits(((ni + 127) as u32) << 23)
 }
 
-const EXP_LO: f32 = -87.0;
-const EXP_HI: f32 = 87.0;
 const LOG2E: f32 = std::f32::consts::LOG2_E;
-const LN2_HI: f32 = 0.693_359_4;
-const LN2_LO: f32 = -2.121_944_4e-4;
-const EXP_P: [f32; 6] = [
-    1.987_569_1e-4,
-    1.398_199_9e-3,
-    8.333_452e-3,
-    4.166_579_6e-2,
-    1.666_666_5e-1,
-    0.5,
-];
 
 /// Portable kernels.
 pub(crate) mod portable {

@@ -22,7 +22,7 @@ pub mod error;
 mod lanes;
 pub mod linalg;
 pub mod project;
-pub mod real;
+pub use sync4d_scalar::real;
 pub mod reference;
 pub mod sh;
 

@@ -13,9 +13,10 @@
 
 use crate::camera::Camera;
 use crate::error::{check_finite, check_len, RasterError, Result};
-use crate::linalg::{mul33, mul3tv, mul3v, quat_to_rotmat, quat_to_rotmat_vjp, transpose, Mat3};
-use crate::real::{fits, Real};
+use crate::linalg::{mul33, mul3tv, mul3v, transpose, Mat3};
 use rayon::prelude::*;
+use sync4d_scalar::quat::{quat_to_rotmat, quat_to_rotmat_vjp};
+use sync4d_scalar::{fits, Real};
 
 /// Extent factor of the screen radius, in standard deviations: `sqrt(2 ln 255)`, rounded up.
 pub const RADIUS_SIGMAS: f64 = 3.33;

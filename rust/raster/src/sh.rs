@@ -7,9 +7,9 @@
 //! exact by construction. Parallel over chunks of Gaussians.
 
 use crate::error::{check_finite, check_len, RasterError, Result};
-use crate::real::Real;
 use rayon::prelude::*;
 use std::ops::{Add, Mul, Neg, Sub};
+use sync4d_scalar::Real;
 
 /// Highest supported degree.
 pub const MAX_SH_DEGREE: u32 = 3;

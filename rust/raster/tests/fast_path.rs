@@ -28,26 +28,6 @@ fn fast_backward(
     splat_grads(&sp, width, height, &to_f32(&s.background), bs, state, &w32).unwrap()
 }
 
-fn reference_backward(
-    p: &Proj<f64>,
-    s: &Scene,
-    bs: &BlendSettings,
-    w: &Image<f64>,
-) -> [Vec<f64>; 5] {
-    let (width, height) = (s.camera.width, s.camera.height);
-    let sp = splats(p, &s.features, s.channels);
-    splat_grads(
-        &sp,
-        width,
-        height,
-        &s.background,
-        bs,
-        &mut RasterState::new(),
-        w,
-    )
-    .unwrap()
-}
-
 /// Relative L2 error of a whole gradient tensor.
 fn rel_l2(a: &[f32], b: &[f64]) -> f64 {
     let num: f64 = a.iter().zip(b).map(|(x, y)| (*x as f64 - y).powi(2)).sum();
@@ -82,7 +62,7 @@ fn check_scene(n: usize, width: u32, height: u32, ch: usize, seed: u64, antialia
 
     let w = random_image_grads((width * height) as usize, ch, seed + 100);
     let gf = fast_backward(&pf, &s, &bs, &mut state, &w);
-    let gr = reference_backward(&pr, &s, &bs, &w);
+    let gr = reference_splat_grads(&pr, &s, &bs, &w);
     for (name, (a, b)) in ["means2d", "conics", "depths", "opacities", "features"]
         .iter()
         .zip(gf.iter().zip(gr.iter()))
@@ -177,11 +157,11 @@ fn empty_scene_gives_background() {
 #[test]
 fn backward_without_forward_is_an_error() {
     let s = random_scene(5, 20, 10, 3, 1);
-    let p = project(
-        &to_f32(&s.means),
-        &to_f32(&s.quats),
-        &to_f32(&s.scales),
-        &to_f32(&s.opacities),
+    let p = project_f32(
+        &s.means,
+        &s.quats,
+        &s.scales,
+        &s.opacities,
         &s.camera,
         &ProjectSettings::default(),
     );

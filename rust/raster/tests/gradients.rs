@@ -14,31 +14,10 @@ fn pipeline_grads(
 ) -> [Vec<f64>; 5] {
     let (p, _) = render_reference(s, ps, bs);
     let n = s.n();
-    let sp = splats(&p, &s.features, s.channels);
-    let (width, height) = (s.camera.width, s.camera.height);
-    let [g2, gc, gd, go, gf] = splat_grads(
-        &sp,
-        width,
-        height,
-        &s.background,
-        bs,
-        &mut RasterState::new(),
-        w,
-    )
-    .unwrap();
-    let (mut vm, mut vq, mut vs, mut vo) = (
-        vec![0.0; 3 * n],
-        vec![0.0; 4 * n],
-        vec![0.0; 3 * n],
-        vec![0.0; n],
-    );
+    let [g2, gc, gd, go, gf] = reference_splat_grads(&p, s, bs, w);
+    let mut bufs = gaussian_grad_bufs(n);
     project_backward(
-        &Gaussians {
-            means: &s.means,
-            quats: &s.quats,
-            scales: &s.scales,
-            opacities: &s.opacities,
-        },
+        &s.gaussians(),
         &s.camera,
         ps,
         &ProjectionGrads {
@@ -47,14 +26,10 @@ fn pipeline_grads(
             depths: &gd,
             opacities: &go,
         },
-        GaussianGradsMut {
-            means: &mut vm,
-            quats: &mut vq,
-            scales: &mut vs,
-            opacities: &mut vo,
-        },
+        gaussian_grads_mut(&mut bufs),
     )
     .unwrap();
+    let [vm, vq, vs, vo] = bufs;
     [vm, vq, vs, vo, gf]
 }
 
@@ -120,13 +95,7 @@ fn compositor_gradients_match_finite_differences() {
     let (p, _) = render_reference(&s, &ps, &bs);
     let n = s.n();
     let w = random_image_grads(36 * 30, 2, 5);
-    let (mut g2, mut gc, mut gd, mut go, mut gf) = (
-        vec![0.0; 2 * n],
-        vec![0.0; 3 * n],
-        vec![0.0; n],
-        vec![0.0; n],
-        vec![0.0; 2 * n],
-    );
+    let mut bufs = splat_grad_bufs(n, 2);
     rasterize_backward_reference(
         &splats(&p, &s.features, 2),
         36,
@@ -134,15 +103,10 @@ fn compositor_gradients_match_finite_differences() {
         &s.background,
         &bs,
         &w.as_grads(),
-        SplatGradsMut {
-            means2d: &mut g2,
-            conics: &mut gc,
-            depths: &mut gd,
-            opacities: &mut go,
-            features: &mut gf,
-        },
+        grads_mut(&mut bufs),
     )
     .unwrap();
+    let [g2, gc, gd, go, _] = bufs;
     let render = |q: &Proj<f64>| {
         let mut img = Image::zeros(36 * 30, 2);
         rasterize_forward_reference(
@@ -206,19 +170,9 @@ fn projection_gradients_match_finite_differences() {
             let d = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
             d(&p.means2d, &v2) + d(&p.conics, &vc) + d(&p.depths, &vd) + d(&p.opacities, &vo)
         };
-        let (mut gm, mut gq, mut gs, mut go) = (
-            vec![0.0; 3 * n],
-            vec![0.0; 4 * n],
-            vec![0.0; 3 * n],
-            vec![0.0; n],
-        );
+        let mut bufs = gaussian_grad_bufs(n);
         project_backward(
-            &Gaussians {
-                means: &s.means,
-                quats: &s.quats,
-                scales: &s.scales,
-                opacities: &s.opacities,
-            },
+            &s.gaussians(),
             &s.camera,
             &ps,
             &ProjectionGrads {
@@ -227,14 +181,10 @@ fn projection_gradients_match_finite_differences() {
                 depths: &vd,
                 opacities: &vo,
             },
-            GaussianGradsMut {
-                means: &mut gm,
-                quats: &mut gq,
-                scales: &mut gs,
-                opacities: &mut go,
-            },
+            gaussian_grads_mut(&mut bufs),
         )
         .unwrap();
+        let [gm, gq, gs, go] = bufs;
         for (name, analytic, x0) in [
             ("means", &gm, s.means.clone()),
             ("quats", &gq, s.quats.clone()),

@@ -314,12 +314,7 @@ fn project_grads<F: real::Real>(
     v: [&[F]; 4],
 ) -> [Vec<F>; 4] {
     let n = g.len();
-    let (mut vm, mut vq, mut vs, mut vo) = (
-        vec![F::zero(); 3 * n],
-        vec![F::zero(); 4 * n],
-        vec![F::zero(); 3 * n],
-        vec![F::zero(); n],
-    );
+    let mut bufs = gaussian_grad_bufs(n);
     project_backward(
         g,
         cam,
@@ -330,15 +325,10 @@ fn project_grads<F: real::Real>(
             depths: v[2],
             opacities: v[3],
         },
-        GaussianGradsMut {
-            means: &mut vm,
-            quats: &mut vq,
-            scales: &mut vs,
-            opacities: &mut vo,
-        },
+        gaussian_grads_mut(&mut bufs),
     )
     .unwrap();
-    [vm, vq, vs, vo]
+    bufs
 }
 
 /// Splats over buffers ordered (means2d, conics, depths, opacities, features, ...).
@@ -687,11 +677,11 @@ fn ill_conditioned_needles_are_culled_and_others_kept() {
     );
     run_fast(&s);
     let inp = inputs(&s);
-    let p = project(
-        &to_f32(&inp.means),
-        &to_f32(&inp.quats),
-        &to_f32(&inp.scales),
-        &to_f32(&inp.opacities),
+    let p = project_f32(
+        &inp.means,
+        &inp.quats,
+        &inp.scales,
+        &inp.opacities,
         &inp.camera,
         &s.settings,
     );
@@ -793,13 +783,7 @@ fn project_with<F: real::Real>(s: &Scene, arg: &str, bad: f64) -> Result<usize> 
         .unwrap();
     v[i][1] = F::from_f64(bad);
     let n = s.n();
-    let mut p = Proj::<F> {
-        means2d: vec![F::zero(); 2 * n],
-        conics: vec![F::zero(); 3 * n],
-        depths: vec![F::zero(); n],
-        opacities: vec![F::zero(); n],
-        radii: vec![0; 2 * n],
-    };
+    let mut p = Proj::<F>::zeros(n);
     project_forward(
         &Gaussians {
             means: &v[0],
@@ -809,13 +793,7 @@ fn project_with<F: real::Real>(s: &Scene, arg: &str, bad: f64) -> Result<usize> 
         },
         &s.camera,
         &ProjectSettings::default(),
-        ProjectionMut {
-            means2d: &mut p.means2d,
-            conics: &mut p.conics,
-            depths: &mut p.depths,
-            opacities: &mut p.opacities,
-            radii: &mut p.radii,
-        },
+        p.as_mut(),
     )
 }
 

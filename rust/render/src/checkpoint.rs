@@ -389,10 +389,23 @@ fn read_nodes(
     })
 }
 
-/// Parse checkpoint `bytes` (errors name `path`).
-// One check per field of the format, in the order they are read.
-#[allow(clippy::too_many_lines)]
-pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, CheckpointError> {
+/// D_theta's hyperparameters (`deform_config` in the metadata).
+struct DeformConfig {
+    embed_dim: usize,
+    bands: usize,
+    hidden: usize,
+    layers: usize,
+    scales: [f32; 3],
+    position_bands: usize,
+    position_unit: f32,
+    time_frequency: f32,
+}
+
+/// The safetensors header of `bytes` and its `"sync4d"` metadata, parsed as JSON.
+fn read_header<'a>(
+    bytes: &'a [u8],
+    path: &'a Path,
+) -> Result<(Value, Tensors<'a>), CheckpointError> {
     let (_, header) = SafeTensors::read_metadata(bytes)
         .map_err(|e| err(path, format!("not a readable safetensors file ({e})")))?;
     let st = SafeTensors::deserialize(bytes)
@@ -411,16 +424,23 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         })?;
     let meta: Value = serde_json::from_str(text)
         .map_err(|e| err(path, format!("'sync4d' metadata is not valid JSON ({e})")))?;
-    let t = Tensors { st, path };
+    Ok((meta, Tensors { st, path }))
+}
 
-    let sh_degree = num(&meta, "sh_degree", path)?;
+/// The metadata's `sh_degree`, 0..=3.
+fn sh_degree(meta: &Value, path: &Path) -> Result<u32, CheckpointError> {
+    let sh_degree = num(meta, "sh_degree", path)?;
     if !(0.0..=3.0).contains(&sh_degree) || sh_degree.fract() != 0.0 {
         return Err(err(
             path,
             format!("sh_degree must be 0..=3, got {sh_degree}"),
         ));
     }
-    let sh_degree = sh_degree as u32;
+    Ok(sh_degree as u32)
+}
+
+/// The metadata's `deform_config`, checked.
+fn deform_config(meta: &Value, path: &Path) -> Result<DeformConfig, CheckpointError> {
     let dc = meta
         .get("deform_config")
         .ok_or_else(|| err(path, "metadata lacks 'deform_config'"))?;
@@ -465,12 +485,24 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         }
         v as usize
     };
-
     // Absent in checkpoints written before each setting existed: the raw position, the
     // paper's pi.
-    let position_unit = positive_or(dc, "position_unit", 1.0, path)?;
-    let time_frequency = positive_or(dc, "time_frequency", std::f32::consts::PI, path)?;
-    // Absent in checkpoints written before node motion existed: D_theta moves each Gaussian.
+    Ok(DeformConfig {
+        embed_dim,
+        bands,
+        hidden,
+        layers,
+        scales,
+        position_bands,
+        position_unit: positive_or(dc, "position_unit", 1.0, path)?,
+        time_frequency: positive_or(dc, "time_frequency", std::f32::consts::PI, path)?,
+    })
+}
+
+/// How the Gaussians follow the nodes in a node checkpoint (`"motion": "nodes"`); None when
+/// D_theta moves each Gaussian (`"gaussians"`, or no `motion`: checkpoints written before node
+/// motion existed).
+fn node_blend(meta: &Value, path: &Path) -> Result<Option<Blend>, CheckpointError> {
     let motion = match meta.get("motion") {
         None | Some(Value::Null) => "gaussians",
         Some(Value::String(s)) => s.as_str(),
@@ -481,8 +513,8 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
             ))
         }
     };
-    let node_blend = match motion {
-        "gaussians" => None,
+    match motion {
+        "gaussians" => Ok(None),
         "nodes" => {
             let nc = meta.get("node_config").ok_or_else(|| {
                 err(
@@ -490,76 +522,44 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
                     "metadata lacks 'node_config' (\"motion\": \"nodes\" needs it)",
                 )
             })?;
-            Some(match nc.get("blend").and_then(Value::as_str) {
-                Some("linear") => Blend::Linear,
-                Some("dual_quaternion") => Blend::DualQuaternion,
+            match nc.get("blend").and_then(Value::as_str) {
+                Some("linear") => Ok(Some(Blend::Linear)),
+                Some("dual_quaternion") => Ok(Some(Blend::DualQuaternion)),
                 _ => {
                     let got = nc
                         .get("blend")
                         .map_or("nothing".to_string(), Value::to_string);
-                    return Err(err(
+                    Err(err(
                         path,
                         format!(
                             "node_config.blend must be \"linear\" or \"dual_quaternion\", got \
                              {got}"
                         ),
-                    ));
+                    ))
                 }
-            })
+            }
         }
-        other => {
-            return Err(err(
-                path,
-                format!("motion must be \"gaussians\" or \"nodes\", got \"{other}\""),
-            ))
-        }
-    };
-
-    let n = *t.shape("gaussians.means")?.first().unwrap_or(&0);
-    let k = ((sh_degree + 1) * (sh_degree + 1)) as usize;
-    let means = t.get("gaussians.means", &[n, 3])?;
-    let quats = t.get("gaussians.quats", &[n, 4])?;
-    let log_scales = t.get("gaussians.log_scales", &[n, 3])?;
-    let opacities: Vec<f32> = t
-        .get("gaussians.opacity_logits", &[n])?
-        .iter()
-        .map(|x| 1.0 / (1.0 + (-x).exp()))
-        .collect();
-    let sh_dc = t.get("gaussians.sh_dc", &[n, 1, 3])?;
-    let sh_rest = t.get("gaussians.sh_rest", &[n, k - 1, 3])?;
-    let embeddings = t.get("gaussians.embeddings", &[n, embed_dim])?;
-    let nodes = match node_blend {
-        None => None,
-        Some(blend) => Some(read_nodes(&t, n, embed_dim, blend)?),
-    };
-    // Optional: written only when some Gaussian is static (sync4d.phase1.static); node
-    // checkpoints have no static set (and one there is ignored).
-    let is_static: Vec<bool> = if nodes.is_none() && t.st.tensor("gaussians.static").is_ok() {
-        t.get("gaussians.static", &[n])?
-            .iter()
-            .map(|&v| v > 0.5)
-            .collect()
-    } else {
-        Vec::new()
-    };
-    let mut sh = Vec::with_capacity(n * k * 3);
-    for i in 0..n {
-        sh.extend_from_slice(&sh_dc[3 * i..3 * i + 3]);
-        sh.extend_from_slice(&sh_rest[3 * (k - 1) * i..3 * (k - 1) * (i + 1)]);
+        other => Err(err(
+            path,
+            format!("motion must be \"gaussians\" or \"nodes\", got \"{other}\""),
+        )),
     }
+}
 
-    let input = 3 * (1 + 2 * position_bands) + embed_dim + 1 + 2 * bands;
+/// D_theta's weights (`deform.*`) for the hyperparameters `c`: the ReLU trunk, then the head.
+fn read_mlp(t: &Tensors<'_>, c: &DeformConfig) -> Result<DeformMlp, CheckpointError> {
+    let input = 3 * (1 + 2 * c.position_bands) + c.embed_dim + 1 + 2 * c.bands;
     let mut trunk = Vec::new();
     let mut width = input;
-    for l in 0..layers - 1 {
+    for l in 0..c.layers - 1 {
         let name = format!("deform.trunk.{}", 2 * l);
         trunk.push(Linear {
-            weight: t.get(&format!("{name}.weight"), &[hidden, width])?,
-            bias: t.get(&format!("{name}.bias"), &[hidden])?,
+            weight: t.get(&format!("{name}.weight"), &[c.hidden, width])?,
+            bias: t.get(&format!("{name}.bias"), &[c.hidden])?,
             inputs: width,
-            outputs: hidden,
+            outputs: c.hidden,
         });
-        width = hidden;
+        width = c.hidden;
     }
     let head = Linear {
         weight: t.get("deform.head.weight", &[9, width])?,
@@ -567,6 +567,22 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         inputs: width,
         outputs: 9,
     };
+    Ok(DeformMlp {
+        trunk,
+        head,
+        bands: c.bands,
+        time_frequency: c.time_frequency,
+        position_bands: c.position_bands,
+        scales: c.scales,
+        position_unit: c.position_unit,
+    })
+}
+
+/// The metadata's near plane, background and the run's cameras (each optional).
+fn view_settings(
+    meta: &Value,
+    path: &Path,
+) -> Result<(f64, [f32; 3], Vec<CameraRecord>), CheckpointError> {
     let near = meta.get("near").and_then(Value::as_f64).unwrap_or(0.01);
     if !(near.is_finite() && near > 0.0) {
         return Err(err(
@@ -591,6 +607,54 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
             .collect::<Result<_, _>>()?,
         _ => Vec::new(),
     };
+    Ok((near, [bg[0] as f32, bg[1] as f32, bg[2] as f32], cameras))
+}
+
+/// Parse checkpoint `bytes` (errors name `path`): the metadata (SH degree, D_theta's
+/// hyperparameters, the motion model), then the tensors it describes (the canonical Gaussians,
+/// the nodes, D_theta's weights), then the view settings. One check per field of the format, in
+/// the order they are read, so the first problem found is the one reported.
+pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, CheckpointError> {
+    let (meta, t) = read_header(bytes, path)?;
+    let sh_degree = sh_degree(&meta, path)?;
+    let config = deform_config(&meta, path)?;
+    let node_blend = node_blend(&meta, path)?;
+
+    let n = *t.shape("gaussians.means")?.first().unwrap_or(&0);
+    let k = ((sh_degree + 1) * (sh_degree + 1)) as usize;
+    let means = t.get("gaussians.means", &[n, 3])?;
+    let quats = t.get("gaussians.quats", &[n, 4])?;
+    let log_scales = t.get("gaussians.log_scales", &[n, 3])?;
+    let opacities: Vec<f32> = t
+        .get("gaussians.opacity_logits", &[n])?
+        .iter()
+        .map(|x| 1.0 / (1.0 + (-x).exp()))
+        .collect();
+    let sh_dc = t.get("gaussians.sh_dc", &[n, 1, 3])?;
+    let sh_rest = t.get("gaussians.sh_rest", &[n, k - 1, 3])?;
+    let embed_dim = config.embed_dim;
+    let embeddings = t.get("gaussians.embeddings", &[n, embed_dim])?;
+    let nodes = match node_blend {
+        None => None,
+        Some(blend) => Some(read_nodes(&t, n, embed_dim, blend)?),
+    };
+    // Optional: written only when some Gaussian is static (sync4d.phase1.static); node
+    // checkpoints have no static set (and one there is ignored).
+    let is_static: Vec<bool> = if nodes.is_none() && t.st.tensor("gaussians.static").is_ok() {
+        t.get("gaussians.static", &[n])?
+            .iter()
+            .map(|&v| v > 0.5)
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let mut sh = Vec::with_capacity(n * k * 3);
+    for i in 0..n {
+        sh.extend_from_slice(&sh_dc[3 * i..3 * i + 3]);
+        sh.extend_from_slice(&sh_rest[3 * (k - 1) * i..3 * (k - 1) * (i + 1)]);
+    }
+    let mlp = read_mlp(&t, &config)?;
+    let (near, background, cameras) = view_settings(&meta, path)?;
     Ok(Checkpoint {
         n,
         means,
@@ -603,17 +667,9 @@ pub fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint, Checkpo
         embed_dim,
         is_static,
         nodes,
-        mlp: DeformMlp {
-            trunk,
-            head,
-            bands,
-            time_frequency,
-            position_bands,
-            scales,
-            position_unit,
-        },
+        mlp,
         near,
-        background: [bg[0] as f32, bg[1] as f32, bg[2] as f32],
+        background,
         cameras,
     })
 }

@@ -20,6 +20,8 @@ use sync4d_motion::{
     linear_epilogue_forward, node_weighted_sum_forward, LinearEpilogue, LinearEpilogueOut,
     NodeBlend, LINEAR_COLUMNS,
 };
+use sync4d_raster::linalg::mul3v;
+use sync4d_scalar::quat::{quat_conj, quat_mul, quat_to_rotmat};
 
 /// Gaussians deformed to one time: means N*3, unit quaternions N*4, scales N*3.
 #[derive(Debug, Clone)]
@@ -91,17 +93,6 @@ fn mlp_eval(mlp: &DeformMlp, input: &[f32], a: &mut Vec<f32>, b: &mut Vec<f32>) 
     out
 }
 
-fn quat_mul(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
-    let [aw, ax, ay, az] = a;
-    let [bw, bx, by, bz] = b;
-    [
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ]
-}
-
 fn normalize(q: [f32; 4]) -> [f32; 4] {
     let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         .sqrt()
@@ -132,32 +123,7 @@ fn axis_angle_to_quat(w: [f32; 3]) -> [f32; 4] {
 /// The rotation matrix (row-major) of quaternion `q` (normalised first), as
 /// `sync4d.geometry.quat_to_matrix`.
 fn quat_to_matrix(q: [f32; 4]) -> [[f32; 3]; 3] {
-    let [w, x, y, z] = normalize(q);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
-}
-
-fn mat_vec(r: &[[f32; 3]; 3], v: [f32; 3]) -> [f32; 3] {
-    [
-        r[0][0] * v[0] + r[0][1] * v[1] + r[0][2] * v[2],
-        r[1][0] * v[0] + r[1][1] * v[1] + r[1][2] * v[2],
-        r[2][0] * v[0] + r[2][1] * v[1] + r[2][2] * v[2],
-    ]
+    quat_to_rotmat(normalize(q))
 }
 
 /// D_theta's input for canonical position `x` and embedding `z` at the time encoding `gamma`
@@ -274,7 +240,7 @@ fn node_motion(p: [f32; 3], o: &[f32; 9]) -> NodeMotion {
         q = [-q[0], -q[1], -q[2], -q[3]];
     }
     let r = quat_to_matrix(q);
-    let rp = mat_vec(&r, p);
+    let rp = mul3v(&r, p);
     let t = [
         p[0] + o[0] - rp[0],
         p[1] + o[1] - rp[1],
@@ -414,8 +380,8 @@ pub fn blend_nodes(ck: &Checkpoint, nodes: &Nodes, offsets: &[[f32; 9]]) -> Defo
                     .max(1e-12);
                 let r = [row[0] / norm, row[1] / norm, row[2] / norm, row[3] / norm];
                 let dd = [row[4] / norm, row[5] / norm, row[6] / norm, row[7] / norm];
-                let rx = mat_vec(&quat_to_matrix(r), x0);
-                let tr = quat_mul(dd, [r[0], -r[1], -r[2], -r[3]]);
+                let rx = mul3v(&quat_to_matrix(r), x0);
+                let tr = quat_mul(dd, quat_conj(r));
                 m[3 * l..3 * l + 3].copy_from_slice(&[
                     rx[0] + 2.0 * tr[1],
                     rx[1] + 2.0 * tr[2],
@@ -529,7 +495,7 @@ mod tests {
 
     /// The rotation of unit quaternion `q` applied to `v`.
     fn rotate(q: [f32; 4], v: [f32; 3]) -> [f32; 3] {
-        mat_vec(&quat_to_matrix(q), v)
+        mul3v(&quat_to_matrix(q), v)
     }
 
     #[test]

@@ -8,7 +8,16 @@ use std::path::Path;
 use proptest::prelude::*;
 use safetensors::{serialize, tensor::TensorView, Dtype};
 use sync4d_render::checkpoint::{parse_checkpoint, Blend};
-use sync4d_render::deform::{deform_at, time_encoding};
+use sync4d_render::deform::{deform_at, time_encoding, Deformed};
+
+/// Whether every deformed mean, quaternion and scale is finite.
+fn all_finite(d: &Deformed) -> bool {
+    d.means
+        .iter()
+        .chain(&d.quats)
+        .chain(&d.scales)
+        .all(|v| v.is_finite())
+}
 
 const N: usize = 5;
 const E: usize = 4;
@@ -149,12 +158,7 @@ fn reads_a_valid_checkpoint_and_deforms_it() {
     assert_eq!(ck.cameras.len(), 1);
     assert_eq!(ck.near, 0.05);
     let d = deform_at(&ck, 0.3);
-    assert!(d
-        .means
-        .iter()
-        .chain(&d.quats)
-        .chain(&d.scales)
-        .all(|v| v.is_finite()));
+    assert!(all_finite(&d));
     for q in d.quats.chunks(4) {
         let n: f32 = q.iter().map(|v| v * v).sum::<f32>().sqrt();
         assert!((n - 1.0).abs() < 1e-5);
@@ -241,12 +245,7 @@ fn reads_node_checkpoints_and_deforms_them() {
         assert_eq!(nodes.index.len(), N * K);
         assert!(nodes.inv_sq_radii.iter().all(|r| *r > 0.0 && r.is_finite()));
         let d = deform_at(&ck, 0.3);
-        assert!(d
-            .means
-            .iter()
-            .chain(&d.quats)
-            .chain(&d.scales)
-            .all(|v| v.is_finite()));
+        assert!(all_finite(&d));
     }
     // A static set in a node checkpoint is ignored; "motion": "gaussians" is today's model.
     let ck = parse_checkpoint(

@@ -114,6 +114,16 @@ pub fn random_scene(n: usize, width: u32, height: u32, channels: usize, seed: u6
 }
 
 impl Scene {
+    /// The scene's Gaussians, borrowed.
+    pub fn gaussians(&self) -> Gaussians<'_, f64> {
+        Gaussians {
+            means: &self.means,
+            quats: &self.quats,
+            scales: &self.scales,
+            opacities: &self.opacities,
+        }
+    }
+
     pub fn n(&self) -> usize {
         self.opacities.len()
     }
@@ -133,6 +143,48 @@ pub struct Proj<F> {
     pub radii: Vec<i32>,
 }
 
+impl<F: real::Real> Proj<F> {
+    /// Zeroed outputs for `n` Gaussians.
+    pub fn zeros(n: usize) -> Self {
+        Proj {
+            means2d: vec![F::zero(); 2 * n],
+            conics: vec![F::zero(); 3 * n],
+            depths: vec![F::zero(); n],
+            opacities: vec![F::zero(); n],
+            radii: vec![0; 2 * n],
+        }
+    }
+
+    /// The projection's output view of these buffers.
+    pub fn as_mut(&mut self) -> ProjectionMut<'_, F> {
+        ProjectionMut {
+            means2d: &mut self.means2d,
+            conics: &mut self.conics,
+            depths: &mut self.depths,
+            opacities: &mut self.opacities,
+            radii: &mut self.radii,
+        }
+    }
+}
+
+/// [`project`] of f64 Gaussians on the f32 fast path (each input rounded to f32).
+pub fn project_f32(
+    means: &[f64],
+    quats: &[f64],
+    scales: &[f64],
+    opacities: &[f64],
+    cam: &Camera,
+    settings: &ProjectSettings,
+) -> Proj<f32> {
+    let (m, q, s, o) = (
+        to_f32(means),
+        to_f32(quats),
+        to_f32(scales),
+        to_f32(opacities),
+    );
+    project(&m, &q, &s, &o, cam, settings)
+}
+
 pub fn project<F: real::Real>(
     means: &[F],
     quats: &[F],
@@ -141,32 +193,14 @@ pub fn project<F: real::Real>(
     cam: &Camera,
     settings: &ProjectSettings,
 ) -> Proj<F> {
-    let n = opacities.len();
-    let mut p = Proj {
-        means2d: vec![F::zero(); 2 * n],
-        conics: vec![F::zero(); 3 * n],
-        depths: vec![F::zero(); n],
-        opacities: vec![F::zero(); n],
-        radii: vec![0; 2 * n],
+    let mut p = Proj::zeros(opacities.len());
+    let g = Gaussians {
+        means,
+        quats,
+        scales,
+        opacities,
     };
-    project_forward(
-        &Gaussians {
-            means,
-            quats,
-            scales,
-            opacities,
-        },
-        cam,
-        settings,
-        ProjectionMut {
-            means2d: &mut p.means2d,
-            conics: &mut p.conics,
-            depths: &mut p.depths,
-            opacities: &mut p.opacities,
-            radii: &mut p.radii,
-        },
-    )
-    .unwrap();
+    project_forward(&g, cam, settings, p.as_mut()).unwrap();
     p
 }
 
@@ -229,6 +263,27 @@ pub fn grads_mut<F>(b: &mut [Vec<F>; 5]) -> SplatGradsMut<'_, F> {
     }
 }
 
+/// Zeroed per-Gaussian gradient buffers (means, quats, scales, opacities).
+pub fn gaussian_grad_bufs<F: real::Real>(n: usize) -> [Vec<F>; 4] {
+    [
+        vec![F::zero(); 3 * n],
+        vec![F::zero(); 4 * n],
+        vec![F::zero(); 3 * n],
+        vec![F::zero(); n],
+    ]
+}
+
+/// `gaussian_grad_bufs` as the projection backward's output view.
+pub fn gaussian_grads_mut<F>(b: &mut [Vec<F>; 4]) -> GaussianGradsMut<'_, F> {
+    let [vm, vq, vs, vo] = b;
+    GaussianGradsMut {
+        means: vm,
+        quats: vq,
+        scales: vs,
+        opacities: vo,
+    }
+}
+
 pub fn splats<'a, F>(p: &'a Proj<F>, features: &'a [F], channels: usize) -> Splats<'a, F> {
     Splats {
         means2d: &p.means2d,
@@ -269,14 +324,7 @@ pub fn render_fast(
     bs: &BlendSettings,
     state: &mut RasterState,
 ) -> (Proj<f32>, Image<f32>, Counters) {
-    let p = project(
-        &to_f32(&s.means),
-        &to_f32(&s.quats),
-        &to_f32(&s.scales),
-        &to_f32(&s.opacities),
-        &s.camera,
-        ps,
-    );
+    let p = project_f32(&s.means, &s.quats, &s.scales, &s.opacities, &s.camera, ps);
     let npix = (s.camera.width * s.camera.height) as usize;
     let mut img = Image::zeros(npix, s.channels);
     let feats = to_f32(&s.features);
@@ -403,4 +451,26 @@ pub fn splat_grads<F: Composite>(
         grads_mut(&mut gb),
     )?;
     Ok(gb)
+}
+
+/// The reference (f64) compositing backward of scene `s`'s projection `p` given the image
+/// gradients `w`: dL/d(means2d, conics, depths, opacities, features).
+pub fn reference_splat_grads(
+    p: &Proj<f64>,
+    s: &Scene,
+    bs: &BlendSettings,
+    w: &Image<f64>,
+) -> [Vec<f64>; 5] {
+    let sp = splats(p, &s.features, s.channels);
+    let (width, height) = (s.camera.width, s.camera.height);
+    splat_grads(
+        &sp,
+        width,
+        height,
+        &s.background,
+        bs,
+        &mut RasterState::new(),
+        w,
+    )
+    .unwrap()
 }

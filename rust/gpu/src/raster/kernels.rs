@@ -195,39 +195,60 @@ fn strip_sections(src: &mut String, name: &str) {
 }
 
 /// Replace every loop `for (var V = 0u; V < N; V++) { // unroll: NAME` ... `}` of `src` by
-/// `count` copies of its body, each inside a one-trip loop (so that `continue` keeps its
-/// meaning) with `V` a `const` (which subgroup broadcasts need as their lane). Naga and some
-/// drivers (llvmpipe) leave such loops rolled; unrolled, every per-pixel and per-channel array
-/// index is a constant and the arrays live in registers instead of scratch memory.
+/// `count` copies of its body ([`push_copies`]). Naga and some drivers (llvmpipe) leave such
+/// loops rolled; unrolled, every per-pixel and per-channel array index is a constant and the
+/// arrays live in registers instead of scratch memory.
 fn unroll_loops(src: &str, var: &str, bound: &str, name: &str, count: usize) -> String {
-    let head = format!("for (var {var} = 0u; {var} < {bound}; {var}++) {{ // unroll: {name}");
+    // The loop's head up to the body's opening brace, and the tag that follows the brace.
+    let head = format!("for (var {var} = 0u; {var} < {bound}; {var}++) ");
+    let tag = format!(" // unroll: {name}");
     let mut out = String::with_capacity(src.len() * 2);
     let mut rest = src;
-    while let Some(at) = rest.find(&head) {
+    while let Some(at) = find_tagged(rest, &head, &tag) {
         out.push_str(&rest[..at]);
-        let body_start = at + head.len();
-        let open = at + head.rfind('{').expect("the head opens the loop body");
+        let open = at + head.len();
         let end =
             closing_brace(rest, open).expect("blend.wgsl: unbalanced braces in an unrolled loop");
-        let body = &rest[body_start..end];
-        // A body that jumps (`continue`) stays a loop of one trip; any other is a plain block,
-        // which matters on llvmpipe: it caps every shader at 65,535 loop iterations in all
-        // (loops end early beyond), and values written in a block need no loop masks.
-        let jumps = jumps_out(body);
-        for k in 0..count {
-            if jumps {
-                let _ = writeln!(
-                    out,
-                    "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ const {var} = {k}u;{body}}}"
-                );
-            } else {
-                let _ = writeln!(out, "{{ const {var} = {k}u;{body}}}");
-            }
-        }
+        push_copies(&mut out, var, &rest[open + 1 + tag.len()..end], count);
         rest = &rest[end + 1..];
     }
     out.push_str(rest);
     out
+}
+
+/// The byte index of the first `head` in `src` followed, one character (the brace) on, by
+/// `tag`.
+fn find_tagged(src: &str, head: &str, tag: &str) -> Option<usize> {
+    let mut from = 0;
+    while let Some(i) = src[from..].find(head) {
+        let at = from + i;
+        let after = at + head.len() + 1;
+        if src.get(after..).is_some_and(|s| s.starts_with(tag)) {
+            return Some(at);
+        }
+        from = at + head.len();
+    }
+    None
+}
+
+/// Append `count` copies of the loop body `body` to `out`, each inside a one-trip loop (so
+/// that `continue` keeps its meaning) with `var` a `const` 0, 1, ... (which subgroup broadcasts
+/// need as their lane).
+fn push_copies(out: &mut String, var: &str, body: &str, count: usize) {
+    // A body that jumps (`continue`) stays a loop of one trip; any other is a plain block,
+    // which matters on llvmpipe: it caps every shader at 65,535 loop iterations in all
+    // (loops end early beyond), and values written in a block need no loop masks.
+    let jumps = jumps_out(body);
+    for k in 0..count {
+        if jumps {
+            let _ = writeln!(
+                out,
+                "for (var once_{var} = 0u; once_{var} < 1u; once_{var}++) {{ const {var} = {k}u;{body}}}"
+            );
+        } else {
+            let _ = writeln!(out, "{{ const {var} = {k}u;{body}}}");
+        }
+    }
 }
 
 /// Whether a loop body holds a `continue` or `break` of its own loop: one outside the loops
@@ -260,7 +281,8 @@ fn jumps_out(body: &str) -> bool {
     }
 }
 
-/// The byte index of the `}` that closes the `{` at byte `open` of `src` (None when unbalanced).
+/// The byte index of the `}` that closes the `{` at byte `open` of `src` (None when unbalanced,
+/// or when there is no brace at `open`).
 fn closing_brace(src: &str, open: usize) -> Option<usize> {
     let mut depth = 0usize;
     for (i, ch) in src[open..].char_indices() {
@@ -272,6 +294,8 @@ fn closing_brace(src: &str, open: usize) -> Option<usize> {
                     return Some(open + i);
                 }
             }
+            // No brace at `open`.
+            _ if depth == 0 => return None,
             _ => {}
         }
     }

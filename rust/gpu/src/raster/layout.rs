@@ -82,6 +82,17 @@ impl ColumnHalves {
 }
 
 impl BlendLayout {
+    /// One pixel per invocation with atomic gradient sums: the layout of discrete and
+    /// integrated GPUs (no partials, row blocks, subgroup sums or column halves).
+    pub const ONE_PIXEL: BlendLayout = BlendLayout {
+        pixels_per_invocation: 1,
+        partials: false,
+        block_rows: 0,
+        subgroup_sums: false,
+        column_halves: ColumnHalves::Never,
+        float_atomics: false,
+    };
+
     /// The layout for an adapter of kind `kind` (see [`crate::AdapterSummary::kind`]).
     pub fn for_adapter(kind: &str) -> Self {
         if kind == "cpu" {
@@ -107,14 +118,7 @@ impl BlendLayout {
                 float_atomics: false,
             }
         } else {
-            BlendLayout {
-                pixels_per_invocation: 1,
-                partials: false,
-                block_rows: 0,
-                subgroup_sums: false,
-                column_halves: ColumnHalves::Never,
-                float_atomics: false,
-            }
+            BlendLayout::ONE_PIXEL
         }
     }
 

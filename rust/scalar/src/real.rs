@@ -1,7 +1,20 @@
-//! The element types the kernels accept: f32 (training) and f64 (reference, gradient checks).
+//! The element types the kernels accept: f32 (fast path, training) and f64 (reference path,
+//! gradient checks). Per-Gaussian math in the raster runs in f64 internally for both, so huge or
+//! tiny scales cannot overflow intermediate covariances; the motion softmax takes its `exp`
+//! from [`Real::exp_neg`].
 
-/// A float element type of the kernels.
-pub trait Real: num_traits::Float + Send + Sync + std::fmt::Debug + 'static {
+use crate::exp::{exp_poly, EXP_HI, EXP_LO};
+
+/// A float element type of the kernels (accepted at the crate boundaries).
+pub trait Real:
+    num_traits::Float + Copy + Send + Sync + Default + std::fmt::Debug + 'static
+{
+    /// Convert from f64 (rounding for f32; may give +-inf for out-of-range values).
+    fn from_f64(v: f64) -> Self;
+    /// Widen to f64.
+    fn to_f64(self) -> f64;
+    /// Largest finite value of this type, as f64.
+    const MAX_F64: f64;
     /// `exp(x)` for `x <= 0` (the softmax's shifted logits): for f32 a branch-free polynomial
     /// (Cephes, within 2 ulp), 0 below -87 (exp(x) turns denormal below -87.3, and denormal
     /// arithmetic is slow on x86; torch's exp gives a denormal or 0 there); the exact function
@@ -11,22 +24,26 @@ pub trait Real: num_traits::Float + Send + Sync + std::fmt::Debug + 'static {
 
 impl Real for f32 {
     #[inline(always)]
+    fn from_f64(v: f64) -> Self {
+        v as f32
+    }
+    #[inline(always)]
+    fn to_f64(self) -> f64 {
+        self as f64
+    }
+    const MAX_F64: f64 = f32::MAX as f64;
+    #[inline(always)]
     fn exp_neg(self) -> Self {
         // Comparisons rather than max / min, so that a NaN stays NaN.
-        let x = if self < LO { LO } else { self };
-        let x = if x > HI { HI } else { x };
+        let x = if self < EXP_LO { EXP_LO } else { self };
+        let x = if x > EXP_HI { EXP_HI } else { x };
         // Round to nearest by the 1.5 * 2^23 trick (no call to floorf on baseline x86-64).
         let n = (x * std::f32::consts::LOG2_E + ROUND) - ROUND;
-        let r = x - n * LN2_HI - n * LN2_LO;
-        let mut p = P[0];
-        for c in &P[1..] {
-            p = p * r + c;
-        }
-        let poly = p * r * r + r + 1.0;
+        let poly = exp_poly(x, n);
         // n is an integer in [-126, 126] (0 for a NaN, whose poly is NaN).
         let e = poly * f32::from_bits(((n as i32 + 127) as u32) << 23);
-        // 0 below LO, so that no denormal weight reaches the arithmetic downstream.
-        if self < LO {
+        // 0 below EXP_LO, so that no denormal weight reaches the arithmetic downstream.
+        if self < EXP_LO {
             0.0
         } else {
             e
@@ -36,24 +53,28 @@ impl Real for f32 {
 
 impl Real for f64 {
     #[inline(always)]
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+    #[inline(always)]
+    fn to_f64(self) -> f64 {
+        self
+    }
+    const MAX_F64: f64 = f64::MAX;
+    #[inline(always)]
     fn exp_neg(self) -> Self {
         self.exp()
     }
 }
 
-const LO: f32 = -87.0;
-const HI: f32 = 87.0;
+/// 1.5 * 2^23: adding and subtracting it rounds an f32 of magnitude below 2^22 to an integer.
 const ROUND: f32 = 12_582_912.0;
-const LN2_HI: f32 = 0.693_359_4;
-const LN2_LO: f32 = -2.121_944_4e-4;
-const P: [f32; 6] = [
-    1.987_569_1e-4,
-    1.398_199_9e-3,
-    8.333_452e-3,
-    4.166_579_6e-2,
-    1.666_666_5e-1,
-    0.5,
-];
+
+/// Whether `v` is finite once stored as `F`.
+#[inline(always)]
+pub fn fits<F: Real>(v: f64) -> bool {
+    v.is_finite() && v.abs() <= F::MAX_F64
+}
 
 #[cfg(test)]
 mod tests {
