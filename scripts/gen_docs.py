@@ -1,7 +1,9 @@
 """Write docs/cli.md (every command's help, from the table of commands and its parser),
 docs/configs.md (every config key, from the config dataclasses: its meaning, the default with
-the paper's values, and the value of each shipped config file that changes it) and the table of
-dataset layouts in docs/datasets.md (from the loader registry, `sync4d/data/loaders.py`).
+the paper's values, and the value of each shipped config file that changes it), the table of
+dataset layouts in docs/datasets.md (from the loader registry, `sync4d/data/loaders.py`) and
+the scene description's JSON Schema, sync4d/export/scene.schema.json (from its model,
+`sync4d/export/model.py`).
 
     python scripts/gen_docs.py           # rewrite them
     python scripts/gen_docs.py --check   # exit 1 when one is out of date (tests run this)
@@ -24,6 +26,7 @@ os.environ["COLUMNS"] = "100"  # argparse wraps help to the terminal: fix it
 from sync4d.cli import build_parser, command_parsers  # noqa: E402
 from sync4d.config import RunConfig, load_config  # noqa: E402
 from sync4d.data import loaders  # noqa: E402
+from sync4d.export.schema import SCHEMA_FILE, schema_text  # noqa: E402
 from sync4d.settings import allowed  # noqa: E402
 
 CONFIG_FILES = ("synthetic", "dnerf", "panoptic", "phase1")
@@ -153,7 +156,8 @@ def main() -> int:
     stale = []
     for path, text in ((ROOT / "docs" / "cli.md", cli_markdown()),
                        (ROOT / "docs" / "configs.md", configs_markdown()),
-                       (ROOT / "docs" / "datasets.md", datasets_markdown())):  # fmt: skip
+                       (ROOT / "docs" / "datasets.md", datasets_markdown()),
+                       (SCHEMA_FILE, schema_text())):  # fmt: skip
         if check:
             if not path.exists() or path.read_text() != text:
                 stale.append(path)

@@ -24,6 +24,7 @@ from types import ModuleType
 
 from sync4d import __version__
 from sync4d.commands.completion import mark_paths, print_script
+from sync4d.errors import Sync4dError
 
 __all__ = ["COMMANDS", "GRAMMAR", "GROUPS", "Command", "build_parser", "command_parsers", "main"]
 
@@ -246,17 +247,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _call(module: ModuleType, args: argparse.Namespace) -> int:
-    """`module.main(args)`'s exit status. The watchdog's stop (a NaN or a diverged value)
-    becomes its one message and exit 3; an OSError that reaches here (a path the system
-    refuses: too long, a folder where a file goes, no permission) one line naming the path,
-    and exit 2."""
+    """`module.main(args)`'s exit status. An OSError that reaches here (a path the system
+    refuses: too long, a folder where a file goes, no permission; `WriteFailed` too) becomes
+    one line naming the path, and exit 2; a `Sync4dError` that the command let through (the
+    watchdog's stop on a NaN or a diverged value, say) its one message and its exit code (3
+    for the watchdog's)."""
     try:
         return int(module.main(args) or 0)
-    except FloatingPointError as e:  # the watchdog's NonFinite (no torch import here)
-        if type(e).__name__ != "NonFinite":
-            raise
-        print(f"{_prog()} {args.command}: {e}", file=sys.stderr)
-        return 3
     except OSError as e:
         group = GROUPS.get(args.command)
         words = " ".join([args.command] + ([getattr(args, group.dest)] if group else []))
@@ -269,6 +266,9 @@ def _call(module: ModuleType, args: argparse.Namespace) -> int:
               "line (a folder that exists and is writable, names of a sane length)",
               file=sys.stderr)  # fmt: skip
         return 2
+    except Sync4dError as e:  # after OSError: a WriteFailed keeps its line naming the path
+        print(f"{_prog()} {args.command}: {e}", file=sys.stderr)
+        return e.exit_code
 
 
 def _tolerate_undecodable_output() -> None:

@@ -21,6 +21,8 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from sync4d.errors import Sync4dError
+
 __all__ = [
     "LOCK_FILE",
     "RunBusy",
@@ -37,12 +39,12 @@ __all__ = [
 LOCK_FILE = ".lock"
 
 
-class WriteFailed(OSError):
+class WriteFailed(Sync4dError, OSError):
     """A file could not be written (disk full, file-size limit, permissions); the previous
     version of the file, if any, is untouched. The message names the file."""
 
 
-class RunBusy(RuntimeError):
+class RunBusy(Sync4dError, RuntimeError):
     """Another process holds the run folder's lock; the message says which."""
 
 

@@ -17,9 +17,11 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from sync4d.errors import Sync4dError
+
 __all__ = ["BACKENDS", "Allowed", "ConfigError", "allowed", "budget_floor", "choice", "ranged"]
 
-class ConfigError(ValueError):
+class ConfigError(Sync4dError, ValueError):
     """A bad config file or override; the message names the key and what to do (here, below
     every config class, so the phases raise it too; `sync4d.config` re-exports it)."""
 

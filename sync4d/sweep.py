@@ -32,6 +32,7 @@ import tomllib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from sync4d.errors import Sync4dError
 from sync4d.events import read_events
 from sync4d.files import write_text_atomic
 from sync4d.options import positive_int
@@ -69,7 +70,7 @@ LOG_TAIL = 12
 STOP_GRACE = 120.0
 
 
-class ManifestError(ValueError):
+class ManifestError(Sync4dError, ValueError):
     """A manifest that cannot be used; the message names the file and the key."""
 
 

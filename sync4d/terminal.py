@@ -4,7 +4,9 @@ The library emits numbers (typed events); this module holds, for each event, the
 turns it into the lines a command prints (`WORDS`, one rule an event), and the subscriber that
 prints them (`TerminalRenderer`). A rule returns a `Line`: the text (several lines, or "" for
 none), its stream ("err": status, warnings; "out": results) and whether it is a `detail` (the
-tables and "wrote ..." lines that a terse front end such as ``bench fit`` leaves out).
+tables and "wrote ..." lines that a terse front end such as ``bench fit`` leaves out). The
+rules read the events' typed payloads (`sync4d.events.Stats`, `FitSummary`, `Phase1Skips`,
+...) by attribute: an optional field is None where the library had nothing to say.
 `Started` / `Advanced` / `Finished` have no words: they draw a `sync4d.progress.Progress` bar.
 
 A front end that wants other words (a GUI, another language) subscribes its own renderer to
@@ -14,27 +16,34 @@ the same events; `sync4d.events.EventLog` writes them as JSON lines for another 
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 from sync4d.events import (
     Advanced,
     Assigned,
     DatasetChosen,
+    Diagnostics,
     Evaluated,
     Event,
     FieldBuilt,
     Finished,
     FitStarted,
+    FitSummary,
+    FrameScore,
     FramesEvaluated,
     GeneratingScene,
     InitialPoints,
     Interrupted,
+    Means,
     MetricUnavailable,
     MotionDiagnosed,
     Note,
     NothingMoves,
+    Phase1Skips,
+    Phase2Skips,
     Phase2Starting,
+    Phase3Skips,
     Phase3Started,
     PhaseDone,
     Resumed,
@@ -42,6 +51,7 @@ from sync4d.events import (
     SettingChanged,
     Skipped,
     Started,
+    Stats,
     Subscription,
     Triangulating,
     Wrote,
@@ -66,56 +76,48 @@ class Line(NamedTuple):
 #: The events that draw a progress bar instead of words.
 BARS = (Started, Advanced, Finished)
 
-#: How the renderer shows a loop's statistics (`Advanced.stats`): label and format.
-STAT_FORMATS = {"loss": ("loss", ".4f"), "psnr": ("PSNR", ".2f"), "gaussians": ("#G", "d"),
-                "rho": ("rho", ".3f")}  # fmt: skip
-
-
-def format_stats(stats: Mapping[str, float]) -> dict[str, str]:
-    """A loop's statistics as the bar shows them (``{"PSNR": "24.51", "#G": "18000"}``)."""
-    out = {}
-    for key, value in stats.items():
-        label, spec = STAT_FORMATS.get(key, (key, ".4g"))
-        out[label] = format(int(value), spec) if spec == "d" else format(value, spec)
-    return out
+def format_stats(stats: Stats) -> dict[str, str]:
+    """A loop's statistics as the bar shows them (``{"PSNR": "24.51", "#G": "18000"}``), those
+    it has, in the order loss, PSNR, Gaussians, rho."""
+    shown = (("loss", stats.loss, ".4f"), ("PSNR", stats.psnr, ".2f"),
+             ("#G", None if stats.gaussians is None else int(stats.gaussians), "d"),
+             ("rho", stats.rho, ".3f"))  # fmt: skip
+    return {label: format(value, spec) for label, value, spec in shown if value is not None}
 
 
 def _or(value: Any, spec: str, none: str = "n/a") -> str:
     return none if value is None else format(value, spec)
 
 
-def format_metrics(frames: Any, mean: Mapping[str, Any], background: str = "") -> str:
-    """The evaluation's per-frame table (`frames`: mappings with name, time, psnr, ssim,
-    lpips) and its mean row, under "on BACKGROUND:" when `background` is named."""
-    rows = [[m["name"], f"{m['time']:.3f}", _or(m["psnr"], ".2f", "-"),
-             _or(m["ssim"], ".4f", "-"), _or(m["lpips"], ".4f", "-")]
-            for m in frames]  # fmt: skip
-    rows.append(["mean", "", _or(mean["psnr"], ".2f", "-"), _or(mean["ssim"], ".4f", "-"),
-                 _or(mean["lpips"], ".4f", "-")])  # fmt: skip
+def format_metrics(frames: Sequence[FrameScore], mean: Means, background: str = "") -> str:
+    """The evaluation's per-frame table (`frames`: name, time, psnr, ssim, lpips) and its
+    mean row, under "on BACKGROUND:" when `background` is named."""
+    rows = [[m.name, f"{m.time:.3f}", _or(m.psnr, ".2f", "-"), _or(m.ssim, ".4f", "-"),
+             _or(m.lpips, ".4f", "-")] for m in frames]  # fmt: skip
+    rows.append(["mean", "", _or(mean.psnr, ".2f", "-"), _or(mean.ssim, ".4f", "-"),
+                 _or(mean.lpips, ".4f", "-")])  # fmt: skip
     table = align_table(["frame", "time", "PSNR dB", "SSIM", "LPIPS"], rows)
     return f"on {background}:\n{table}" if background else table
 
 
-def format_diagnostics(diag: Mapping[str, Any]) -> str:
+def format_diagnostics(diag: Diagnostics) -> str:
     """Phase 2's diagnostics (Appendix C) as a table plus a summary line."""
     rows = [
-        [str(o["label"]), o["name"], f"{o['gaussians']:,}",
-         "held" if o.get("held") else "yes" if o["static"] else "",
-         f"{o['rigid_share']:.3f}", f"{o['residual_mean']:.4f}", f"{o['motion_variance']:.2e}"]
-        for o in diag["objects"]
+        [str(o.label), o.name, f"{o.gaussians:,}", "held" if o.held else "yes" if o.static
+         else "", f"{o.rigid_share:.3f}", f"{o.residual_mean:.4f}", f"{o.motion_variance:.2e}"]
+        for o in diag.objects
     ]  # fmt: skip
     table = align_table(
         ["k", "object", "Gaussians", "static", "rigid share", "residual", "motion var"], rows,
         left=(1,),
     )  # fmt: skip
-    text = (f"{table}\nmean rigid share {diag['rigid_share']:.3f}, residual energy "
-            f"{diag['residual_energy']:.2e}, modulated fraction "
-            f"{diag['modulated_fraction']:.3f}, shuffle ratio {diag['shuffle_ratio']:.2f} "
-            f"({diag['assignment']} assignment)")  # fmt: skip
-    if "mask_agreement_ari" in diag:
+    text = (f"{table}\nmean rigid share {diag.rigid_share:.3f}, residual energy "
+            f"{diag.residual_energy:.2e}, modulated fraction {diag.modulated_fraction:.3f}, "
+            f"shuffle ratio {diag.shuffle_ratio:.2f} ({diag.assignment} assignment)")
+    if diag.mask_agreement_ari is not None:
         text += (f"\nagreement with mask voting: adjusted Rand index "
-                 f"{diag['mask_agreement_ari']:.3f} ({diag['num_objects'] - 1} clusters vs "
-                 f"{diag['mask_objects']} mask objects)")  # fmt: skip
+                 f"{diag.mask_agreement_ari:.3f} ({diag.num_objects - 1} clusters vs "
+                 f"{diag.mask_objects} mask objects)")  # fmt: skip
     return text
 
 
@@ -132,94 +134,96 @@ def _fit_started(e: FitStarted) -> Line:
 
 def _phase_done(e: PhaseDone) -> Line:
     """Only the whole fit's end has words (a stage's end shows in its bar and tables)."""
-    if e.phase != "fit":
-        return Line("")
     s = e.summary
-    on = f" on {s['background']}" if s.get("background") else ""
-    text = (f"fit: done in {format_duration(float(s['train_seconds']))} of training: test PSNR"
-            f"{on} {s['psnr']:.2f} dB, SSIM {_or(s['ssim'], '.4f')}, "
-            f"LPIPS {_or(s['lpips'], '.4f')}, {s['gaussians']} Gaussians; run in "
-            f"{s['run_dir']}")  # fmt: skip
-    for name, m in (s.get("backgrounds") or {}).items():
-        text += (f"\nfit: on {name}: test PSNR {m['psnr']:.2f} dB, SSIM {_or(m['ssim'], '.4f')}, "
-                 f"LPIPS {_or(m['lpips'], '.4f')}")  # fmt: skip
-    d = s.get("phase2")
+    if e.phase != "fit" or not isinstance(s, FitSummary):
+        return Line("")
+    on = f" on {s.background}" if s.background else ""
+    text = (f"fit: done in {format_duration(float(s.train_seconds))} of training: test PSNR"
+            f"{on} {s.psnr:.2f} dB, SSIM {_or(s.ssim, '.4f')}, LPIPS {_or(s.lpips, '.4f')}, "
+            f"{s.gaussians} Gaussians; run in {s.run_dir}")  # fmt: skip
+    for b in s.backgrounds or ():
+        m = b.scores
+        text += (f"\nfit: on {b.name}: test PSNR {m.psnr:.2f} dB, SSIM {_or(m.ssim, '.4f')}, "
+                 f"LPIPS {_or(m.lpips, '.4f')}")  # fmt: skip
+    d = s.phase2
     if d:
-        text += (f"\nfit: Phase 2: mean rigid share {d['rigid_share']:.3f}, shuffle ratio "
-                 f"{d['shuffle_ratio']:.2f}, {d['objects']} labels ({d['assignment']})")
+        text += (f"\nfit: Phase 2: mean rigid share {d.rigid_share:.3f}, shuffle ratio "
+                 f"{d.shuffle_ratio:.2f}, {d.objects} labels ({d.assignment})")
     return Line(text, "out", detail=True)
 
 
 def _assigned(e: Assigned) -> Line:
-    counts = ", ".join(f"{name} {n}" for name, n in e.counts.items())
+    counts = ", ".join(f"{c.name} {c.gaussians}" for c in e.counts)
     return Line(f"fit: {e.source} assignment, K = {e.num_objects}: {counts}")
 
 
 def _skipped(e: Skipped) -> Line:
     """The lines `fit` prints for what a phase skipped (one per switch that is on)."""
     c = e.counts
-    if e.phase == "phase2":
+    if isinstance(c, Phase1Skips):
+        return Line(_phase1_skipped(c))
+    if isinstance(c, Phase2Skips):
         return Line(_phase2_skipped(c))
-    if e.phase == "phase3":
+    if isinstance(c, Phase3Skips):
         return Line(_phase3_skipped(c))
-    return Line(_phase1_skipped(c))
+    if e.phase == "phase3":  # NoCounts
+        return Line("fit: Phase 3 skipped nothing that it counted (a field built before the "
+                    "counters)")  # fmt: skip
+    return Line("")
 
 
-def _phase1_skipped(c: Mapping[str, Any]) -> str:
+def _phase1_skipped(c: Phase1Skips) -> str:
     lines = []
-    if "nodes" in c:
-        lines.append(f"fit: Phase 1 moved {c['gaussians']} Gaussians by {c['nodes']} control "
-                     f"nodes from iteration {c['nodes_from']} (D_theta on the nodes, not the "
-                     f"Gaussians; nodes added {c['nodes_added']}, removed "
-                     f"{c['nodes_removed']})")  # fmt: skip
-    elif "deform_rows" in c:
-        evaluations = c["deform_rows"] + c["deform_rows_skipped"]
-        line = (f"fit: Phase 1 skipped D_theta on {c['share']:.0%} of the Gaussian evaluations "
-                f"({c['deform_rows_skipped']} of {evaluations}); static at the end: "
-                f"{c['static']} of {c['gaussians']} Gaussians")  # fmt: skip
-        if c["static"] == c["gaussians"]:
+    if c.nodes is not None:
+        lines.append(f"fit: Phase 1 moved {c.gaussians} Gaussians by {c.nodes} control nodes "
+                     f"from iteration {c.nodes_from} (D_theta on the nodes, not the Gaussians; "
+                     f"nodes added {c.nodes_added}, removed {c.nodes_removed})")  # fmt: skip
+    elif c.deform_rows is not None:
+        evaluations = c.deform_rows + c.deform_rows_skipped
+        line = (f"fit: Phase 1 skipped D_theta on {c.share:.0%} of the Gaussian evaluations "
+                f"({c.deform_rows_skipped} of {evaluations}); static at the end: "
+                f"{c.static} of {c.gaussians} Gaussians")  # fmt: skip
+        if c.static == c.gaussians:
             line += "; no Gaussian moves: a static scene, D_theta no longer evaluated"
         lines.append(line)
-    if "coarse_iterations" in c:
-        lines.append(f"fit: Phase 1 trained its first {c['coarse_iterations']} iterations at "
-                     f"{c['coarse_scale']:g}x resolution: {c['pixels_saved']:.0%} fewer pixels "
+    if c.coarse_iterations is not None:
+        lines.append(f"fit: Phase 1 trained its first {c.coarse_iterations} iterations at "
+                     f"{c.coarse_scale:g}x resolution: {c.pixels_saved:.0%} fewer pixels "
                      "rendered in all")  # fmt: skip
-    if "pruned" in c:
-        lines.append(f"fit: Phase 1 pruned {c['pruned']} transparent Gaussians (opacity < "
-                     f"{c['prune_opacity']:g}) after densification")  # fmt: skip
+    if c.pruned is not None:
+        lines.append(f"fit: Phase 1 pruned {c.pruned} transparent Gaussians (opacity < "
+                     f"{c.prune_opacity:g}) after densification")  # fmt: skip
     return "\n".join(lines)
 
 
-def _phase2_skipped(c: Mapping[str, Any]) -> str:
-    updates = c["motion_updates"] + c["motion_updates_skipped"]
-    visits = c["refine_visits"] + c["refine_visits_skipped"]
-    line = (f"fit: Phase 2 held {c['held']} of {c['objects']} objects at a constant transform: "
-            f"skipped {c['motion_updates_skipped']} of {updates} M_phi object updates and "
-            f"{c['refine_visits_skipped']} of {visits} refinement visits (static objects)")
-    if c["loop_skipped"]:
-        line += f"; its loop of {c['loop_skipped']} iterations skipped: no object moves"
+def _phase2_skipped(c: Phase2Skips) -> str:
+    updates = c.motion_updates + c.motion_updates_skipped
+    visits = c.refine_visits + c.refine_visits_skipped
+    line = (f"fit: Phase 2 held {c.held} of {c.objects} objects at a constant transform: "
+            f"skipped {c.motion_updates_skipped} of {updates} M_phi object updates and "
+            f"{c.refine_visits_skipped} of {visits} refinement visits (static objects)")
+    if c.loop_skipped:
+        line += f"; its loop of {c.loop_skipped} iterations skipped: no object moves"
     return line
 
 
-def _phase3_skipped(c: Mapping[str, Any]) -> str:
+def _phase3_skipped(c: Phase3Skips) -> str:
     """What Phase 3 encoded and skipped (`sync4d.phase3.store.Field.counts`)."""
-    if not c:
-        return "fit: Phase 3 skipped nothing that it counted (a field built before the counters)"
-    calls = c["encoder_calls"]
-    line = (f"fit: Phase 3 encoded {c['crops_encoded']} of {c['object_frames']} object-frames "
+    calls = c.encoder_calls
+    line = (f"fit: Phase 3 encoded {c.crops_encoded} of {c.object_frames} object-frames "
             f"in {calls} encoder call{'' if calls == 1 else 's'}")  # fmt: skip
-    if c["extra_crops"]:
-        line += (f" ({c['extra_crops']} unobserved ones encoded and discarded: "
-                 f"phase3.skip_unobserved is off; {c['invisible']} invisible, "
-                 f"{c['below_threshold']} below min_visible/min_box)")  # fmt: skip
+    if c.extra_crops:
+        line += (f" ({c.extra_crops} unobserved ones encoded and discarded: "
+                 f"phase3.skip_unobserved is off; {c.invisible} invisible, "
+                 f"{c.below_threshold} below min_visible/min_box)")  # fmt: skip
     else:
-        line += (f" ({c['invisible']} invisible and {c['below_threshold']} below "
+        line += (f" ({c.invisible} invisible and {c.below_threshold} below "
                  "min_visible/min_box skipped)")  # fmt: skip
-    line += f"; relational features on {c['relational']} object-frames"
-    if c["relational_skipped"]:
-        line += f" ({c['relational_skipped']} without another object left at 0)"
-    if c["relational_unobserved"]:
-        line += (f" ({c['relational_unobserved']} at frames with an unobserved object, "
+    line += f"; relational features on {c.relational} object-frames"
+    if c.relational_skipped:
+        line += f" ({c.relational_skipped} without another object left at 0)"
+    if c.relational_unobserved:
+        line += (f" ({c.relational_unobserved} at frames with an unobserved object, "
                  "kept: the prediction there reads them)")  # fmt: skip
     return line
 
@@ -244,7 +248,7 @@ def _initial_points(e: InitialPoints) -> Line:
 
 
 def _scale_advice(e: ScaleAdvice) -> Line:
-    sets = " ".join(f"--set {key}={value:.3g}" for key, value in e.settings.items())
+    sets = " ".join(f"--set {o.setting}={o.value:.3g}" for o in e.settings)
     return Line(f"fit: this scene is {e.ratio:.3g} times the size the absolute lengths' defaults "
                 f"are for (extent {e.extent:.3g} world units against {e.reference}); to train "
                 f"it as the default-sized scene trains, scale them with it: {sets}")

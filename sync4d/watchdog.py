@@ -55,6 +55,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sync4d.errors import Sync4dError
+
 __all__ = ["DIVERGED", "DIVERGED_WORLD", "HINTS", "INPUTS", "SETTINGS", "SIZES", "Advice",
            "Evidence", "NonFinite", "advice", "check_array", "check_grads", "check_inputs",
            "check_loss", "check_params", "forget", "injected", "limits",
@@ -278,11 +280,13 @@ def settings_for(name: str) -> tuple[str, ...]:
     return SETTINGS[best] if best else ()
 
 
-class NonFinite(FloatingPointError):
+class NonFinite(Sync4dError, FloatingPointError):
     """A NaN or inf in training, or a value that diverged (`limits`): `phase`, `iteration`,
     the tensor's `name`, the offending `rows` (Gaussians, objects or elements, the first few),
     and whether the model still holds the previous iteration's good state (`clean`). The
-    message says all of it and what to try."""
+    message says all of it and what to try; exit status 3."""
+
+    exit_code = 3
 
     def __init__(self, phase: str, iteration: int | None, name: str, rows: list[int],
                  count: int, unit: str, clean: bool, settings: tuple[str, ...] = (),

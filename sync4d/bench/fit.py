@@ -30,6 +30,7 @@ from itertools import product
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from sync4d.errors import Sync4dError
 from sync4d.options import add_training_options, positive_float, positive_int
 from sync4d.report import align_table
 from sync4d.runs.names import EVAL_FILE, RENDERS_DIR
@@ -495,8 +496,7 @@ def format_run_rows(rows: list[dict[str, Any]]) -> str:
 
 def _tabulate_runs(args: argparse.Namespace) -> int:
     """`bench fit --runs`: the table, JSON and worst views of finished runs; trains nothing."""
-    from sync4d.files import WriteFailed, check_writable, write_text_atomic
-    from sync4d.runs import RunError
+    from sync4d.files import check_writable, write_text_atomic
 
     keys = ("iters", "scales", "caps", "keep_runs", "set", "config")
     given = [f"--{k.replace('_', '-')}" for k in keys if getattr(args, k, None)]
@@ -511,7 +511,7 @@ def _tabulate_runs(args: argparse.Namespace) -> int:
         check_writable(out.parent)
         rows = rows_from_runs([Path(r) for r in args.runs])
         written = copy_worst_views(rows, out)
-    except (RunError, WriteFailed, OSError) as e:
+    except (Sync4dError, OSError) as e:
         print(f"bench fit: {e}", file=sys.stderr)
         return 2
     record = {
@@ -550,8 +550,7 @@ def _variant_configs(args: argparse.Namespace, default_cfg: str | None
 
 
 def main(args: argparse.Namespace) -> int:
-    from sync4d.data import DatasetError
-    from sync4d.files import RunBusy, WriteFailed, check_writable, write_text_atomic
+    from sync4d.files import RunBusy, check_writable, write_text_atomic
     from sync4d.pipeline import FitInterrupted, resolve_data
 
     if args.runs:
@@ -593,12 +592,12 @@ def main(args: argparse.Namespace) -> int:
                     worst[data.name] = copy_worst_view(
                         scene_rows, out.with_name(f"{out.stem}{tag}-worst.png"))
                 rows += scene_rows
-    except (ConfigError, DatasetError, WriteFailed) as e:
-        print(f"bench fit: {e}", file=sys.stderr)
-        return 2
     except RunBusy as e:  # another bench's --keep-runs folder
         print(f"bench fit: {e}; or give each bench its own --keep-runs", file=sys.stderr)
         return 2
+    except Sync4dError as e:  # exit 2; 3: the watchdog's stop
+        print(f"bench fit: {e}", file=sys.stderr)
+        return e.exit_code
     except FitInterrupted:
         print("bench fit: interrupted; no results written", file=sys.stderr)
         return 130

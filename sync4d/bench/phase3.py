@@ -22,6 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from sync4d.errors import Sync4dError
 from sync4d.options import add_backend, add_threads, encoder_help, positive_int
 from sync4d.report import align_table
 
@@ -95,18 +96,15 @@ def bench_run(run_dir: Path, encoder_spec: str | None, queries: list[str], repea
 
 def main(args: argparse.Namespace) -> int:
     """Run `bench phase3` with parsed `args`; the exit status."""
-    from sync4d.phase3 import EncoderError, FieldError
-    from sync4d.runs import CheckpointError, RunError
-
     queries = list(args.queries or DEFAULT_QUERIES)
     rows = []
     for run_dir in args.runs:
         try:
             rows.append(bench_run(Path(run_dir), args.encoder, queries, args.repeat,
                                   args.threads))  # fmt: skip
-        except (RunError, CheckpointError, FieldError, EncoderError) as e:
+        except Sync4dError as e:
             print(f"bench phase3: {e}", file=sys.stderr)
-            return 2
+            return e.exit_code
     out = Path(args.out or "bench-phase3.json")
     doc = {"date": _dt.datetime.now().isoformat(timespec="seconds"),
            "command": [sys.executable, *sys.argv],

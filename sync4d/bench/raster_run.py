@@ -39,9 +39,9 @@ from sync4d.bench.measure import (
     machine_info,
     measure,
 )
-from sync4d.data import DatasetError
+from sync4d.errors import Sync4dError
 from sync4d.report import align_table
-from sync4d.runs import CheckpointError, RunError
+from sync4d.runs import RunError
 from sync4d.runs.folder import load_run
 
 __all__ = ["RunFrame", "main", "parse_raster_variant", "run_frames"]
@@ -230,9 +230,9 @@ def main(args: Any) -> int:
         try:
             frames = run_frames(args.run, getattr(args, "frames", None) or 3,
                                 getattr(args, "data", None))  # fmt: skip
-        except (RunError, CheckpointError, DatasetError) as e:
+        except Sync4dError as e:
             print(f"bench raster: {e}", file=sys.stderr)
-            return 2
+            return e.exit_code
         out = Path(args.out or f"bench-raster-{Path(args.run).resolve().name}.json")
         print(f"sync4d {sync4d.__version__} bench raster {args.run}: {len(frames)} frames "
               f"x {1 + len(variants)} variants, {threads} thread(s), {repeats} timed calls each; "

@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sync4d.errors import Sync4dError
 from sync4d.options import add_threads, positive_int
 from sync4d.report import align_table
 
@@ -190,7 +191,6 @@ def bench_step(run_dir: Path, variants: dict[str, list[str]], steps: int, rounds
 def main(args: argparse.Namespace) -> int:
     from sync4d.bench.fit import parse_variant
     from sync4d.config import ConfigError
-    from sync4d.runs import RunError
 
     try:
         texts = args.variant or ["gaussians:phase1.motion=gaussians", "nodes:phase1.motion=nodes"]
@@ -205,7 +205,10 @@ def main(args: argparse.Namespace) -> int:
     try:
         result = bench_step(Path(args.run), variants, args.steps, args.rounds, args.threads,
                             args.data)  # fmt: skip
-    except (RunError, ConfigError, FileNotFoundError) as e:
+    except Sync4dError as e:  # exit 2; 3: the watchdog's stop
+        print(f"bench step: {e}", file=sys.stderr)
+        return e.exit_code
+    except FileNotFoundError as e:
         print(f"bench step: {e}", file=sys.stderr)
         return 2
     table = [["variant", "motion", "gaussians", "nodes", "step ms", "motion ms", "share",

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sync4d.errors import Sync4dError
 from sync4d.options import add_threads, positive_int
 from sync4d.report import align_table
 
@@ -99,11 +100,12 @@ def bench_view(run_dir: Path, moves: int, query: str | None, threads: int | None
 
 def main(args: argparse.Namespace) -> int:
     """Run `bench view` with parsed `args`; the exit status."""
-    from sync4d.runs import CheckpointError, RunError
-
     try:
         res = bench_view(Path(args.run), args.moves, args.query, args.threads)
-    except (RunError, CheckpointError, ImportError) as e:
+    except Sync4dError as e:
+        print(f"bench view: {e}", file=sys.stderr)
+        return e.exit_code
+    except ImportError as e:
         print(f"bench view: {e}", file=sys.stderr)
         return 2
     rows = [[name, str(r["n"]), f"{r['median_ms']:.1f}", f"{r['p90_ms']:.1f}",

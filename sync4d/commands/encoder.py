@@ -12,8 +12,7 @@ import sys
 import time
 from pathlib import Path
 
-from sync4d.files import WriteFailed
-from sync4d.phase3.encoders.encoder import EncoderError
+from sync4d.errors import Sync4dError
 
 __all__ = ["add_convert_arguments", "add_info_arguments", "main"]
 
@@ -94,9 +93,9 @@ def main(args: argparse.Namespace) -> int:
     name = f"encoder {args.action}"
     try:
         return _convert(args) if args.action == "convert" else _info(args)
-    except (EncoderError, WriteFailed) as e:
+    except Sync4dError as e:
         print(f"{name}: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
     except KeyboardInterrupt:
         done = "; the folder has no encoder.json, so it is not used" * (args.action == "convert")
         print(f"{name}: interrupted{done}", file=sys.stderr)

@@ -12,7 +12,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sync4d.files import RunBusy, RunLock, WriteFailed
+from sync4d.errors import Sync4dError
+from sync4d.files import RunLock
 from sync4d.options import add_backend, add_rule, add_threads, background_colour
 
 __all__ = ["add_arguments", "main"]
@@ -55,15 +56,10 @@ def _queries(args: argparse.Namespace) -> int:
     """`eval RUN --queries ANNOTATIONS`: Acc / vIoU / tIoU per scorer, printed as a table."""
     import torch
 
-    from sync4d.data import DatasetError
-    from sync4d.phase3.encoders.encoder import EncoderError
-    from sync4d.phase3.evaluation.annotations import AnnotationError
     from sync4d.phase3.evaluation.query_eval import evaluate_queries
     from sync4d.phase3.evaluation.relational_eval import is_relational
-    from sync4d.phase3.query import SCORERS, QueryError
-    from sync4d.phase3.store import FieldError
+    from sync4d.phase3.query import SCORERS
     from sync4d.report import align_table
-    from sync4d.runs import CheckpointError, RunError
 
     if is_relational(args.queries):
         return _relational(args)
@@ -76,10 +72,9 @@ def _queries(args: argparse.Namespace) -> int:
                 rule=args.rule, data=args.data, threads=args.threads,
                 encoder=args.encoder,
             )  # fmt: skip
-    except (RunError, CheckpointError, DatasetError, RunBusy, WriteFailed, AnnotationError,
-            EncoderError, QueryError, FieldError) as e:  # fmt: skip
+    except Sync4dError as e:
         print(f"eval: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
 
     def cell(v: object) -> str:
         return "-" if v is None else f"{v:.3f}"
@@ -95,19 +90,15 @@ def _relational(args: argparse.Namespace) -> int:
     """`eval RUN --queries QUESTIONS.json` with a relational question file: Acc (right
     object), tIoU, count accuracy and plan accuracy (the question's form read, and its count
     right) per question form, printed as a table."""
-    from sync4d.phase3.encoders.encoder import EncoderError
-    from sync4d.phase3.evaluation.annotations import AnnotationError
     from sync4d.phase3.evaluation.relational_eval import evaluate_relational
-    from sync4d.phase3.query import QueryError
-    from sync4d.phase3.store import FieldError
     from sync4d.report import align_table
 
     try:
         with RunLock(args.run, "eval"):
             summary = evaluate_relational(args.run, args.queries, encoder=args.encoder)
-    except (RunBusy, WriteFailed, AnnotationError, EncoderError, QueryError, FieldError) as e:
+    except Sync4dError as e:
         print(f"eval: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
 
     def cell(v: object) -> str:
         return "-" if v is None else f"{v:.3f}"
@@ -126,10 +117,9 @@ def main(args: argparse.Namespace) -> int:
         return _queries(args)
     import torch
 
-    from sync4d.data import DatasetError
     from sync4d.pipeline.evaluate import evaluate_run, with_backgrounds
     from sync4d.pipeline.record import dataset_differences
-    from sync4d.runs import CheckpointError, RunError, load_run
+    from sync4d.runs import RunError, load_run
     from sync4d.runs.names import background_tag
     from sync4d.terminal import TerminalRenderer
 
@@ -160,9 +150,9 @@ def main(args: argparse.Namespace) -> int:
                         tag = "-".join(t for t in (tag, background_tag(chosen)) if t)
                     evaluate_run(run.path, run.model, scene, list(chosen), threads, args.split,
                                  tag=tag)  # fmt: skip
-    except (RunError, CheckpointError, DatasetError, RunBusy, WriteFailed) as e:
+    except Sync4dError as e:  # exit 2; 3: the watchdog's stop on a render (NonFinite)
         print(f"eval: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
     except KeyboardInterrupt:
         print("eval: interrupted; nothing written", file=sys.stderr)
         return 130

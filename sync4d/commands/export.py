@@ -17,9 +17,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
+from sync4d.errors import Sync4dError
 from sync4d.files import write_text_atomic
 from sync4d.options import add_encoder, add_threads, frame_count, positive_int
 
@@ -67,7 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_threads(p, "torch")
 
 
-class _Usage(ValueError):
+class _Usage(Sync4dError, ValueError):
     """A command line that asks for nothing, or for something that does not fit."""
 
 
@@ -99,7 +99,7 @@ def _scene(args: argparse.Namespace, run, out: list[str]) -> None:
     """Write the scene description (and the prompt) that `args` ask for."""
     from sync4d.export.describe import SceneSettings, describe
     from sync4d.export.prompt import count_tokens, prompt_text
-    from sync4d.export.scene import load, write_scene
+    from sync4d.export.scene import embeddings_path, write_scene
     from sync4d.phase3.query import TextCache
     from sync4d.phase3.store import load_field
 
@@ -107,23 +107,20 @@ def _scene(args: argparse.Namespace, run, out: list[str]) -> None:
     vocab = read_vocab(args.vocab) if args.vocab else []
     queries = list(dict.fromkeys(" ".join(q.split()) for q in args.query or []))
     cache = TextCache(run.path, field, args.encoder) if vocab or queries else None
-    doc, emb = describe(run, field, cache=cache, vocab=vocab, queries=queries,
-                        settings=SceneSettings(decimals=args.decimals))  # fmt: skip
+    scene, emb = describe(run, field, cache=cache, vocab=vocab, queries=queries,
+                          settings=SceneSettings(decimals=args.decimals))  # fmt: skip
     if cache is not None:
         cache.save()
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(args.scene) if args.scene else Path(tmp) / "scene.json"
-        write_scene(path, doc, emb, decimals=args.decimals)
-        if args.scene:
-            out.append(f"scene: {path} ({len(doc['objects'])} objects, "
-                       f"{len(doc['metadata']['frames']['times'])} frames, "
-                       f"{len(doc['events'])} events; embeddings in "
-                       f"{path.with_name(json.loads(path.read_text())['embeddings']['file'])})")
-        if args.prompt:
-            text = prompt_text(load(path, embeddings=False).doc)
-            write_text_atomic(Path(args.prompt), text)
-            n, tokenizer = count_tokens(text)
-            out.append(f"prompt: {args.prompt} ({n:,} tokens by {tokenizer})")
+    if args.scene:
+        path = write_scene(args.scene, scene, emb)
+        out.append(f"scene: {path} ({len(scene.objects)} objects, "
+                   f"{len(scene.metadata.frames.times)} frames, {len(scene.events)} events; "
+                   f"embeddings in {embeddings_path(path)})")
+    if args.prompt:  # from the description's data alone, as the file holds it
+        text = prompt_text(scene.model_dump())
+        write_text_atomic(Path(args.prompt), text)
+        n, tokenizer = count_tokens(text)
+        out.append(f"prompt: {args.prompt} ({n:,} tokens by {tokenizer})")
 
 
 def _splats(args: argparse.Namespace, run, out: list[str]) -> None:
@@ -157,12 +154,7 @@ def _splats(args: argparse.Namespace, run, out: list[str]) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run `export` with parsed `args`; the exit status."""
-    from sync4d.export.errors import ExportError
-    from sync4d.export.scene import SceneError
-    from sync4d.phase3.encoders.encoder import EncoderError
-    from sync4d.phase3.query import QueryError
-    from sync4d.phase3.store import FieldError
-    from sync4d.runs import CheckpointError, RunError, load_run
+    from sync4d.runs import load_run
 
     out: list[str] = []
     try:
@@ -187,8 +179,7 @@ def main(args: argparse.Namespace) -> int:
         if args.scene or args.prompt:
             _scene(args, run, out)
         _splats(args, run, out)
-    except (_Usage, RunError, CheckpointError, FieldError, EncoderError, QueryError, SceneError,
-            ExportError, OSError) as e:  # fmt: skip
+    except (Sync4dError, OSError) as e:  # OSError: a file the system refuses
         print(f"export: {e}", file=sys.stderr)
         return 2
     print("\n".join(out))

@@ -19,13 +19,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sync4d.data import loaders
-from sync4d.data.scene import DatasetError
 from sync4d.data.synthetic import default_scene_dir
-from sync4d.files import LOCK_FILE, RunBusy, RunLock, WriteFailed
+from sync4d.errors import Sync4dError
+from sync4d.files import LOCK_FILE, RunLock
 from sync4d.options import add_encoder, add_training_options, positive_float, positive_int
-from sync4d.phase3.encoders.encoder import EncoderError
-from sync4d.phase3.store import FieldError
-from sync4d.settings import ConfigError
 from sync4d.terminal import TerminalRenderer
 
 if TYPE_CHECKING:  # the pipeline loads torch: imported when fit runs, not for its --help
@@ -85,9 +82,8 @@ def _request(args: argparse.Namespace, run_dir: Path) -> FitRequest:
 
 def main(args: argparse.Namespace) -> int:
     """Run `fit` with parsed `args`; the exit status."""
-    from sync4d.pipeline import FitInterrupted, TrainingDiverged
+    from sync4d.pipeline import FitInterrupted
     from sync4d.pipeline.request import fit_request, is_run
-    from sync4d.runs import CheckpointError, RunError
     from sync4d.watchdog import NonFinite
 
     if args.resume and args.force:
@@ -106,17 +102,13 @@ def main(args: argparse.Namespace) -> int:
         with RunLock(run_dir, "fit"), TerminalRenderer().installed():
             fit_request(request)  # reads the config the request needs, once
             return 0
-    except (ConfigError, DatasetError, CheckpointError, RunError, RunBusy, WriteFailed,
-            EncoderError, FieldError) as e:  # fmt: skip
-        print(f"fit: {e}", file=sys.stderr)
-        return 2
-    except TrainingDiverged as e:
-        print(f"fit: {e}", file=sys.stderr)
-        return 3
     except NonFinite as e:  # outside a training loop: the refinement, Phase 3's solve
         print(f"fit: {e}. Nothing was saved from it: the run keeps its last good checkpoint "
               "(and no new language field).", file=sys.stderr)  # fmt: skip
-        return 3
+        return e.exit_code
+    except Sync4dError as e:  # exit 2; 3: TrainingDiverged (the watchdog's stop in a loop)
+        print(f"fit: {e}", file=sys.stderr)
+        return e.exit_code
     except FitInterrupted:
         return 130
     finally:

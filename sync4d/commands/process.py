@@ -8,8 +8,8 @@ import argparse
 import shlex
 import sys
 
-from sync4d.data import DatasetError
 from sync4d.data.process import CAMERA_MODELS, MATCHERS, ProcessOptions, process_capture
+from sync4d.errors import Sync4dError
 from sync4d.options import add_threads, positive_float, positive_int
 from sync4d.progress import format_duration
 
@@ -68,9 +68,9 @@ def main(args: argparse.Namespace) -> int:
     )
     try:
         result = process_capture(args.input, args.out, options, force=args.force)
-    except DatasetError as e:
+    except Sync4dError as e:
         print(f"process: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
     except KeyboardInterrupt:
         print("process: interrupted; nothing was kept", file=sys.stderr)
         return 130

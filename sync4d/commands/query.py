@@ -11,9 +11,9 @@ import re
 import sys
 from pathlib import Path
 
+from sync4d.errors import Sync4dError
 from sync4d.options import add_encoder, add_rule
-from sync4d.phase3.encoders.encoder import EncoderError
-from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS, QueryError, TextCache, answer
+from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS, TextCache, answer
 from sync4d.phase3.store import FieldError, load_field
 from sync4d.report import align_table, plot_query_timeline
 from sync4d.runs.names import FIELD_DIR, query_plot
@@ -75,7 +75,7 @@ def main(args: argparse.Namespace) -> int:
                 out.mkdir(parents=True, exist_ok=True)
                 ans["plot"] = str(plot_query_timeline(ans, out / query_plot(slug(text))))
             answers.append(ans)
-    except (FieldError, EncoderError, QueryError, OSError) as e:  # OSError: a failed write
+    except (Sync4dError, OSError) as e:  # OSError: a failed write
         print(f"query: {e}", file=sys.stderr)
         return 2
     if args.json:

@@ -14,6 +14,7 @@ import numpy as np
 from PIL import Image
 
 from sync4d.data.scene import Camera
+from sync4d.errors import Sync4dError
 from sync4d.options import add_backend, add_threads, frame_count, positive_float
 from sync4d.progress import Progress
 from sync4d.runs.names import RENDERS_DIR, render_frame, render_sweep
@@ -121,12 +122,12 @@ def main(args: argparse.Namespace) -> int:
     """Run `render` with parsed `args`; the exit status."""
     import torch
 
-    from sync4d.runs import CheckpointError, RunError, load_run
+    from sync4d.runs import load_run
 
     try:
         run = load_run(args.run)
         rec = pick_camera(run.cameras, args.camera)
-    except (RunError, CheckpointError, ValueError) as e:
+    except (Sync4dError, ValueError) as e:  # ValueError: pick_camera's --camera
         print(f"render: {e}", file=sys.stderr)
         return 2
     if args.times:

@@ -17,6 +17,7 @@ import signal
 import sys
 
 from sync4d.commands.view import port_problem
+from sync4d.errors import Sync4dError
 from sync4d.options import add_encoder, add_threads
 
 __all__ = ["add_arguments", "main", "parse_address"]
@@ -65,7 +66,7 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run `serve` with parsed `args`; the exit status."""
-    from sync4d.serve.tools import RunTools, ToolProblem
+    from sync4d.serve.tools import RunTools
 
     tools = RunTools(args.run, encoder=args.encoder, threads=args.threads)
     try:
@@ -81,7 +82,7 @@ def main(args: argparse.Namespace) -> int:
             from sync4d.serve.server import serve
         except ImportError as e:
             raise ValueError(f"serve needs the MCP SDK ({e}): pip install 'mcp>=2,<3'") from None
-    except (ToolProblem, ValueError) as e:
+    except (Sync4dError, ValueError) as e:  # ValueError: --http, --sse, no MCP SDK
         print(f"serve: {e}", file=sys.stderr)
         return 2
     if http is None:

@@ -17,6 +17,7 @@ import threading
 import time
 from pathlib import Path
 
+from sync4d.errors import Sync4dError
 from sync4d.files import writer_of
 from sync4d.options import add_encoder, add_threads, port_number
 from sync4d.runs.names import CHECKPOINT_NAME
@@ -49,7 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 LINGER_SECONDS = 5.0
 
 
-class _Refused(RuntimeError):
+class _Refused(Sync4dError, RuntimeError):
     """A view that cannot start; the message says why and what to do."""
 
 
@@ -109,9 +110,6 @@ def _serve(viewer, server, keep_open: bool, stop: threading.Event) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run `view` with parsed `args`; the exit status."""
-    from sync4d.phase3.encoders.encoder import EncoderError
-    from sync4d.runs import CheckpointError, RunError
-
     run_dir = Path(args.run)
     try:
         note = _check_run(run_dir)
@@ -130,9 +128,9 @@ def main(args: argparse.Namespace) -> int:
         from sync4d.viewer.state import ViewerState
 
         state = ViewerState(run_dir, args.encoder)
-    except (_Refused, RunError, CheckpointError, EncoderError) as e:
+    except Sync4dError as e:
         print(f"view: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
     if note:
         print(f"view: {note}", file=sys.stderr)
     if state.field is None:

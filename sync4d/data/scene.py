@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sync4d.errors import Sync4dError
+
 
 def cache_dir() -> Path:
     """Where sync4d caches generated data: `$SYNC4D_CACHE`, else `$XDG_CACHE_HOME/sync4d`,
@@ -25,7 +27,7 @@ def cache_dir() -> Path:
     return Path(base)
 
 
-class DatasetError(ValueError):
+class DatasetError(Sync4dError, ValueError):
     """Malformed dataset input; the message names the file and the problem."""
 
     def __init__(self, path: str | Path, problem: str) -> None:

@@ -1,8 +1,9 @@
 """Results out (issue 42): a run as files other tools read.
 
-* the **scene description** (`describe` builds it, `scene` writes and loads it, `schema` holds
-  its JSON Schema, `prompt` turns it into text for an LLM): objects, tracks, motion segments,
-  pairwise events and language slots of a Phase 2 run with a language field;
+* the **scene description** (`model` types it, torch-free: `Scene`; `describe` builds it,
+  `scene` writes and loads it, `schema` holds its JSON Schema, generated from the model,
+  `prompt` turns it into text for an LLM): objects, tracks, motion segments, pairwise events
+  and language slots of a Phase 2 run with a language field;
 * **splat files** (`splats`): the Gaussians, canonical or deformed to a time, as 3DGS PLY
   (gsplat's property order plus ``object_id``), SPZ, and 4D sequences (brush's delta-frame PLY
   or a zip of PLYs).
@@ -18,8 +19,9 @@ from sync4d.lazy import lazy_exports
 _EXPORTS = {
     "ExportError": "errors",
     "SceneSettings": "describe", "describe": "describe",
+    "Scene": "model",
     **dict.fromkeys(("SceneDescription", "SceneError", "SceneObject", "Track", "load",
-                     "write_scene"), "scene"),
+                     "with_embeddings", "write_scene"), "scene"),
     "prompt_text": "prompt", "count_tokens": "prompt",
     **dict.fromkeys(
         ("Splats", "default_times", "is_sequence_folder", "ply_properties", "read_ply",

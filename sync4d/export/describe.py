@@ -1,7 +1,8 @@
-"""The scene description of a run with a language field, as plain data (docs/export.md).
+"""The scene description of a run with a language field (docs/export.md).
 
 `describe(run, field, ...)` reads what Phases 2 and 3 already hold and arranges it for a reader
-that is not sync4d (a person, a script, a multimodal LLM):
+that is not sync4d (a person, a script, a multimodal LLM), as the typed model of
+`sync4d.export.model` (`Scene`, numbers rounded to `SceneSettings.decimals`):
 
 * **objects**: each foreground object of the field (its Phase 2 label, which is the mask label
   when masks drove the assignment, and name), its Gaussian count, its extent (2nd-98th
@@ -32,7 +33,10 @@ that is not sync4d (a person, a script, a multimodal LLM):
   file, referenced from the description by name and SHA-256, never inline.
 
 Intervals are inclusive frame ranges [start, end] of the stored frames, with their times t0, t1
-(normalised time in [0, 1]). Everything is in the dataset's world units and axes.
+(normalised time in [0, 1]). Everything is in the dataset's world units and axes. The records
+are arranged as dicts in the file's key order, rounded (`rounded`: fixed decimals, -0 as 0,
+not finite as null, numpy values as Python numbers) and checked into the model, so the same
+run gives the same `Scene` and the same bytes wherever it is written or served.
 """
 
 from __future__ import annotations
@@ -41,11 +45,14 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from pydantic import ValidationError
 
 from sync4d import __version__
+from sync4d.export.model import EVENT_KINDS, FORMAT, SEGMENT_STATES, VERSION, Scene, where
 from sync4d.export.schema import SceneError
 from sync4d.files import file_sha256
 from sync4d.phase3 import motion_phrases as mp
@@ -56,16 +63,9 @@ from sync4d.phase3.query import TextCache, answer, field_settings
 from sync4d.phase3.store import Field
 from sync4d.runs import Run
 
-__all__ = ["EVENT_KINDS", "SEGMENT_STATES", "THRESHOLD_KEYS", "SceneSettings", "describe",
-           "motion_segments", "pairwise_events"]
+__all__ = ["EVENT_KINDS", "FORMAT", "SEGMENT_STATES", "THRESHOLD_KEYS", "VERSION",
+           "SceneSettings", "describe", "motion_segments", "pairwise_events", "rounded"]
 
-#: Format name and version of the description (`metadata.format`, `metadata.version`).
-FORMAT = "sync4d.scene"
-VERSION = 1
-#: The motion states of the segments, in their order in the file.
-SEGMENT_STATES = states.MOTION_STATES
-#: The pairwise event kinds, in their order in the file.
-EVENT_KINDS = ("approach", "contact", "separation")
 #: The Phase 3 settings the segments and events read (recorded under `metadata.thresholds`).
 THRESHOLD_KEYS = ("moving_speed", "rest_speed", "vertical_speed", "closing_speed",
                   "contact_gap", "phrase_smooth", "phrase_min_frames", "activation")  # fmt: skip
@@ -87,6 +87,27 @@ class SceneSettings:
     #: bouncingballs and two embedded-scene runs, the objects' own colours separate by
     #: 0.22-0.54, entries no object matches by 0.12 at most; 0.17 is the middle of the gap).
     slot_margin: float = 0.17
+
+
+def rounded(x: Any, decimals: int) -> Any:
+    """`x` with every float rounded to `decimals` places (-0.0 -> 0.0, non-finite -> None),
+    numpy scalars and arrays as Python numbers and lists, tuples as lists."""
+    if isinstance(x, dict):
+        return {k: rounded(v, decimals) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [rounded(v, decimals) for v in x]
+    if isinstance(x, np.ndarray):
+        return rounded(x.tolist(), decimals)
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        if not math.isfinite(x):
+            return None
+        r = round(float(x), decimals)
+        return 0.0 if r == 0 else r
+    return x
 
 
 def _span(a: int, b: int, times: np.ndarray) -> dict:
@@ -222,12 +243,13 @@ def _cameras(run: Run) -> list[dict]:
 def describe(
     run: Run, field: Field, *, cache: TextCache | None = None, vocab: Sequence[str] = (),
     queries: Sequence[str] = (), settings: SceneSettings = SceneSettings(),
-) -> tuple[dict, dict[str, np.ndarray]]:  # fmt: skip
-    """The description of `run` (a Phase 2 run) and its language `field` as JSON-ready data
-    (numbers not yet rounded: `sync4d.export.scene.write_scene` does that), and the embeddings
-    for the side file: ``static`` [K, D], ``sync`` [K, T, D] and ``texts`` [V, D] (the
-    `vocab` entries, then the `queries`). `cache` encodes the texts (needed when `vocab` or
-    `queries` are given)."""
+) -> tuple[Scene, dict[str, np.ndarray]]:  # fmt: skip
+    """The description of `run` (a Phase 2 run) and its language `field` (its numbers rounded
+    to `settings.decimals`; no `embeddings` record until `sync4d.export.scene.write_scene`
+    writes the side file), and the embeddings for the side file: ``static`` [K, D], ``sync``
+    [K, T, D] and ``texts`` [V, D] (the `vocab` entries, then the `queries`). `cache` encodes
+    the texts (needed when `vocab` or `queries` are given). `SceneError` for a run that has
+    none, or a value the description cannot hold (a track that is not finite)."""
     if run.motion is None or run.labels is None:
         raise SceneError(f"{run.checkpoint}: a scene description needs a Phase 2 run; "
                          f"run `fit --out {run.path} --phases 2` first")  # fmt: skip
@@ -326,9 +348,14 @@ def describe(
     }  # fmt: skip
     doc = {"metadata": metadata, "objects": objects, "tracks": tracks,
            "events": pairwise_events(field, cfg), "texts": texts}  # fmt: skip
+    try:
+        scene = Scene.model_validate(rounded(doc, settings.decimals))
+    except ValidationError as e:
+        raise SceneError(f"{run.path}: its scene description would not be valid, {where(e)} "
+                         "(null: a value that is not finite)") from None
     embeddings = {
         "static": np.ascontiguousarray(field.static, np.float32),
         "sync": np.ascontiguousarray(field.sync, np.float32),
         "texts": np.ascontiguousarray(text_emb, np.float32).reshape(len(texts), field.dim),
     }
-    return doc, embeddings
+    return scene, embeddings

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from sync4d.errors import Sync4dError
+
 __all__ = ["ExportError"]
 
 
-class ExportError(ValueError):
+class ExportError(Sync4dError, ValueError):
     """A file of the export room that is malformed, truncated, foreign or cannot be written;
     the message names the file (`path`), says what is wrong and what to do."""
 

@@ -1,29 +1,32 @@
 """The scene description file: deterministic JSON valid against the shipped schema, its
 embeddings side file, and `load`, which gives both back as Python objects (docs/export.md).
 
-Same run, same bytes: every number is rounded to fixed decimals (-0 written as 0), keys keep
-the order `sync4d.export.describe` builds, lists of numbers are written one row per line, and
-the side file (``<name>.embeddings.safetensors`` beside the JSON) is referenced by file name
-and SHA-256. Both are written atomically.
+Same run, same bytes: the `sync4d.export.model.Scene` that `describe` returns has every number
+rounded to fixed decimals (-0 written as 0) and its keys in the model's order; it is written
+as `Scene.to_json` lays it out (lists of numbers one row per line), and the side file
+(``<name>.embeddings.safetensors`` beside the JSON) is referenced by file name and SHA-256
+(`with_embeddings`, which `sync4d serve` uses too, without writing anything). Both are
+written atomically.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from safetensors import SafetensorError
-from safetensors.numpy import load_file, save_file
+from safetensors.numpy import load_file, save
 
+from sync4d.export.model import EmbeddingsRef, Scene, dumps
 from sync4d.export.schema import SceneError, validate
 from sync4d.files import file_sha256, write_atomic, write_text_atomic
 
 __all__ = ["SceneDescription", "SceneError", "SceneObject", "Track", "dumps", "embeddings_path",
-           "load", "write_scene"]  # fmt: skip
+           "load", "with_embeddings", "write_scene"]  # fmt: skip
 
 
 def embeddings_path(scene_path: str | Path) -> Path:
@@ -33,65 +36,35 @@ def embeddings_path(scene_path: str | Path) -> Path:
     return p.with_name(f"{p.stem}.embeddings.safetensors")
 
 
-def _round(x: Any, decimals: int) -> Any:
-    """`x` with every float rounded to `decimals` places (-0.0 -> 0.0, non-finite -> None),
-    numpy scalars and arrays as Python numbers and lists."""
-    if isinstance(x, dict):
-        return {k: _round(v, decimals) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_round(v, decimals) for v in x]
-    if isinstance(x, np.ndarray):
-        return _round(x.tolist(), decimals)
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        if not math.isfinite(x):
-            return None
-        r = round(float(x), decimals)
-        return 0.0 if r == 0 else r
-    return x
-
-
 def _scalar(x: Any) -> bool:
     return not isinstance(x, (dict, list))
 
 
-def dumps(obj: Any, indent: int = 0) -> str:
-    """`obj` as JSON: objects one key per line, lists of scalars on one line, lists of such
-    lists one row per line (tracks stay readable and diffable)."""
-    pad, inner = " " * indent, " " * (indent + 1)
-    if isinstance(obj, dict):
-        if not obj:
-            return "{}"
-        items = [f"{inner}{json.dumps(k)}: {dumps(v, indent + 1)}" for k, v in obj.items()]
-        return "{\n" + ",\n".join(items) + "\n" + pad + "}"
-    if isinstance(obj, list):
-        if all(_scalar(v) for v in obj):
-            return "[" + ", ".join(json.dumps(v) for v in obj) + "]"
-        return "[\n" + ",\n".join(inner + dumps(v, indent + 1) for v in obj) + "\n" + pad + "]"
-    return json.dumps(obj)
-
-
-def write_scene(
-    path: str | Path, doc: dict, embeddings: dict[str, np.ndarray], decimals: int = 6
-) -> Path:
-    """Write the description `doc` (`sync4d.export.describe.describe`'s) to `path` and its
-    `embeddings` to the side file (`embeddings_path`), both atomically, after checking `doc`
-    against the schema. Returns `path`."""
-    path = Path(path)
-    side = embeddings_path(path)
+def with_embeddings(scene: Scene, path: str | Path,
+                    embeddings: dict[str, np.ndarray]) -> tuple[Scene, bytes]:  # fmt: skip
+    """`scene` with the record of its side file for a description written at `path` (the
+    file's name, SHA-256 and array shapes), and the side file's bytes (`embeddings` as float32
+    safetensors); nothing is written."""
     arrays = {k: np.ascontiguousarray(v, np.float32) for k, v in embeddings.items()}
-    write_atomic(side, lambda tmp: save_file(arrays, str(tmp)))
-    doc = _round(doc, decimals)
-    doc["embeddings"] = {
-        "file": side.name, "sha256": file_sha256(side),
-        "arrays": {k: list(v.shape) for k, v in arrays.items()},
-        "rows": {"static": "objects", "sync": "objects x frames", "texts": "texts"},
-    }  # fmt: skip
-    validate(doc, path)
-    write_text_atomic(path, dumps(doc) + "\n")
+    data = save(arrays)
+    ref = EmbeddingsRef(
+        file=embeddings_path(path).name, sha256=hashlib.sha256(data).hexdigest(),
+        arrays={k: list(v.shape) for k, v in arrays.items()},
+        rows={"static": "objects", "sync": "objects x frames", "texts": "texts"},
+    )  # fmt: skip
+    return scene.model_copy(update={"embeddings": ref}), data
+
+
+def write_scene(path: str | Path, scene: Scene, embeddings: dict[str, np.ndarray]) -> Path:
+    """Write the description `scene` (`sync4d.export.describe.describe`'s) to `path` and its
+    `embeddings` to the side file (`embeddings_path`), both atomically, after checking the
+    description against the schema. Returns `path`."""
+    path = Path(path)
+    scene, data = with_embeddings(scene, path, embeddings)
+    write_atomic(embeddings_path(path), lambda tmp: tmp.write_bytes(data))
+    text = scene.to_json()
+    validate(json.loads(text), path)
+    write_text_atomic(path, text)
     return path
 
 

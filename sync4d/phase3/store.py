@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from safetensors.numpy import load_file, save_file
 
+from sync4d.errors import Sync4dError
 from sync4d.files import file_sha256, write_atomic, write_text_atomic
 from sync4d.runs.names import CHECKPOINT_NAME, FIELD_DIR, FIELD_FILE, FIELD_META
 
@@ -24,7 +25,7 @@ _ARRAYS = (
 )  # fmt: skip
 
 
-class FieldError(ValueError):
+class FieldError(Sync4dError, ValueError):
     """A language field that is missing or cannot be used; the message names the file."""
 
 

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sync4d.errors import Sync4dError
 from sync4d.files import write_text_atomic
 from sync4d.phase3 import motion_phrases as mp
 from sync4d.phase3.encoders.encoder import Encoder, EncoderError, load_encoder
@@ -32,7 +33,7 @@ __all__ = ["QueryError", "TextCache", "identity", "names_score", "resolve_target
            "text_problem"]
 
 
-class QueryError(ValueError):
+class QueryError(Sync4dError, ValueError):
     """A query that cannot be answered (empty text, unknown scorer, bytes that are not text);
     the message says why."""
 

@@ -18,11 +18,15 @@ from sync4d import watchdog
 from sync4d.data.scene import Frame, Scene
 from sync4d.events import (
     Advanced,
+    EvalSummary,
     Finished,
+    FrameScore,
     FramesEvaluated,
+    Means,
     MetricUnavailable,
     PhaseDone,
     Started,
+    Stats,
     Wrote,
     emit,
 )
@@ -243,7 +247,7 @@ def evaluate_run(
     emit(Started(task, len(frames), log_every=max(1, len(frames))))
     metrics = evaluate_frames(
         model, frames, tuple(background), threads, lpips=lpips,
-        on_frame=lambda i, m: emit(Advanced(task, i + 1, {"psnr": m.psnr})),
+        on_frame=lambda i, m: emit(Advanced(task, i + 1, Stats(psnr=m.psnr))),
         save_dir=run_dir / RENDERS_DIR / (tag or split) if renders else None,
     )  # fmt: skip
     emit(Finished(task))
@@ -259,10 +263,11 @@ def evaluate_run(
     path = run_dir / eval_file(tag)
     write_text_atomic(path, json.dumps(out, indent=2) + "\n")
     shown = background_tag(background) if background_label else ""
-    emit(FramesEvaluated(tuple(asdict(m) for m in metrics), summary, shown))
+    means = Means(**summary)
+    emit(FramesEvaluated(tuple(FrameScore(**asdict(m)) for m in metrics), means, shown))
     renders_dir = (f"{run_dir / RENDERS_DIR / (tag or split)}/",) if renders else ()
     emit(Wrote("eval", (str(path), *renders_dir)))
-    emit(PhaseDone("eval", {"split": split, "file": str(path), **summary}))
+    emit(PhaseDone("eval", EvalSummary(split, str(path), means)))
     return {**summary, "metrics": definitions}
 
 

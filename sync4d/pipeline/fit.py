@@ -24,17 +24,24 @@ import torch
 from sync4d import watchdog
 from sync4d.config import ConfigError, RunConfig, parse_phases, repo_configs
 from sync4d.data import Scene
+from sync4d.errors import Sync4dError
 from sync4d.events import (
     Advanced,
+    BackgroundScore,
     DatasetChosen,
     Evaluated,
     EventLog,
     Finished,
+    FitSummary,
     Interrupted,
+    LoopSummary,
+    Phase2Brief,
     PhaseDone,
     Resumed,
+    Scores,
     Skipped,
     Started,
+    Stats,
     emit,
     subscribe,
 )
@@ -93,12 +100,15 @@ def set_threads(threads: int | None) -> int:
 
 
 class FitInterrupted(Exception):
-    """Training stopped by Ctrl-C, SIGTERM or SIGHUP after saving its checkpoint."""
+    """Training stopped by Ctrl-C, SIGTERM or SIGHUP after saving its checkpoint (no
+    `Sync4dError`: nothing to fix, exit status 130)."""
 
 
-class TrainingDiverged(RuntimeError):
+class TrainingDiverged(Sync4dError, RuntimeError):
     """A NaN or inf stopped training (`sync4d.watchdog`); the message says where, what the run
-    folder keeps and what to try."""
+    folder keeps and what to try; exit status 3."""
+
+    exit_code = 3
 
 
 def _snapshot(trainer: Phase1Trainer) -> tuple[dict[str, torch.Tensor], dict]:
@@ -175,10 +185,10 @@ def _train_loop(
                     if v is not None and math.isfinite(v):
                         ema[k] = v if k not in ema else 0.9 * ema[k] + 0.1 * v
                 it = trainer.iteration
-                emit(Advanced(desc, it, {"loss": ema.get("loss", math.nan),
-                                         "psnr": ema.get("psnr", math.nan),
-                                         "gaussians": trainer.model.num_gaussians,
-                                         **({"rho": ema["rho"]} if "rho" in ema else {})}))
+                emit(Advanced(desc, it, Stats(loss=ema.get("loss", math.nan),
+                                              psnr=ema.get("psnr", math.nan),
+                                              gaussians=trainer.model.num_gaussians,
+                                              rho=ema.get("rho"))))  # fmt: skip
                 if it % log_every == 0:
                     log({"phase": desc, "iteration": it, "train_seconds": train_seconds,
                          **stats})  # fmt: skip
@@ -299,7 +309,7 @@ def run_stages(
             for stage in stages:
                 if stage.kind is None:  # it builds on the trained model
                     stage.start(fit)
-                    emit(Skipped(stage.name, stage.counts(fit)))
+                    emit(Skipped.of(stage.name, stage.counts(fit)))
             return FitOutcome(run_dir, summary, fit.built)
         except KeyboardInterrupt:  # between the loops: the last checkpoint is on disk
             if data is None:
@@ -407,7 +417,7 @@ def _train(
                 fit.trainer, stage.iterations(cfg), desc=stage.task,
                 train_seconds=fit.train_seconds, **loop,
             )  # fmt: skip
-            emit(Skipped(stage.name, stage.counts(fit)))
+            emit(Skipped.of(stage.name, stage.counts(fit)))
             if not interrupted:
                 emit(PhaseDone(stage.name, _phase_summary(fit.trainer, fit.train_seconds)))
         trainer = fit.trainer
@@ -445,24 +455,25 @@ def peak_rss_mib() -> float | None:
     return round(peak / (1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0), 1)
 
 
-def _fit_summary(summary: dict, run_dir: Path) -> dict:
+def _fit_summary(summary: dict, run_dir: Path) -> FitSummary:
     """The numbers of the `PhaseDone("fit")` event: test metrics, Gaussians, iterations,
     training seconds, and Phase 2's rigid share, shuffle ratio and assignment."""
-    out = {k: summary.get(k) for k in ("psnr", "ssim", "lpips", "gaussians", "iterations",
-                                       "train_seconds")}  # fmt: skip
-    out["run_dir"] = str(run_dir)
+    keys = ("psnr", "ssim", "lpips", "gaussians", "iterations", "train_seconds")
     scores = list((summary.get("backgrounds") or {}).items())
+    background, backgrounds = None, None
     if scores:  # the run's own background first (`with_backgrounds`), then the others
-        out["background"] = scores[0][0]
-        out["backgrounds"] = dict(scores[1:])
+        background = scores[0][0]
+        backgrounds = tuple(BackgroundScore(name, Scores(**m)) for name, m in
+                            dict(scores[1:]).items())  # fmt: skip
+    phase2 = None
     if "phase2" in summary:
         d = summary["phase2"]
-        out["phase2"] = {"rigid_share": d["rigid_share"], "shuffle_ratio": d["shuffle_ratio"],
-                         "objects": len(d["objects"]), "assignment": d["assignment"]}
-    return out
+        phase2 = Phase2Brief(d["rigid_share"], d["shuffle_ratio"], len(d["objects"]),
+                             d["assignment"])  # fmt: skip
+    return FitSummary(*(summary.get(k) for k in keys), run_dir=str(run_dir),
+                      background=background, backgrounds=backgrounds, phase2=phase2)
 
 
-def _phase_summary(trainer: Phase1Trainer, train_seconds: float) -> dict:
+def _phase_summary(trainer: Phase1Trainer, train_seconds: float) -> LoopSummary:
     """The numbers of a `PhaseDone` event at the end of a phase's loop."""
-    return {"iteration": trainer.iteration, "train_seconds": train_seconds,
-            "gaussians": trainer.model.num_gaussians}  # fmt: skip
+    return LoopSummary(trainer.iteration, train_seconds, trainer.model.num_gaussians)

@@ -24,6 +24,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from sync4d.data.scene import Scene
+from sync4d.errors import Sync4dError
 from sync4d.files import write_atomic
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.plugin import CheckpointKind
@@ -44,7 +45,7 @@ __all__ = [
 FORMAT_VERSION = 1
 
 
-class CheckpointError(ValueError):
+class CheckpointError(Sync4dError, ValueError):
     """An unreadable, truncated or inconsistent checkpoint; the message names the file."""
 
     def __init__(self, path: str | Path, problem: str) -> None:

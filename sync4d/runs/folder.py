@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from sync4d.data import Scene, load_scene
+from sync4d.errors import Sync4dError
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.phase1.plugin import CheckpointKind
 from sync4d.phase2.motion import MotionConfig, ObjectMotion, make_motion
@@ -44,7 +45,7 @@ __all__ = [
 
 
 
-class RunError(ValueError):
+class RunError(Sync4dError, ValueError):
     """A run directory that cannot be used; the message names the file."""
 
 

@@ -7,9 +7,12 @@ Design:
 
 * **Typed results.** Each tool but `render` declares a pydantic model as its result, so its
   output schema is published with the tool list and every answer carries
-  ``structuredContent`` (and the same as JSON text, for clients that read text only). The
-  models allow extra keys where sync4d's own data may grow (the query answer's plan, new event
-  fields), so what `sync4d query` learns reaches the agent without a change here. `render`
+  ``structuredContent`` (and the same as JSON text, for clients that read text only). What
+  comes from the scene description is typed by its model (`sync4d.export.model`): `describe`'s
+  full scene is the `Scene`, its objects, `events`' events and segments are views of the
+  description's records (their fields, in the order the answers give them), so the two cannot
+  drift apart. The query answer's models allow extra keys (its plan may grow), so what
+  `sync4d query` learns reaches the agent without a change here. `render`
   answers an image (PNG) and a line of JSON saying what it shows.
 * **Errors as results.** A `ToolProblem` (a bad argument, a run that cannot answer) becomes a
   tool error result whose text is the problem's one sentence (the SDK prefixes the tool's
@@ -37,9 +40,11 @@ from typing import Annotated, Any, Literal, TypeVar
 from mcp.server.mcpserver import Image, MCPServer
 from mcp.server.mcpserver.exceptions import ResourceError, ToolError
 from mcp_types import ImageContent, TextContent, ToolAnnotations
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from sync4d import __version__
+from sync4d.export import model as scene_model
+from sync4d.export.model import Interval, ObjectRecord, RunRef, Scene, Units
 from sync4d.phase3.activation import RULES
 from sync4d.phase3.query import DEFAULT_SCORER, SCORER_TABLE, SCORERS
 from sync4d.serve.tools import PROMPT_URI, SCENE_URI, RunTools, ToolProblem
@@ -66,13 +71,10 @@ class _Open(BaseModel):
     model_config = ConfigDict(extra="allow")
 
 
-class Interval(_Open):
-    """Inclusive stored-frame range [start, end] and its times [t0, t1]."""
-
-    start: int
-    end: int
-    t0: float
-    t1: float
+def _fields(record: type[BaseModel], *names: str) -> dict[str, Any]:
+    """The fields `names` of the scene description's `record` (type, constraints,
+    description), in that order, as `create_model` takes them."""
+    return {n: (record.model_fields[n].annotation, record.model_fields[n]) for n in names}
 
 
 class RankedObject(_Open):
@@ -98,16 +100,14 @@ class QueryResult(_Open):
         None, description="with timeline=true: 'times' and each object's per-frame similarity")
 
 
-class ObjectSummary(_Open):
-    """An object of the scene: id (Phase 2 label), name, Gaussians, extent, motion segments,
-    language slots."""
-
-    id: int
-    name: str
-    gaussians: int
-    extent: dict[str, Any] = {}
-    segments: list[dict[str, Any]] = []
-    slots: list[dict[str, Any]] = []
+#: An object of the scene: the description's record (`ObjectRecord`) without `label` (its id).
+ObjectSummary = create_model(
+    "ObjectSummary", __base__=_Open, __module__=__name__,
+    __doc__="An object of the scene: id (Phase 2 label), name, Gaussians, extent, motion "
+            "segments, language slots, nearest vocabulary entries.",
+    **_fields(ObjectRecord, "id", "name", "gaussians", "extent", "segments", "slots", "radius",
+              "rigid_share", "observed_frames", "vocabulary"),
+)  # fmt: skip
 
 
 class Frames(BaseModel):
@@ -121,16 +121,16 @@ class Frames(BaseModel):
 class DescribeResult(BaseModel):
     """The scene in brief, the LLM prompt, and (full=true) the whole scene description."""
 
-    run: dict[str, Any]
+    run: RunRef
     frames: Frames
-    units: dict[str, str]
+    units: Units
     up: list[float]
-    objects: list[ObjectSummary]
+    objects: list[ObjectSummary]  # type: ignore[valid-type]
     events: int = Field(description="number of events (the events tool lists them)")
     cameras: dict[str, int] = Field(description="stored cameras per split (render's camera)")
     prompt: str
     resources: list[str]
-    scene: dict[str, Any] | None = None
+    scene: Scene | None = None
 
 
 class ObjectRef(BaseModel):
@@ -163,33 +163,27 @@ class TrackResult(BaseModel):
     object: ObjectRef
     t0: float
     t1: float
-    units: dict[str, str]
+    units: Units
     note: str | None = None
     frames: list[TrackFrame]
 
 
-class Event(_Open):
-    """A pairwise event: kind, the two objects (0: the background) and when."""
+#: A pairwise event of the description (`sync4d.export.model.Event`) with its objects' names.
+Event = create_model(
+    "Event", __base__=_Open, __module__=__name__,
+    __doc__="A pairwise event: kind, the two objects (0: the background) and when.",
+    **_fields(scene_model.Event, "kind", "objects"),
+    names=(list[str], Field(description="the two objects' names")),
+    **_fields(scene_model.Event, "start", "end", "t0", "t1", "distance", "evidence"),
+)  # fmt: skip
 
-    kind: str
-    objects: list[int]
-    names: list[str]
-    start: int
-    end: int
-    t0: float
-    t1: float
-
-
-class Segment(_Open):
-    """A motion segment: an object in a state (at rest, moving, rising, ...) and when."""
-
-    object: int
-    name: str
-    state: str
-    start: int
-    end: int
-    t0: float
-    t1: float
+#: A motion segment of the description (`sync4d.export.model.Segment`) with its object.
+Segment = create_model(
+    "Segment", __base__=_Open, __module__=__name__,
+    __doc__="A motion segment: an object in a state (at rest, moving, rising, ...) and when.",
+    object=(int, Field(description="the object's id")), name=(str, ...),
+    **_fields(scene_model.Segment, "state", "start", "end", "t0", "t1"),
+)  # fmt: skip
 
 
 class EventsResult(BaseModel):
@@ -197,8 +191,8 @@ class EventsResult(BaseModel):
 
     t0: float
     t1: float
-    events: list[Event]
-    segments: list[Segment]
+    events: list[Event]  # type: ignore[valid-type]
+    segments: list[Segment]  # type: ignore[valid-type]
 
 
 # --------------------------------------------------------------------------------------------

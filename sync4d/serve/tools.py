@@ -5,22 +5,24 @@ Model Context Protocol; the tests and other front ends can call them directly.
 Design:
 
 * **One source of numbers.** The scene description is the one `sync4d export --scene` writes:
-  `sync4d.export.describe.describe` on the run (`load_run`) and its field (`load_field`), then
-  `write_scene` (rounding, schema check) into a temporary folder and read back, and the prompt
-  is `prompt_text` of that file, so the `describe`, `track` and `events` tools and the two
-  resources say exactly what the exported files say. Queries go through
-  `sync4d.phase3.query.answer`, as `sync4d query` does (whatever that learns, the server
-  answers too).
+  `sync4d.export.describe.describe` on the run (`load_run`) and its field (`load_field`), a
+  `sync4d.export.model.Scene` (rounded, typed), kept in memory; the scene resource is its JSON
+  text (`Scene.to_json`, with the side file's record `export` writes beside ``scene.json``,
+  computed without writing it) and the prompt `prompt_text` of its data, so the `describe`,
+  `track` and `events` tools and the two resources say exactly what the exported files say.
+  Queries go through `sync4d.phase3.query.answer`, as `sync4d query` does (whatever that
+  learns, the server answers too).
 * **Ready at start.** `prepare` (which `sync4d serve` calls as it starts) builds what the
   first calls need on a background thread while the client connects: the scene description
   (the first thing an agent asks for), then the field, and the run (torch) once a first call
   is answered, so that its import does not slow that call. The description is also
   kept outside the run folder (`sync4d.serve.cache`, keyed by the run's files and the code), so
-  a server started again on the same run reads it back in milliseconds instead of importing
-  torch and describing every frame (seconds). A call that needs something still being built
-  waits for that build, never starts a second one. Without `prepare` nothing is read at
-  construction: the field (numpy) loads on the first query, the run (torch) on the first
-  description or render, and a query never imports torch.
+  a server started again on the same run reads it back into the model in milliseconds instead
+  of importing torch and describing every frame (seconds); an entry the model refuses is built
+  again. A call that needs something still being built waits for that build, never starts a
+  second one. Without `prepare` nothing is read at construction: the field (numpy) loads on
+  the first query, the run (torch) on the first description or render, and a query never
+  imports torch.
 * **Clear refusals.** Every argument a caller can get wrong (an unknown object, a time outside
   [0, 1], an interval backwards, an unknown camera, kind or scorer) and every run that cannot
   answer (no Phase 2, no language field: the message names the command to run) raises
@@ -46,15 +48,17 @@ are the stored frames of the field and M_phi, intervals inclusive [start, end].
 from __future__ import annotations
 
 import io
-import json
 import logging
-import tempfile
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from pydantic import ValidationError
+
+from sync4d.errors import Sync4dError
+from sync4d.export.model import EVENT_KINDS, Event, ObjectRecord, Scene, Segment
 from sync4d.runs.names import CHECKPOINT_NAME
 from sync4d.serve.cache import description_key, read_description, write_description
 
@@ -72,8 +76,6 @@ _log = logging.getLogger(__name__)
 #: The resources' addresses: the scene description JSON and the LLM prompt.
 SCENE_URI = "sync4d://scene.json"
 PROMPT_URI = "sync4d://prompt.txt"
-#: Event kinds of the scene description (`sync4d.export.describe.EVENT_KINDS`, torch-free here).
-EVENT_KINDS = ("approach", "contact", "separation")
 #: Slack on time bounds (rounding of the stored frame times).
 _EPS = 1e-6
 #: Query texts whose embeddings a server keeps in memory (about 12 kB each at 384 dimensions;
@@ -85,7 +87,7 @@ RENDER_CACHE_SIZE = 32
 PRELOAD_AFTER_S = 10.0
 
 
-class ToolProblem(ValueError):
+class ToolProblem(Sync4dError, ValueError):
     """A call that cannot be answered as asked; the message says why and what to do."""
 
 
@@ -113,7 +115,7 @@ class RunTools:
         self._field: Field | None = None
         self._cache: TextCache | None = None
         self._run: Run | None = None
-        self._scene: dict | None = None
+        self._scene: Scene | None = None
         self._scene_text: str | None = None
         self._prompt: str | None = None
         #: Where the description came from: "built", "kept" (read back) or None (not yet).
@@ -181,43 +183,45 @@ class RunTools:
                     raise _problem(e) from None
             return self._run
 
-    def _build_scene(self) -> tuple[str, str]:
-        """The scene description (JSON text) and the prompt exactly as `export --scene
-        --prompt` writes them (through a temporary file)."""
+    def _build_scene(self) -> tuple[Scene, str, str]:
+        """The scene description (the model and its JSON text) and the prompt exactly as
+        `export --scene scene.json --prompt` writes them, made in memory."""
         from sync4d.export.describe import describe
         from sync4d.export.errors import ExportError
         from sync4d.export.prompt import prompt_text
-        from sync4d.export.scene import SceneError, write_scene
+        from sync4d.export.scene import SceneError, with_embeddings
         from sync4d.phase3.store import FieldError
 
         field = self.field()  # first: a run without a field is refused before torch loads
         run = self.run()
         try:
-            doc, emb = describe(run, field)
-            with tempfile.TemporaryDirectory() as tmp:
-                # write_scene rounds and checks the schema; the text is what export writes
-                text = write_scene(Path(tmp) / "scene.json", doc, emb).read_text(
-                    encoding="utf-8")
+            scene, emb = describe(run, field)
         except (SceneError, ExportError, FieldError, OSError) as e:
             raise _problem(e) from None
-        return text, prompt_text(json.loads(text))
+        scene, _ = with_embeddings(scene, "scene.json", emb)  # the record export writes
+        return scene, scene.to_json(), prompt_text(scene.model_dump())
 
-    def scene(self) -> dict:
-        """The scene description as data (numbers rounded as in the exported file): kept from
-        an earlier start of the same run and code (`sync4d.serve.cache`), else built once and
+    def scene(self) -> Scene:
+        """The scene description (numbers rounded as in the exported file): kept from an
+        earlier start of the same run and code (`sync4d.serve.cache`), else built once and
         kept."""
         with self._scene_lock:
             if self._scene is None:
                 key = description_key(self.run_dir)
                 kept = read_description(key)
+                scene = None
                 if kept is not None:
                     text, prompt = kept
-                    self.scene_source = "kept"
-                else:
-                    text, prompt = self._build_scene()
+                    try:
+                        scene = Scene.from_json(text)
+                        self.scene_source = "kept"
+                    except ValidationError:
+                        scene = None  # not a description this code reads: built again
+                if scene is None:
+                    scene, text, prompt = self._build_scene()
                     write_description(key, text, prompt)
                     self.scene_source = "built"
-                self._scene, self._scene_text, self._prompt = json.loads(text), text, prompt
+                self._scene, self._scene_text, self._prompt = scene, text, prompt
             return self._scene
 
     def scene_json(self) -> str:
@@ -235,21 +239,21 @@ class RunTools:
     # -- helpers --------------------------------------------------------------------------
     def _names(self) -> dict[int, str]:
         """Object id -> name, the background (0) included."""
-        return {0: "background"} | {o["id"]: o["name"] for o in self.scene()["objects"]}
+        return {0: "background"} | {o.id: o.name for o in self.scene().objects}
 
-    def _object(self, key: str | int) -> dict:
+    def _object(self, key: str | int) -> ObjectRecord:
         """The description's object named or numbered `key` (case and spaces ignored)."""
-        objects = self.scene()["objects"]
+        objects = self.scene().objects
         text = " ".join(str(key).split()).lower()
         for o in objects:
-            if text in (str(o["id"]), o["name"].lower()):
+            if text in (str(o.id), o.name.lower()):
                 return o
         # "ball" for "red ball", "the red ball" for "red ball": when one object alone fits
         hits = [o for o in objects
-                if text and (text in o["name"].lower() or o["name"].lower() in text)]  # fmt: skip
+                if text and (text in o.name.lower() or o.name.lower() in text)]  # fmt: skip
         if len(hits) == 1:
             return hits[0]
-        known = ", ".join(f"{o['id']} ({o['name']})" for o in objects)
+        known = ", ".join(f"{o.id} ({o.name})" for o in objects)
         raise ToolProblem(f"unknown object {key!r}: this run's objects are {known}; give a name "
                           "or an id")  # fmt: skip
 
@@ -267,26 +271,24 @@ class RunTools:
     def describe(self, full: bool = False) -> dict:
         """The scene in brief: run, frames, units, the objects (extent, motion segments,
         language slots), the number of events, the cameras, the LLM prompt; `full`: also the
-        whole scene description (tracks of every frame, events, metadata)."""
-        doc = self.scene()
-        meta = doc["metadata"]
-        times = meta["frames"]["times"]
+        whole scene description (tracks of every frame, events, metadata: the `Scene`)."""
+        scene = self.scene()
+        meta = scene.metadata
+        times = meta.frames.times
         splits: dict[str, int] = {"test": 0, "train": 0}
-        for c in meta["cameras"]:
-            splits[c["split"]] = splits.get(c["split"], 0) + 1
-        keep = ("id", "name", "gaussians", "radius", "rigid_share", "observed_frames", "extent",
-                "segments", "slots", "vocabulary")  # fmt: skip
+        for c in meta.cameras:
+            splits[c.split] = splits.get(c.split, 0) + 1
         out = {
-            "run": meta["run"],
-            "frames": {"count": meta["frames"]["count"], "t0": times[0], "t1": times[-1]},
-            "units": meta["units"],
-            "up": meta["axes"]["up"],
-            "objects": [{k: o[k] for k in keep if k in o} for o in doc["objects"]],
-            "events": len(doc["events"]),
+            "run": meta.run.model_dump(),
+            "frames": {"count": meta.frames.count, "t0": times[0], "t1": times[-1]},
+            "units": meta.units.model_dump(),
+            "up": meta.axes.up,
+            "objects": [o.model_dump(exclude={"label"}) for o in scene.objects],
+            "events": len(scene.events),
             "cameras": splits,
             "prompt": self.prompt(),
             "resources": [SCENE_URI, PROMPT_URI],
-            "scene": doc if full else None,
+            "scene": scene if full else None,
         }  # fmt: skip
         self._answered.set()
         return out
@@ -328,9 +330,9 @@ class RunTools:
     def _track(self, obj: str | int, t0: float | None, t1: float | None) -> dict:
         a, b = self._interval(t0, t1)
         o = self._object(obj)
-        doc = self.scene()
-        times = doc["metadata"]["frames"]["times"]
-        tr = next(t for t in doc["tracks"] if t["id"] == o["id"])
+        scene = self.scene()
+        times = scene.metadata.frames.times
+        tr = next(t for t in scene.tracks if t.id == o.id)
         idx = [i for i, t in enumerate(times) if a - _EPS <= t <= b + _EPS]
         note = None
         if not idx:
@@ -340,17 +342,18 @@ class RunTools:
                     f"t = {times[idx[0]]:g}")  # fmt: skip
         frames = []
         for i in idx:
-            v = tr["velocity"][i]
+            v = tr.velocity[i]
             frames.append({
-                "frame": i, "t": times[i], "position": tr["centroid"][i],
-                "rotation": tr["rotation"][i], "translation": tr["translation"][i],
+                "frame": i, "t": times[i], "position": tr.centroid[i],
+                "rotation": tr.rotation[i], "translation": tr.translation[i],
                 "velocity": v, "speed": float(sum(x * x for x in v) ** 0.5),
-                "acceleration": tr["acceleration"][i],
-                "box_min": tr["box_min"][i], "box_max": tr["box_max"][i],
-                "visible": tr["visible"][i], "observed": tr["observed"][i],
+                "acceleration": tr.acceleration[i],
+                "box_min": tr.box_min[i], "box_max": tr.box_max[i],
+                "visible": tr.visible[i], "observed": tr.observed[i],
             })  # fmt: skip
-        return {"object": {"id": o["id"], "name": o["name"]}, "t0": a, "t1": b,
-                "units": doc["metadata"]["units"], "note": note, "frames": frames}  # fmt: skip
+        return {"object": {"id": o.id, "name": o.name}, "t0": a, "t1": b,
+                "units": scene.metadata.units.model_dump(), "note": note,
+                "frames": frames}  # fmt: skip
 
     def events(self, obj: str | int | None = None, kind: str | None = None,
                t0: float | None = None, t1: float | None = None) -> dict:  # fmt: skip
@@ -364,28 +367,29 @@ class RunTools:
     def _events(self, obj: str | int | None, kind: str | None, t0: float | None,
                 t1: float | None) -> dict:  # fmt: skip
         a, b = self._interval(t0, t1)
-        doc = self.scene()
+        scene = self.scene()
         names = self._names()
-        oid = None if obj is None else self._object(obj)["id"]
-        states = sorted({s["state"] for o in doc["objects"] for s in o.get("segments", [])})
+        oid = None if obj is None else self._object(obj).id
+        states = sorted({s.state for o in scene.objects for s in o.segments})
         if kind is not None and kind not in EVENT_KINDS and kind not in states:
             raise ToolProblem(f"unknown kind {kind!r}: events are {', '.join(EVENT_KINDS)}; "
                               f"motion segments are {', '.join(states) or 'none'}")  # fmt: skip
 
-        def overlaps(x: dict) -> bool:
-            return x["t0"] <= b + _EPS and x["t1"] >= a - _EPS
+        def overlaps(x: Event | Segment) -> bool:
+            return x.t0 <= b + _EPS and x.t1 >= a - _EPS
 
         events = []
-        for e in doc["events"]:
-            if overlaps(e) and (oid is None or oid in e["objects"]) and kind in (None, e["kind"]):
-                events.append({**e, "names": [names.get(i, str(i)) for i in e["objects"]]})
+        for e in scene.events:
+            if overlaps(e) and (oid is None or oid in e.objects) and kind in (None, e.kind):
+                events.append({**e.model_dump(),
+                               "names": [names.get(i, str(i)) for i in e.objects]})  # fmt: skip
         segments = []
-        for o in doc["objects"]:
-            if oid is not None and o["id"] != oid:
+        for o in scene.objects:
+            if oid is not None and o.id != oid:
                 continue
-            for s in o.get("segments", []):
-                if overlaps(s) and kind in (None, s["state"]):
-                    segments.append({"object": o["id"], "name": o["name"], **s})
+            for s in o.segments:
+                if overlaps(s) and kind in (None, s.state):
+                    segments.append({"object": o.id, "name": o.name, **s.model_dump()})
         segments.sort(key=lambda s: (s["start"], s["object"]))
         return {"t0": a, "t1": b, "events": events, "segments": segments}
 

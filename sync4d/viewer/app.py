@@ -18,10 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from sync4d.errors import Sync4dError
 from sync4d.geometry import matrix_to_rotvec
-from sync4d.phase3.encoders.encoder import EncoderError
-from sync4d.phase3.query import QueryError
-from sync4d.phase3.store import FieldError
 from sync4d.runs import CheckpointError, CheckpointKind, RunError
 from sync4d.viewer.state import HIGHLIGHT, ViewerState
 
@@ -257,7 +255,7 @@ class Viewer:
             return
         try:
             ans = self.state.ask(text)
-        except (FieldError, EncoderError, QueryError) as e:
+        except Sync4dError as e:
             self.answer_md.content = f"**Cannot answer.** {e}"
             return
         if ans.get("refusal"):

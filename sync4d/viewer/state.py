@@ -23,6 +23,7 @@ import torch
 from PIL import Image
 
 from sync4d.data.scene import Camera
+from sync4d.errors import Sync4dError
 from sync4d.events import read_events
 from sync4d.export.splats import default_times, splats_at
 from sync4d.geometry import quat_to_matrix
@@ -72,7 +73,7 @@ class SplatArrays:
                            self.opacities)  # fmt: skip
 
 
-class RenderFailed(ValueError):
+class RenderFailed(Sync4dError, ValueError):
     """A render of the viewer that failed, in one sentence saying what to do (the page shows
     it): the watchdog's stop on what the rasterizer would receive (a NaN or a diverged value
     of the checkpoint at that time), the rasterizer's refusal, or NaN or inf pixels."""

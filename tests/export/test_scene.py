@@ -18,8 +18,9 @@ from support.encoders import ColourEncoder
 from support.oracle import oracle_phase2_run
 from sync4d.data import synthetic as syn
 from sync4d.export.describe import SceneSettings, describe, pairwise_events
+from sync4d.export.model import Scene
 from sync4d.export.prompt import count_tokens, prompt_text
-from sync4d.export.scene import SceneError, embeddings_path, load, write_scene
+from sync4d.export.scene import SceneError, embeddings_path, load, with_embeddings, write_scene
 from sync4d.export.schema import schema
 from sync4d.phase3.build import build_field
 from sync4d.phase3.config import Phase3Config
@@ -122,6 +123,23 @@ def test_two_exports_are_byte_identical(oracle):
     assert embeddings_path(again).read_bytes() == embeddings_path(o["path"]).read_bytes()
 
 
+def test_the_file_is_the_model_and_reads_back_into_it(oracle):
+    """The model `describe` returns is the file: its JSON is the file's bytes, the file reads
+    back into the same model, and the record of the side file is computed without writing."""
+    o = oracle
+    scene, emb = describe(o["run"], o["field"], cache=o["cache"], vocab=VOCAB,
+                          queries=["the blue object"])  # fmt: skip
+    assert isinstance(scene, Scene) and scene.embeddings is None
+    written, data = with_embeddings(scene, o["path"], emb)
+    text = o["path"].read_text()
+    assert written.to_json() == text and data == embeddings_path(o["path"]).read_bytes()
+    again = Scene.from_json(text)
+    assert again == written and again.to_json() == text
+    # what a file may leave out stays out (no null margin or evidence)
+    assert [e.model_dump() for e in again.events] == json.loads(text)["events"]
+    assert any(e.evidence is None for e in again.events)
+
+
 def test_load_gives_back_the_same_numbers(oracle):
     field, scene = oracle["field"], load(oracle["path"])
     for k, obj in enumerate(scene.objects):
@@ -198,7 +216,7 @@ def test_a_vocabulary_entry_is_attached_only_where_it_separates(oracle):
     field, cache = oracle["field"], oracle["cache"]
     loose, _ = describe(oracle["run"], field, cache=cache, vocab=VOCAB,
                         settings=SceneSettings(slot_margin=-1.0))  # fmt: skip
-    assert sum(len(o["slots"]) for o in loose["objects"]) == len(VOCAB)
+    assert sum(len(o.slots) for o in loose.objects) == len(VOCAB)
 
 
 def test_a_phase1_run_has_no_description(oracle):

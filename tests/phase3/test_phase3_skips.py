@@ -165,7 +165,7 @@ def test_relational_dims_are_kept_where_the_ball_is_unseen(hiding):
 
 def skip_report(field) -> str:
     """The line `fit` prints for the field's `Skipped("phase3", counts)` event."""
-    return words(Skipped("phase3", field.counts)).text
+    return words(Skipped.of("phase3", field.counts)).text
 
 
 def test_counts_are_saved_and_reported(hiding, tmp_path):

@@ -117,6 +117,11 @@ def test_the_description_is_kept_between_starts_and_follows_the_field(run_dir, t
     assert again.describe() == d and again.scene_source == "kept"
     assert again._run is None  # read back: no torch, no checkpoint
     assert again.scene_json() == first.scene_json() and again.prompt() == first.prompt()
+    assert again.scene() == first.scene()  # read back into the same model
+    # an entry the model refuses (another format, a damaged file) is built again
+    kept.write_description(kept.description_key(run), '{"objects": []}', "prompt")
+    damaged = RunTools(run)
+    assert damaged.scene_json() == first.scene_json() and damaged.scene_source == "built"
     # a rebuilt field (a new field.json) is another entry: the description is built again
     meta = run / "phase3" / "field.json"
     st = meta.stat()

@@ -14,7 +14,7 @@ import torch
 
 from support.oracle import oracle_run_folder
 from sync4d.data.scene import Camera
-from sync4d.events import Advanced, EventLog, Finished, Started
+from sync4d.events import Advanced, EventLog, Finished, Started, Stats
 from sync4d.phase3.store import FieldError
 from sync4d.runs import CHECKPOINT_NAME, EVENTS_FILE, load_run
 from sync4d.viewer.state import HIGHLIGHT, ViewerState
@@ -128,7 +128,7 @@ def test_the_status_follows_the_fits_event_log(run_dir):
     log = EventLog(path)
     try:
         log(Started("phase2", 2000, start=1000, log_every=100))
-        log(Advanced("phase2", 1200, {"loss": 0.01, "psnr": 31.2, "gaussians": 900}))
+        log(Advanced("phase2", 1200, Stats(loss=0.01, psnr=31.2, gaussians=900)))
         assert st.training() == "phase2 1200 / 2000, PSNR 31.20 dB"
         log(Finished("phase2"))
         assert st.training() == ""

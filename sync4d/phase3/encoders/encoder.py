@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sync4d.errors import Sync4dError
 from sync4d.files import file_sha256
 
 __all__ = ["CONVERT_COMMAND", "DEFAULT_ENCODER", "ENCODERS", "ENCODER_ENV", "Encoder",
@@ -84,7 +85,7 @@ def encoder_problem(text: str) -> str | None:
     return None
 
 
-class EncoderError(RuntimeError):
+class EncoderError(Sync4dError, RuntimeError):
     """An encoder that cannot be loaded or used; the message names the file and what to do."""
 
 

@@ -45,7 +45,7 @@ import torch
 import torch.nn.functional as F
 
 from sync4d.data.scene import cache_dir
-from sync4d.files import WriteFailed, write_atomic
+from sync4d.files import write_atomic
 from sync4d.phase3.encoders import shapes
 from sync4d.phase3.encoders.encoder import Encoder, EncoderError, normalise_rows
 from sync4d.phase3.encoders.minilm import MiniLM, load_minilm
@@ -386,7 +386,7 @@ class OfflineEncoder(Encoder):
         try:
             self.cache_path.parent.mkdir(parents=True, exist_ok=True)
             write_atomic(self.cache_path, write)
-        except (OSError, WriteFailed) as e:  # an unwritable cache only costs a refit
+        except OSError as e:  # WriteFailed too: an unwritable cache only costs a refit
             logging.getLogger("sync4d").warning("could not cache the offline encoder map (%s)", e)
 
     def _fit(self) -> dict[str, np.ndarray]:

@@ -73,6 +73,7 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
+from sync4d.errors import Sync4dError
 from sync4d.phase3.activation import from_intervals
 
 __all__ = [
@@ -96,7 +97,7 @@ VIDEO_FILE = "video_annotations.json"
 TIME_EPS = 1e-9
 
 
-class AnnotationError(ValueError):
+class AnnotationError(Sync4dError, ValueError):
     """An annotation file that cannot be used; the message names the file, the problem and
     what to do. `path` is the file."""
 

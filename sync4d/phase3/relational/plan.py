@@ -7,12 +7,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 
+from sync4d.errors import Sync4dError
 from sync4d.phase3.relational.words import ATOMS
 
 __all__ = ["Atom", "Clause", "Plan", "RelationalError", "Selected"]
 
 
-class RelationalError(ValueError):
+class RelationalError(Sync4dError, ValueError):
     """A relational question that cannot be read; the message says what to write instead."""
 
 

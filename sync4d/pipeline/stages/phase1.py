@@ -9,7 +9,7 @@ import torch
 
 from sync4d.config import ConfigError, RunConfig
 from sync4d.data import Scene
-from sync4d.events import ScaleAdvice, emit
+from sync4d.events import Override, ScaleAdvice, emit
 from sync4d.phase1.init import initial_model, scene_extent, with_initial_points
 from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.pipeline.stages.base import FitState, Stage
@@ -38,10 +38,11 @@ def length_advice(extent: float, p1) -> ScaleAdvice | None:
     defaults = lengths == (0.01, 0.02, 0.1, 1.0)
     if not defaults or 1.0 / LENGTH_TOLERANCE <= ratio <= LENGTH_TOLERANCE:
         return None
-    return ScaleAdvice(ratio, extent, REFERENCE_EXTENT, {
-        "phase1.near": 0.01 * ratio, "phase1.init_scale": 0.02 * ratio,
-        "phase1.deform.scale_position": 0.1 * ratio, "phase1.deform.position_unit": ratio,
-    })  # fmt: skip
+    return ScaleAdvice(ratio, extent, REFERENCE_EXTENT, (
+        Override("phase1.near", 0.01 * ratio), Override("phase1.init_scale", 0.02 * ratio),
+        Override("phase1.deform.scale_position", 0.1 * ratio),
+        Override("phase1.deform.position_unit", ratio),
+    ))  # fmt: skip
 
 
 def phase1_skips(trainer: Phase1Trainer) -> dict[str, int | float]:

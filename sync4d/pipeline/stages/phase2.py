@@ -11,7 +11,16 @@ import shutil
 from pathlib import Path
 
 from sync4d.config import ConfigError, RunConfig
-from sync4d.events import Assigned, MotionDiagnosed, NothingMoves, Phase2Starting, Wrote, emit
+from sync4d.events import (
+    Assigned,
+    Diagnostics,
+    MotionDiagnosed,
+    NothingMoves,
+    ObjectCount,
+    Phase2Starting,
+    Wrote,
+    emit,
+)
 from sync4d.files import write_atomic, write_text_atomic
 from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.diagnostics import diagnostics
@@ -68,8 +77,9 @@ class Phase2Stage(Stage):
         except ValueError as e:  # bad assignment input
             raise ConfigError(str(e)) from None
         names = p2.assignment.names
+        counts = {str(names.get(k, k)): int(n) for k, n in p2.assignment.counts().items()}
         emit(Assigned(p2.assignment.source, p2.assignment.num_objects,
-                      {str(names.get(k, k)): int(n) for k, n in p2.assignment.counts().items()}))
+                      tuple(ObjectCount(name, n) for name, n in counts.items())))
         fit.trainer = p2.trainer
 
     def resume(self, tensors, meta, scene, *, config=None, phase2=None,
@@ -104,7 +114,7 @@ class Phase2Stage(Stage):
             f"{fit.scene.name}: object centroids after Phase 2 ({diag['assignment']} assignment)",
         )  # fmt: skip
         summary["phase2"] = diag
-        emit(MotionDiagnosed({k: v for k, v in diag.items() if k != "trajectories"}))
+        emit(MotionDiagnosed(Diagnostics.of(diag)))
         emit(Wrote("fit", (str(run_dir / PHASE2_FILE), str(plot))))
 
 
