@@ -9,7 +9,12 @@ the file it writes:
 * ``--sequence FILE.ply|DIR/``: the scene over time (``--frames N``, default the run's
   stored frames), as brush's delta-frame PLY or a folder of per-time PLYs named for
   SuperSplat's sequence import (times in ``DIR.json`` beside it); ``FILE.zip`` (deprecated)
-  a zip of per-time PLYs.
+  a zip of per-time PLYs;
+* ``--4dgs FILE.4dgs``: the open ``.4dgs`` container (canonical Gaussians with SH, each
+  Gaussian's object, M_phi's tracks, the Object Table with Phase 3's embeddings; D_theta's
+  residual with ``--4dgs-keyframes K``) through ``fourdgs`` (optional: ``pip install
+  'sync4d[4dgs]'``); ``--4dgs-snapshot FILE.glb|FILE.usd`` one instant of it (``--time T``) as
+  glTF (KHR_gaussian_splatting) or USD through fourdgs' converters.
 """
 
 from __future__ import annotations
@@ -61,6 +66,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "FILE.zip (deprecated) a zip of PLYs")
     p.add_argument("--frames", type=frame_count, default=None, metavar="N",
                    help="with --sequence: N evenly spaced times (default: the run's frames)")
+    p.add_argument("--4dgs", dest="fourdgs", default=None, metavar="FILE.4dgs",
+                   help="the scene as a .4dgs file (canonical Gaussians with SH, Phase 2's "
+                   "object of each Gaussian, one track per moving object from M_phi, the "
+                   "object table with Phase 3's embeddings); needs fourdgs: pip install "
+                   "'sync4d[4dgs]'")
+    p.add_argument("--4dgs-keyframes", dest="fourdgs_keyframes", type=positive_int,
+                   default=None, metavar="K",
+                   help="with --4dgs: also keep D_theta's residual over the tracks, at K + 1 "
+                   "stored frames (K copies of every Gaussian; default: tracks alone)")
+    p.add_argument("--4dgs-snapshot", dest="fourdgs_snapshot", default=None,
+                   metavar="FILE.glb|FILE.usd",
+                   help="with --4dgs: the file's state at --time T (default 0) as glTF "
+                   "(KHR_gaussian_splatting; .glb or .gltf) or USD (.usd/.usda/.usdc, needs "
+                   "usd-core), tracks composed; static, no object ids")
     p.add_argument("--decimals", type=positive_int, default=6, metavar="D",
                    help="decimal places of the scene description's numbers (default 6)")
     add_encoder(p)
@@ -136,6 +155,8 @@ def _splats(args: argparse.Namespace, run, out: list[str]) -> None:
         if args.spz:
             sp.write_spz(args.spz, g)
             out.append(f"spz: {args.spz} ({len(g.means):,} Gaussians, {when})")
+    if args.fourdgs:
+        _fourdgs(args, run, out)
     if args.sequence:
         times = sp.default_times(run, args.frames)
         if sp.is_sequence_folder(args.sequence):
@@ -152,23 +173,47 @@ def _splats(args: argparse.Namespace, run, out: list[str]) -> None:
                       file=sys.stderr)  # fmt: skip
 
 
+def _fourdgs(args: argparse.Namespace, run, out: list[str]) -> None:
+    """Write the .4dgs file (and its snapshot) that `args` ask for."""
+    from sync4d.export import fourdgs as fd
+
+    rep = fd.write_4dgs(args.fourdgs, run, keyframes=args.fourdgs_keyframes or 0)
+    what = (f"{rep.tracks} tracks" if rep.tracks else "no tracks (no Phase 2)")
+    residual = (f"D_theta's residual at {rep.keyframes + 1} frames ({rep.records:,} records)"
+                if rep.keyframes else "no residual: the tracks alone move the objects")
+    emb = f"embeddings: {rep.embeddings}" if rep.embeddings else (rep.note or "no embeddings")
+    out.append(f"4dgs: {rep.path} ({rep.bytes:,} bytes, {rep.gaussians:,} Gaussians, "
+               f"{len(rep.objects)} objects, {what}; {residual}; {emb})")
+    if args.fourdgs_snapshot:
+        t = 0.0 if args.time is None else args.time
+        n = fd.snapshot(args.fourdgs_snapshot, fd.read_4dgs(rep.path), t)
+        out.append(f"4dgs snapshot: {args.fourdgs_snapshot} ({n:,} bytes, t = {t:g}; no viewer "
+                   "was checked to open it)")
+
+
 def main(args: argparse.Namespace) -> int:
     """Run `export` with parsed `args`; the exit status."""
     from sync4d.runs import load_run
 
     out: list[str] = []
     try:
-        if not (args.scene or args.prompt or args.ply or args.spz or args.sequence):
+        if not (args.scene or args.prompt or args.ply or args.spz or args.sequence
+                or args.fourdgs):
             raise _Usage("nothing to export: give --scene FILE.json, --prompt FILE.txt, "
-                         "--ply FILE.ply, --spz FILE.spz or --sequence FILE.ply|DIR/")
+                         "--ply FILE.ply, --spz FILE.spz, --sequence FILE.ply|DIR/ or "
+                         "--4dgs FILE.4dgs")
+        if (args.fourdgs_keyframes or args.fourdgs_snapshot) and not args.fourdgs:
+            raise _Usage("--4dgs-keyframes and --4dgs-snapshot go with --4dgs FILE.4dgs")
         if (args.vocab or args.query) and not (args.scene or args.prompt):
             raise _Usage("--vocab and --query fill the scene description: add --scene "
                          "FILE.json or --prompt FILE.txt")  # fmt: skip
-        for flag, ext in (("scene", "json"), ("prompt", "txt"), ("ply", "ply"), ("spz", "spz")):
+        for flag, ext in (("scene", "json"), ("prompt", "txt"), ("ply", "ply"), ("spz", "spz"),
+                          ("fourdgs", "4dgs")):  # fmt: skip
             given = getattr(args, flag)  # each names a file to write, not a folder
             if given is not None and (Path(given).name in ("", "..") or Path(given).is_dir()):
-                raise _Usage(f"--{flag} {given[:80]!r} is a folder; give the file to write, "
-                             f"e.g. --{flag} {given.rstrip('/') or '.'}/scene.{ext}")
+                name = "4dgs" if flag == "fourdgs" else flag
+                raise _Usage(f"--{name} {given[:80]!r} is a folder; give the file to write, "
+                             f"e.g. --{name} {given.rstrip('/') or '.'}/scene.{ext}")
         if args.time is not None and not 0.0 <= args.time <= 1.0:
             raise _Usage(f"--time {args.time}: times are normalised, give one in [0, 1]")
         if args.threads:
