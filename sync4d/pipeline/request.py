@@ -120,20 +120,22 @@ def continued_config(req: FitRequest, stored: RunConfig, kind: str | None, resta
     change; `--phases 2` (`restart`) may also change Phase 2's settings. Anything else the
     request changes is refused, naming each difference."""
     cfg = load_config(req.config) if req.config else stored
+    length = None  # the continued phase's new length alone: set once the settings are checked
     if req.iters is not None:
         if restart:
             cfg = dataclasses.replace(cfg, phase2=phase2_budget(cfg.phase2, req.iters))
         elif req.config:
             cfg = with_budget(cfg, req.iters)
-        elif kind == CheckpointKind.PHASE2:
-            cfg = dataclasses.replace(
-                cfg, phase2=dataclasses.replace(cfg.phase2, iterations=req.iters)
-            )
         else:
-            cfg = dataclasses.replace(
-                cfg, phase1=dataclasses.replace(cfg.phase1, iterations=req.iters)
-            )
-    cfg = apply_overrides(cfg, req.overrides())
+            length = "phase2" if kind == CheckpointKind.PHASE2 else "phase1"
+    overrides = req.overrides()
+    cfg = apply_overrides(cfg, overrides)
+    if length is not None and not any(o.startswith(f"{length}.iterations=") for o in overrides):
+        # After the checks: the run's windows (densification, warm-ups, starts) were set for
+        # the length it started with, and a continued run that ends before one of them only
+        # stops earlier; the rules that compare them with the length guard a new run's plan.
+        section = dataclasses.replace(getattr(cfg, length), iterations=req.iters)
+        cfg = dataclasses.replace(cfg, **{length: section})
     free = {*CADENCE_KEYS, "phase1.iterations", "phase2.iterations"}
 
     def allowed(key: str) -> bool:  # Phase 3 rebuilds its field: its settings are free
