@@ -17,6 +17,7 @@ _EXPORTS = {
          "PHASE1_CHECKPOINT_NAME",
          "PHASE2_FILE", "RENDERS_DIR", "RUN_FILE", "TRAJECTORY_PLOT"), "names"),
     **dict.fromkeys(("Run", "RunError", "load_run"), "folder"),
+    **dict.fromkeys(("RenderFailed", "render_rgb"), "render"),
 }  # fmt: skip
 
 __all__, __getattr__ = lazy_exports(__name__, _EXPORTS)

@@ -21,7 +21,7 @@ Design:
   here, reported to the caller without its text (the SDK's rule).
 * **Render errors as results.** A render the watchdog stops (a NaN or a diverged value in
   what the rasterizer would receive), that the rasterizer refuses, or whose image is not
-  finite is a `ToolProblem` too (`sync4d.serve.tools.render_problem`): one sentence, not a
+  finite is a `ToolProblem` too (`sync4d.runs.render_rgb`): one sentence, not a
   crash.
 * **Fast start.** Importing this module imports the SDK, pydantic and the query registries
   (numpy: the scorers' and rules' names become the schema's choices), not torch; `serve`

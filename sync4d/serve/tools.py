@@ -69,7 +69,7 @@ if TYPE_CHECKING:  # torch-free at run time: the run and the field load on first
     from sync4d.runs import Run
 
 __all__ = ["EVENT_KINDS", "PROMPT_URI", "RENDER_CACHE_SIZE", "SCENE_URI", "TEXT_CACHE_SIZE",
-           "RunTools", "ToolProblem", "pick_camera", "render_problem"]  # fmt: skip
+           "RunTools", "ToolProblem", "pick_camera"]  # fmt: skip
 
 _log = logging.getLogger(__name__)
 
@@ -421,19 +421,18 @@ class RunTools:
             vm = np.asarray(rec["viewmat"], dtype=np.float64).reshape(4, 4)
             cam = Camera(vm, float(rec["fx"]), float(rec["fy"]), float(rec["cx"]),
                          float(rec["cy"]), int(rec["width"]), int(rec["height"]))  # fmt: skip
+            from sync4d.runs.render import RenderFailed, render_rgb
+
             bg = torch.as_tensor(run.background, dtype=torch.float32)
+            check = (f"try another time or camera, or check the run with `sync4d render RUN "
+                     f"--time {float(t):g}`")  # fmt: skip
             try:
-                with torch.no_grad():
-                    img = run.model.render(cam, float(t), background=bg, threads=self.threads)
-                features = img.features
-                finite = bool(torch.isfinite(features).all())
-            except (FloatingPointError, ValueError, RuntimeError) as e:
-                raise render_problem(e, float(t), str(rec["name"])) from None
-        if not finite:
-            raise render_problem(None, float(t), str(rec["name"]))
-        rgb = (features.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+                rgb = render_rgb(run.model, cam, float(t), bg, self.threads,
+                                 name=str(rec["name"]), instead=check)  # fmt: skip
+            except RenderFailed as e:
+                raise ToolProblem(str(e)) from None
         buf = io.BytesIO()
-        Image.fromarray(rgb).save(buf, format="PNG")  # after its turn: no torch
+        Image.fromarray(rgb).save(buf, format="PNG")  # after its turn
         info = {"t": float(t), "camera": rec["name"], "split": rec["split"],
                 "width": int(rec["width"]), "height": int(rec["height"])}  # fmt: skip
         out = (buf.getvalue(), info)
@@ -442,31 +441,6 @@ class RunTools:
             while len(self._renders) > RENDER_CACHE_SIZE:
                 self._renders.popitem(last=False)
         return out
-
-
-def render_problem(e: BaseException | None, t: float, camera: str) -> ToolProblem:
-    """One sentence for a render at time `t` from `camera` that failed: the watchdog's stop
-    (`NonFinite`, a FloatingPointError: its tensor and rows, and its hint), the rasterizer's
-    refusal (ValueError, RuntimeError), or, `e` None, an image with NaN or inf pixels."""
-    where = f"the render at t = {t:g} from camera {camera}"
-    retrain = ("train the run again with lower learning rates (fit --out RUN --force), or "
-               "render another time")  # fmt: skip
-    if e is None:
-        text = f"{where} has NaN or inf pixels (the checkpoint is not finite there); {retrain}"
-    elif isinstance(e, FloatingPointError):  # the watchdog's NonFinite
-        head, _, _hint = str(e).partition(". Try:")
-        what = head.split("stopped: ", 1)[-1] if "stopped: " in head else head
-        text = f"{where} stopped: {what}; {retrain}"
-    else:
-        text = (f"{where} failed ({e}); try another time or camera, or check the run with "
-                f"`sync4d render RUN --time {t:g}`")  # fmt: skip
-    return ToolProblem(_one_sentence(text))
-
-
-def _one_sentence(text: str) -> str:
-    """`text` on one line with no sentence break inside and no final full stop."""
-    flat = " ".join(text.split())
-    return flat.replace(". ", "; ").rstrip(".")
 
 
 def _quietly(step: Callable[[], object]) -> None:

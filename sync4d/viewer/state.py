@@ -7,7 +7,8 @@ The browser draws splats from centres, covariances, colours and opacities: the c
 SH DC band's (view-independent; the browser does not evaluate higher bands), so a render of
 the same view through sync4d (`render_view`) can show view-dependent shading the page does not.
 A render that fails (the watchdog's stop, the rasterizer's refusal, NaN or inf pixels) is a
-`RenderFailed` of one sentence, which the page shows in place of the file it would have written.
+`RenderFailed` of one sentence (`sync4d.runs.render_rgb`), which the page shows in place of the
+file it would have written.
 """
 
 from __future__ import annotations
@@ -23,14 +24,14 @@ import torch
 from PIL import Image
 
 from sync4d.data.scene import Camera
-from sync4d.errors import Sync4dError
 from sync4d.events import read_events
 from sync4d.export.splats import default_times, splats_at
 from sync4d.geometry import quat_to_matrix
 from sync4d.phase1.gaussians import SH_C0
 from sync4d.phase3.query import TextCache, answer
 from sync4d.phase3.store import Field, FieldError, load_field
-from sync4d.runs import CHECKPOINT_NAME, EVENTS_FILE, RENDERS_DIR, Run, load_run
+from sync4d.runs import CHECKPOINT_NAME, EVENTS_FILE, RENDERS_DIR, RenderFailed, Run, load_run
+from sync4d.runs.render import render_rgb
 
 __all__ = ["HIGHLIGHT", "PALETTE", "ObjectInfo", "RenderFailed", "SplatArrays", "ViewerState"]
 
@@ -71,28 +72,6 @@ class SplatArrays:
         rgb = (1.0 - amount) * self.rgbs + amount * np.asarray(colour, np.float32)
         return SplatArrays(self.centers, self.covariances, rgb.astype(np.float32),
                            self.opacities)  # fmt: skip
-
-
-class RenderFailed(Sync4dError, ValueError):
-    """A render of the viewer that failed, in one sentence saying what to do (the page shows
-    it): the watchdog's stop on what the rasterizer would receive (a NaN or a diverged value
-    of the checkpoint at that time), the rasterizer's refusal, or NaN or inf pixels."""
-
-    @classmethod
-    def of(cls, e: BaseException | None, t: float) -> RenderFailed:
-        """The failure `e` (None: NaN or inf pixels) of a render at time `t`."""
-        where = f"the render at t = {t:.3f}"
-        retrain = ("train the run again with lower learning rates (fit --out RUN --force), or "
-                   "render another time")  # fmt: skip
-        if e is None:
-            text = f"{where} has NaN or inf pixels (the checkpoint is not finite there); {retrain}"
-        elif isinstance(e, FloatingPointError):  # the watchdog's NonFinite
-            head = str(e).partition(". Try:")[0]
-            what = head.split("stopped: ", 1)[-1]
-            text = f"{where} stopped: {what}; {retrain}"
-        else:
-            text = f"{where} failed ({e}); move the camera or the time and render again"
-        return cls(" ".join(text.split()).replace(". ", "; ").rstrip("."))
 
 
 def _covariances(quats: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
@@ -294,15 +273,7 @@ class ViewerState:
         f = 0.5 * height / math.tan(0.5 * fov)
         cam = Camera(view, f, f, width / 2.0, height / 2.0, width, height)
         bg = torch.as_tensor(self.run.background, dtype=torch.float32)
-        try:
-            with torch.no_grad():
-                img = self.run.model.render(cam, float(t), background=bg, threads=threads)
-            finite = bool(torch.isfinite(img.features).all())
-        except (FloatingPointError, ValueError, RuntimeError) as e:  # the watchdog, the raster
-            raise RenderFailed.of(e, t) from None
-        if not finite:
-            raise RenderFailed.of(None, t)
-        rgb = (img.features.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+        rgb = render_rgb(self.run.model, cam, t, bg, threads)
         out = self.run_dir / RENDERS_DIR
         out.mkdir(parents=True, exist_ok=True)
         stem = f"view_t{t:.3f}_{time.strftime('%Y%m%d-%H%M%S')}"

@@ -15,11 +15,11 @@ import shutil
 from pathlib import Path
 
 import pytest
-import torch
 from mcp import Client
 
 from support.encoders import ColourEncoder
 from support.oracle import oracle_run_folder
+from support.render import nan_render
 from sync4d import watchdog
 from sync4d.bench import serve as bench
 from sync4d.phase1.gaussians import DeformableGaussians
@@ -181,15 +181,6 @@ def test_the_text_cache_bound_keeps_the_recently_used(run_dir, tmp_path):
         run_dir / "phase3" / "texts.json").read_bytes()  # fmt: skip
 
 
-def _nan_render(real):
-    def render(self, *args, **kwargs):
-        out = real(self, *args, **kwargs)
-        out.features = torch.full_like(out.features, float("nan"))
-        return out
-
-    return render
-
-
 def test_a_failed_render_is_a_one_sentence_tool_error(run_dir, monkeypatch):
     """The watchdog's stop in a render, NaN pixels and the rasterizer's refusal reach the MCP
     client as error results of one sentence; the server answers the next render."""
@@ -201,7 +192,7 @@ def test_a_failed_render_is_a_one_sentence_tool_error(run_dir, monkeypatch):
             out = []
             with watchdog.injected("Rendering", None, "input:means"):
                 out.append(await c.call_tool("render", {"t": 0.5}))
-            monkeypatch.setattr(DeformableGaussians, "render", _nan_render(real))
+            monkeypatch.setattr(DeformableGaussians, "render", nan_render(real))
             out.append(await c.call_tool("render", {"t": 0.25, "camera": "train:1"}))
 
             def refuse(*args, **kwargs):

@@ -49,3 +49,15 @@ def python_png(model: DeformableGaussians, frame, t: float) -> np.ndarray:
     with torch.no_grad():
         img = model.render(frame.camera, t, background=torch.ones(3), threads=1).features
     return (img.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def nan_render(real):
+    """`DeformableGaussians.render` (`real`) whose image comes out all NaN: a checkpoint that
+    is not finite at a time, without making one (monkeypatch it onto the class)."""
+
+    def render(self, *args, **kwargs):
+        out = real(self, *args, **kwargs)
+        out.features = torch.full_like(out.features, float("nan"))
+        return out
+
+    return render

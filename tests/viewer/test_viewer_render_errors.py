@@ -8,9 +8,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 
 from support.oracle import oracle_run_folder
+from support.render import nan_render
 from sync4d import watchdog
 from sync4d.phase1.gaussians import DeformableGaussians
 from sync4d.runs import RENDERS_DIR
@@ -35,15 +35,6 @@ def _view(st: ViewerState, t: float) -> SimpleNamespace:
                            event=SimpleNamespace(client=SimpleNamespace(camera=cam)))
 
 
-def _nan_render(real):
-    def render(self, *args, **kwargs):
-        out = real(self, *args, **kwargs)
-        out.features = torch.full_like(out.features, float("nan"))
-        return out
-
-    return render
-
-
 def test_a_failed_render_is_one_sentence_on_the_page(state, monkeypatch):
     folder = state.run_dir / RENDERS_DIR
     before = sorted(folder.glob("view_*")) if folder.is_dir() else []
@@ -57,7 +48,7 @@ def test_a_failed_render_is_one_sentence_on_the_page(state, monkeypatch):
 
     with watchdog.injected("Rendering", None, "input:means"):
         shown.append(press(0.5))
-    monkeypatch.setattr(DeformableGaussians, "render", _nan_render(real))
+    monkeypatch.setattr(DeformableGaussians, "render", nan_render(real))
     shown.append(press(0.25))
 
     def refuse(*args, **kwargs):
