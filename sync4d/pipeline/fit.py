@@ -53,7 +53,7 @@ from sync4d.pipeline.record import continue_command, dataset_fingerprint
 from sync4d.pipeline.stages import (
     FitData,
     FitState,
-    Stage,
+    TrainingStage,
     length_advice,
     restart_phase2,
     stage_of_kind,
@@ -302,12 +302,12 @@ def run_stages(
         try:
             fit = FitState(cfg, run_dir, n_threads=0, threads=threads,
                            data_path=data.path if data is not None else data_path)  # fmt: skip
-            training = [s for s in stages if s.kind is not None]
+            training = [s for s in stages if isinstance(s, TrainingStage)]
             summary = None
             if training:
                 summary = _train(fit, data, training, resume, log_every, command or {}, stop)
             for stage in stages:
-                if stage.kind is None:  # it builds on the trained model
+                if not isinstance(stage, TrainingStage):  # it builds on the trained model
                     stage.start(fit)
                     emit(Skipped.of(stage.name, stage.counts(fit)))
             return FitOutcome(run_dir, summary, fit.built)
@@ -334,7 +334,7 @@ def event_log(run_dir: Path) -> Iterator[None]:
 def _train(
     fit: FitState,
     data: FitData,
-    training: list[Stage],
+    training: list[TrainingStage],
     resume: bool,
     log_every: int,
     command: dict,

@@ -44,7 +44,7 @@ from sync4d.pipeline.record import (
     read_record,
     recorded_config,
 )
-from sync4d.pipeline.stages import stages_for
+from sync4d.pipeline.stages import TrainingStage, stages_for
 from sync4d.runs import (
     CHECKPOINT_NAME,
     EVAL_FILE,
@@ -214,7 +214,7 @@ def _continued(req: FitRequest, kind: str, restart: bool) -> tuple[RunConfig, Fi
 def _builds_only(phases: str) -> bool:
     """Whether ``--phases`` selects no stage that trains (``3``: the language field alone)."""
     try:
-        return all(s.kind is None for s in stages_for(parse_phases(phases)))
+        return not any(isinstance(s, TrainingStage) for s in stages_for(parse_phases(phases)))
     except ConfigError:
         return False  # the config's own check names the bad value
 
@@ -232,7 +232,7 @@ def fit_request(req: FitRequest, fresh: RunConfig | None = None) -> FitOutcome:
         return fit_phase3_only(req, kind)
     fresh = fresh_config(req) if fresh is None else fresh
     first = stages_for(parse_phases(fresh.phases))[0]
-    if first.kind is None:  # no stage trains: build on the run's model
+    if not isinstance(first, TrainingStage):  # no stage trains: build on the run's model
         return fit_phase3_only(req, kind)
     restart = not first.fresh and not req.resume  # redo a later stage from the checkpoint
     if kind is not None and not (req.resume or req.force or restart):

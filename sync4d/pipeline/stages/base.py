@@ -1,6 +1,6 @@
 """What every stage is (`Stage`) and what the stages of one fit share (`FitState`): the
 dataset, the config, the run folder, the threads, the trainer the last stage left and the
-training time so far. `sync4d.pipeline.fit.run_fit` fills it and loops over the stages.
+training time so far. `sync4d.pipeline.fit.run_stages` fills it and loops over the stages.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from sync4d.phase1.trainer import Phase1Trainer
     from sync4d.pipeline.phase3 import Phase3Build
 
-__all__ = ["FitData", "FitState", "Stage"]
+__all__ = ["FitData", "FitState", "Stage", "TrainingStage"]
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,8 @@ class FitState:
 
 
 class Stage(ABC):
-    """One phase of a fit, as the loop sees it (`sync4d.pipeline.stages` says how it is used)."""
+    """One phase of a fit, as the loop sees it (`sync4d.pipeline.stages` says how it is used);
+    one that trains is a `TrainingStage`."""
 
     #: Its number in ``--phases``.
     phase: ClassVar[int]
@@ -73,38 +74,45 @@ class Stage(ABC):
     task: ClassVar[str]
     #: The checkpoint kind its training writes; None for a stage that trains nothing.
     kind: ClassVar[CheckpointKind | None] = None
-    #: Whether `start` builds a new model (the run's training time starts from zero) rather
-    #: than continuing the run's checkpoint.
-    fresh: ClassVar[bool] = False
-    #: The key under which the fit's summary keeps `counts` (None: it does not).
-    summary_counts: ClassVar[str | None] = None
-
-    def iterations(self, cfg: RunConfig) -> int:
-        """How many iterations its training loop runs (0: it has none)."""
-        return 0
-
-    def owns(self, trainer: Phase1Trainer | None) -> bool:
-        """Whether `trainer` is this stage's (its checkpoint kind is this stage's)."""
-        return trainer is not None and self.kind is not None and trainer.kind == self.kind
 
     @abstractmethod
     def start(self, fit: FitState) -> None:
         """Begin the stage: make `fit.trainer` its trainer (a stage that trains), or build its
         result (one that does not)."""
 
+    def counts(self, fit: FitState) -> dict:
+        """What it skipped (the `Skipped` event's counts)."""
+        return {}
+
+
+class TrainingStage(Stage):
+    """A stage that trains: its checkpoints are of its `kind`, and a run holding one resumes
+    through it."""
+
+    kind: ClassVar[CheckpointKind]
+    #: Whether `start` builds a new model (the run's training time starts from zero) rather
+    #: than continuing the run's checkpoint.
+    fresh: ClassVar[bool] = False
+    #: The key under which the fit's summary keeps `counts` (None: it does not).
+    summary_counts: ClassVar[str | None] = None
+
+    @abstractmethod
+    def iterations(self, cfg: RunConfig) -> int:
+        """How many iterations its training loop runs."""
+
+    def owns(self, trainer: Phase1Trainer | None) -> bool:
+        """Whether `trainer` is this stage's (its checkpoint kind is this stage's)."""
+        return trainer is not None and trainer.kind == self.kind
+
+    @abstractmethod
     def resume(self, tensors: dict[str, Tensor], meta: dict, scene: Scene, *,
                config=None, phase2=None, total_iterations: int | None = None,
                threads: int | None = None, near: float | None = None) -> Phase1Trainer:  # fmt: skip
         """The trainer a checkpoint of this stage's kind describes."""
-        raise NotImplementedError(f"{self.name} writes no checkpoint to resume")
 
     def before_loop(self, fit: FitState) -> None:
         """Called before its training loop, started or resumed (a note on what it will do)."""
         return None
-
-    def counts(self, fit: FitState) -> dict:
-        """What it skipped (the `Skipped` event's counts)."""
-        return {}
 
     def finish(self, fit: FitState, summary: dict) -> None:
         """After the final evaluation, when the fit's trainer is this stage's: its own results

@@ -12,7 +12,7 @@ from sync4d.data import Scene
 from sync4d.events import Override, ScaleAdvice, emit
 from sync4d.phase1.init import initial_model, scene_extent, with_initial_points
 from sync4d.phase1.trainer import Phase1Trainer
-from sync4d.pipeline.stages.base import FitState, Stage
+from sync4d.pipeline.stages.base import FitState, TrainingStage
 from sync4d.runs import CheckpointKind
 
 __all__ = ["LENGTH_TOLERANCE", "PHASE1", "REFERENCE_EXTENT", "SSIM_WINDOW", "Phase1Stage",
@@ -85,7 +85,7 @@ def coarse_problem(scene: Scene, p1, iteration: int = 0) -> str | None:
             f"{need:.3g} or set phase1.coarse_iterations = 0")
 
 
-class Phase1Stage(Stage):
+class Phase1Stage(TrainingStage):
     """Phase 1: a new model from the initial points, trained for `phase1.iterations`."""
 
     phase = 1

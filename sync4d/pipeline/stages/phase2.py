@@ -26,7 +26,7 @@ from sync4d.phase1.trainer import Phase1Trainer
 from sync4d.phase2.diagnostics import diagnostics
 from sync4d.phase2.strategy import MotionStrategy
 from sync4d.phase2.trainer import phase2_from_state, phase2_trainer
-from sync4d.pipeline.stages.base import FitState, Stage
+from sync4d.pipeline.stages.base import FitState, TrainingStage
 from sync4d.report import plot_object_trajectories
 from sync4d.runs import (
     CHECKPOINT_NAME,
@@ -48,7 +48,7 @@ def motion_strategy(trainer: Phase1Trainer | None) -> MotionStrategy | None:
     return next((p for p in plugins if isinstance(p, MotionStrategy)), None)
 
 
-class Phase2Stage(Stage):
+class Phase2Stage(TrainingStage):
     """Phase 2: the motion decomposition on Phase 1's model, for `phase2.iterations`."""
 
     phase = 2
