@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -67,19 +67,9 @@ METRIC_DEFINITIONS = {
 }  # fmt: skip
 
 
-@dataclass
-class FrameMetrics:
-    """Metrics of one test frame: `ssim` is the standard SSIM (None for images under 11 pixels
-    on a side), `ssim_box3` the training loss's 3x3 box SSIM, `lpips` None when LPIPS could not
-    run (weights not installed, images under 32 pixels)."""
-
-    index: int
-    name: str
-    time: float
-    psnr: float
-    ssim: float | None
-    ssim_box3: float
-    lpips: float | None = None
+#: Metrics of one test frame: the event's row (`ssim` None for images under 11 pixels on a
+#: side, `ssim_box3` the training loss's 3x3 box SSIM, `lpips` None when LPIPS could not run).
+FrameMetrics = FrameScore
 
 
 def _check_inputs(inputs: dict[str, torch.Tensor]) -> None:
@@ -130,9 +120,8 @@ def evaluate_frames(
             psnr=psnr(pred, target),
             ssim=float(ssim_gaussian(pred, target)) if _ssim_fits(pred) else None,
             ssim_box3=float(ssim(pred, target)),
+            lpips=float(lpips(pred, target)) if lpips is not None else None,
         )
-        if lpips is not None:
-            m.lpips = float(lpips(pred, target))
         if save_dir is not None:
             save_side_by_side(pred, target, save_dir / f"{Path(frame.name).stem}.png")
         out.append(m)
@@ -264,7 +253,7 @@ def evaluate_run(
     write_text_atomic(path, json.dumps(out, indent=2) + "\n")
     shown = background_tag(background) if background_label else ""
     means = Means(**summary)
-    emit(FramesEvaluated(tuple(FrameScore(**asdict(m)) for m in metrics), means, shown))
+    emit(FramesEvaluated(tuple(metrics), means, shown))
     renders_dir = (f"{run_dir / RENDERS_DIR / (tag or split)}/",) if renders else ()
     emit(Wrote("eval", (str(path), *renders_dir)))
     emit(PhaseDone("eval", EvalSummary(split, str(path), means)))
