@@ -4,6 +4,7 @@ writes, and one clear message for each thing it cannot do."""
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -94,6 +95,16 @@ def test_bad_requests_get_one_clear_message(runs, capsys, tmp_path, monkeypatch,
     assert main(["export", str(runs["run"]), *extra]) == 2
     err = capsys.readouterr().err
     assert err.startswith("export: ") and message in err and "Traceback" not in err
+
+
+def test_a_missing_4dgs_writer_is_named_with_its_install_line(runs, capsys, tmp_path,
+                                                                  monkeypatch):  # fmt: skip
+    """`--4dgs` without the optional fourdgs package: one line with the install command."""
+    monkeypatch.setitem(sys.modules, "fourdgs", None)  # `import fourdgs` raises ImportError
+    assert main(["export", str(runs["run"]), "--4dgs", str(tmp_path / "x.4dgs")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("export: ") and "pip install 'sync4d[4dgs]'" in err, err
+    assert "Traceback" not in err and not (tmp_path / "x.4dgs").exists()
 
 
 def test_missing_run_and_unwritable_output(runs, capsys, tmp_path):

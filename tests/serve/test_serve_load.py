@@ -215,3 +215,15 @@ def test_a_failed_render_is_a_one_sentence_tool_error(run_dir, monkeypatch):
     assert "t = 0.75" in texts[2] and "contains NaN or inf" in texts[2]
     assert "sync4d render RUN" in texts[2]
     assert not ok.is_error and ok.content[0].type == "image"
+
+
+def test_bench_serve_refuses_a_bad_run_or_option(run_dir, tmp_path, capsys):
+    """`bench serve`'s own refusals: one line each, exit 2, nothing served."""
+    from sync4d.cli import main
+
+    assert main(["bench", "serve", str(tmp_path / "nope")]) == 2
+    assert "no such run folder" in capsys.readouterr().err
+    assert main(["bench", "serve", str(run_dir), "--starts", "-1"]) == 2
+    assert "give 0 or more starts" in capsys.readouterr().err
+    assert main(["bench", "serve", str(run_dir), "--server-tree", str(tmp_path)]) == 2
+    assert "no sync4d package there" in capsys.readouterr().err
