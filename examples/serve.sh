@@ -3,6 +3,8 @@
 # over HTTP at http://127.0.0.1:$PORT/mcp until Ctrl-C. Without: what an agent does over stdio,
 # through the MCP SDK's own client: start `sync4d serve RUN`, list its tools, ask a query, track
 # the top object, list the events and save a render (serve-render.png), then stop the server.
+# With FOURDGS set to a .4dgs file exported from the run (sync4d export RUN --4dgs FILE), the
+# server is started with --4dgs FILE and `describe` names it.
 set -eu
 RUN="${1:-runs/synthetic}"
 PY="${PYTHON:-python3}"
@@ -13,6 +15,7 @@ fi
 import asyncio
 import base64
 import json
+import os
 import sys
 
 from mcp import Client
@@ -22,10 +25,14 @@ run, text = sys.argv[1], sys.argv[2]
 
 
 async def main() -> None:
-    server = StdioServerParameters(command=sys.executable, args=["-m", "sync4d", "serve", run])
+    extra = ["--4dgs", os.environ["FOURDGS"]] if os.environ.get("FOURDGS") else []
+    server = StdioServerParameters(command=sys.executable,
+                                   args=["-m", "sync4d", "serve", run, *extra])
     async with Client(server) as client:
         tools = (await client.list_tools()).tools
         print("tools:", ", ".join(t.name for t in tools))
+        for f in (await client.call_tool("describe", {})).structured_content["files"]:
+            print(f"file: {f['path']} ({f['format']}, {f['bytes']:,} bytes, {f['tracks']} tracks)")
         result = await client.call_tool("query", {"text": text})
         if result.is_error:
             sys.exit(result.content[0].text)

@@ -11,8 +11,9 @@ the file it writes:
   SuperSplat's sequence import (times in ``DIR.json`` beside it); ``FILE.zip`` (deprecated)
   a zip of per-time PLYs;
 * ``--4dgs FILE.4dgs``: the open ``.4dgs`` container (canonical Gaussians with SH, each
-  Gaussian's object, M_phi's tracks, the Object Table with Phase 3's embeddings; D_theta's
-  residual with ``--4dgs-keyframes K``) through ``fourdgs`` (optional: ``pip install
+  Gaussian's object, M_phi's tracks refined to D_theta, the Object Table with Phase 3's
+  embeddings, D_theta's residual where a track alone is not close enough: ``--4dgs-residual``,
+  ``--4dgs-tolerance``) through ``fourdgs`` (optional: ``pip install
   'sync4d[4dgs]'``); ``--4dgs-snapshot FILE.glb|FILE.usd`` one instant of it (``--time T``) as
   glTF (KHR_gaussian_splatting) or USD through fourdgs' converters.
 """
@@ -26,7 +27,17 @@ from pathlib import Path
 
 from sync4d.errors import Sync4dError
 from sync4d.files import write_text_atomic
-from sync4d.options import add_encoder, add_threads, frame_count, positive_int
+from sync4d.options import (
+    add_encoder,
+    add_threads,
+    frame_count,
+    non_negative_float,
+    positive_int,
+)
+
+#: `--4dgs-tolerance`'s default: `sync4d.export.fourdgs.TOLERANCE` (a test keeps them equal;
+#: imported there with torch, so not here).
+TOLERANCE = 0.05
 
 __all__ = ["add_arguments", "main", "read_vocab"]
 
@@ -71,10 +82,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "object of each Gaussian, one track per moving object from M_phi, the "
                    "object table with Phase 3's embeddings); needs fourdgs: pip install "
                    "'sync4d[4dgs]'")
-    p.add_argument("--4dgs-keyframes", dest="fourdgs_keyframes", type=positive_int,
-                   default=None, metavar="K",
-                   help="with --4dgs: also keep D_theta's residual over the tracks, at K + 1 "
-                   "stored frames (K copies of every Gaussian; default: tracks alone)")
+    p.add_argument("--4dgs-residual", dest="fourdgs_residual", default=None,
+                   choices=("all", "background", "none"),
+                   help="with --4dgs: which Gaussians may keep D_theta's residual over their "
+                   "track as piecewise-linear records: all (default), background (the objects "
+                   "move by their tracks alone), none (the tracks alone move the objects and "
+                   "the background stands still)")
+    p.add_argument("--4dgs-tolerance", dest="fourdgs_tolerance", type=non_negative_float,
+                   default=None, metavar="T",
+                   help="with --4dgs: how far, in times its own size, a Gaussian may be from "
+                   f"D_theta at a stored frame before it gets a residual (default {TOLERANCE}; "
+                   "0: every stored frame; larger: a smaller file)")
     p.add_argument("--4dgs-snapshot", dest="fourdgs_snapshot", default=None,
                    metavar="FILE.glb|FILE.usd",
                    help="with --4dgs: the file's state at --time T (default 0) as glTF "
@@ -177,10 +195,12 @@ def _fourdgs(args: argparse.Namespace, run, out: list[str]) -> None:
     """Write the .4dgs file (and its snapshot) that `args` ask for."""
     from sync4d.export import fourdgs as fd
 
-    rep = fd.write_4dgs(args.fourdgs, run, keyframes=args.fourdgs_keyframes or 0)
+    kw = {"residual": args.fourdgs_residual, "tolerance": args.fourdgs_tolerance}
+    rep = fd.write_4dgs(args.fourdgs, run, **{k: v for k, v in kw.items() if v is not None})
     what = (f"{rep.tracks} tracks" if rep.tracks else "no tracks (no Phase 2)")
-    residual = (f"D_theta's residual at {rep.keyframes + 1} frames ({rep.records:,} records)"
-                if rep.keyframes else "no residual: the tracks alone move the objects")
+    residual = (f"D_theta's residual on {rep.residual_gaussians:,} Gaussians "
+                f"({rep.records:,} records)" if rep.residual_gaussians
+                else "no residual: the tracks alone move the objects")
     emb = f"embeddings: {rep.embeddings}" if rep.embeddings else (rep.note or "no embeddings")
     out.append(f"4dgs: {rep.path} ({rep.bytes:,} bytes, {rep.gaussians:,} Gaussians, "
                f"{len(rep.objects)} objects, {what}; {residual}; {emb})")
@@ -202,8 +222,10 @@ def main(args: argparse.Namespace) -> int:
             raise _Usage("nothing to export: give --scene FILE.json, --prompt FILE.txt, "
                          "--ply FILE.ply, --spz FILE.spz, --sequence FILE.ply|DIR/ or "
                          "--4dgs FILE.4dgs")
-        if (args.fourdgs_keyframes or args.fourdgs_snapshot) and not args.fourdgs:
-            raise _Usage("--4dgs-keyframes and --4dgs-snapshot go with --4dgs FILE.4dgs")
+        if (args.fourdgs_residual or args.fourdgs_tolerance is not None
+                or args.fourdgs_snapshot) and not args.fourdgs:
+            raise _Usage("--4dgs-residual, --4dgs-tolerance and --4dgs-snapshot go with --4dgs "
+                         "FILE.4dgs")
         if (args.vocab or args.query) and not (args.scene or args.prompt):
             raise _Usage("--vocab and --query fill the scene description: add --scene "
                          "FILE.json or --prompt FILE.txt")  # fmt: skip

@@ -41,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sse", action="store_true",
                    help="with --http: the older SSE transport (at /sse) for clients without "
                    "streamable HTTP")
+    p.add_argument("--4dgs", dest="fourdgs", default=None, metavar="FILE.4dgs",
+                   help="a .4dgs file exported from this run (sync4d export RUN --4dgs FILE): "
+                   "describe names it (refused when it is of another checkpoint)")
     add_encoder(p)
     add_threads(p, "torch and the rasterizer")
 
@@ -68,7 +71,7 @@ def main(args: argparse.Namespace) -> int:
     """Run `serve` with parsed `args`; the exit status."""
     from sync4d.serve.tools import RunTools
 
-    tools = RunTools(args.run, encoder=args.encoder, threads=args.threads)
+    tools = RunTools(args.run, encoder=args.encoder, threads=args.threads, fourdgs=args.fourdgs)
     try:
         tools.check()
         http = parse_address(args.http) if args.http else None

@@ -5,45 +5,52 @@ PyPI ``fourdgs==0.6.0``; an optional dependency: ``pip install 'sync4d[4dgs]'``)
 What is kept (`write_4dgs`):
 
 - the Gaussians as the file's base state: each one's least-squares rest in its object's frame
-  (D_theta's state at every stored frame with M_phi's pose undone, ``R^T (x - T)`` and
-  ``R^-1 (x) q``, averaged; scales geometrically; untracked ones averaged in world space), or
-  for a Phase 1 run the canonical Gaussians; unit rotations, linear scales, opacity
-  (``sigmoid(logit)``), the DC colour as the format's RGB ``0.5 + SH_C0 * sh_dc`` clipped to
-  [0, 1] (the format's colour grid: its writer's own check refuses values outside; the share
-  clipped is in the Header's metadata) and SH bands 1..3;
+  (D_theta's state at every stored frame with its track's pose undone, ``R^T (x - T)`` and
+  ``R^-1 (x) q``, averaged; scales geometrically; untracked ones in world space), or for a
+  Phase 1 run the canonical Gaussians; unit rotations, linear scales, opacity
+  (``sigmoid(logit)``), SH bands 1..3 and the DC colour as the format's RGB
+  ``0.5 + SH_C0 * sh_dc``, which its grid holds in [0, 1] only: a colour outside is clipped and
+  the Gaussian's SH rest refit so that it looks the same from the run's cameras
+  (`_fit_into_gamut`; the share clipped is in the Header's metadata);
 - Phase 2's object of every Gaussian in the format's ``object_id`` stream (0 = background);
 - one Object Track per foreground object (``background_track``: also the background's, under a
   new id named "background", since the format lets no track move object 0): M_phi's pose at
-  each stored frame (run.times), interpolated by the format's ``linear`` rule (translation
-  lerp, shortest-arc slerp, clamped outside the samples), which is SE3Table's own rule
-  between frames, so the track moves the base as M_phi moves its points (``R x + t``; in
-  affine mode R is the rotation of the polar decomposition and the rest of A is lost);
+  each stored frame (run.times) refined to D_theta (`_refine_tracks`: robust weighted
+  generalised Procrustes from M_phi's poses; ``refine=False`` writes M_phi's as stored; in
+  affine mode R is the rotation of the polar decomposition and the rest of A is lost),
+  interpolated by the format's ``linear`` rule (translation lerp, shortest-arc slerp, clamped
+  outside the samples), SE3Table's own rule between frames;
 - the Object Table: per object its name, an anchor (the median canonical mean of its
   Gaussians) and, where Phase 3 ran, its static embedding (`Field.static`, the appearance
   embedding ``query`` ranks by) with the encoder named in the Header's metadata
   (``sync4d.encoder.kind``, ``.dim``, ``.fingerprint``);
-- optionally (``keyframes=K``) D_theta's residual over M_phi as the format's temporal fields:
-  each Gaussian is written K times, copy j valid over ``[s_j, s_{j+1})`` (s: K + 1 of the stored
-  frames, evenly picked; the last window open-ended), its base centre in the object's frame at
-  s_j (``R(s_j)^T (x_D(s_j) - T(s_j))``) moving linearly to the one at s_{j+1}, its rotation
-  (``R(s_j)^-1 (x) q_D(s_j)``) and scale D_theta's at s_j. The state is exact (up to
-  quantisation) at the s_j, linear in the object's frame between them. It costs K times the
-  Gaussians.
+- D_theta's residual where a track alone is not close enough: a Gaussian that its track leaves
+  further than ``tolerance`` times its largest scale from D_theta at some stored frame
+  (`_state_error`: centre distance plus the Frobenius distance of the extents ``R diag(s)
+  R^T``) is written as piecewise-linear records of the format's temporal fields instead of
+  one: a record per segment between stored frames a and b, its object-frame state at a with
+  the centre moving linearly to b's, valid over ``[t_a, t_b)`` (the last open-ended); segments
+  are halved while a stored frame inside is further than the tolerance (`_segments`).
+  ``residual="background"`` allows this only for untracked Gaussians (the objects then move by
+  their tracks alone), ``"none"`` for none.
 
-What is lost: without ``keyframes`` D_theta's residual (the non-rigid part: the background's
-motion, per-Gaussian deviations from the object's pose, scale changes; measured in
-docs/export.md); M_phi's pose of the background (unless ``background_track``); the per-frame
-embeddings (``sync``) and the rest of the field; SH and colours are quantised (the
-``default`` profile: RGB and opacity to 1/255, SH coefficients to 8 bits over [-4, 4], error
-<= 4/255, values beyond clipped; positions to 5% of the median scale).
+What is lost: D_theta between the stored frames beyond linear, and within the tolerance at
+them (all of its residual with ``residual="none"``); M_phi's pose of the background (unless
+``background_track``); the per-frame embeddings (``sync``) and the rest of the field; values
+are quantised (the ``default`` profile: RGB and opacity to 1/255, SH coefficients to 8 bits
+over [-4, 4], values beyond clipped; positions to 5% of the median scale). docs/export.md
+measures each on bouncingballs.
+
+Memory: the states at every stored frame are held as float32, 52 bytes per Gaussian and frame.
 
 Conventions: quaternions in the file are x, y, z, w (sync4d's are w, x, y, z); SH layout is the
 format's (and PLY's) channel-major ``(n, 3 * coeffs)``, bands 1..3 only, DC in the RGB; space is
 the run's world frame and units, unconverted (the Header's ``coordinate_system`` metadata says
 ``z-up-right-handed`` or ``y-up-right-handed`` when the cameras' mean up is that axis, and is
 absent otherwise); time: the file's clock is sync4d's normalised time, ``duration_sec`` 1.0 (a
-time t in [0, 1] is the scene second t), every base Gaussian valid from 0 on and never fading
-(``sigma_t`` inf, window ``[0, inf)``).
+time t in [0, 1] is the scene second t), every Gaussian never fading (``sigma_t`` inf), a base
+record valid over ``[0, inf)``; the checkpoint's SHA-256 in ``sync4d.checkpoint.sha256`` (so
+`sync4d serve --4dgs` can refuse a file of another checkpoint).
 
 Reading back (`read_4dgs`, `splats_from_4dgs`) uses the format's own object-layer rule
 (`fourdgs.Scene.state_at`: the base state, then the object's track composed once); `render_4dgs`
@@ -59,15 +66,18 @@ import math
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from sync4d import __version__
 from sync4d.export.errors import ExportError
-from sync4d.files import write_atomic
-from sync4d.runs.folder import Run
+from sync4d.files import file_sha256, write_atomic
+
+if TYPE_CHECKING:  # torch and the run load with the functions that use them
+    import torch
+
+    from sync4d.runs.folder import Run
 
 __all__ = [
     "FOURDGS_VERSION",
@@ -87,6 +97,15 @@ FOURDGS_VERSION = "0.6.0"
 INSTALL = f"pip install 'sync4d[4dgs]' (or: pip install fourdgs=={FOURDGS_VERSION})"
 _SH_C0 = 0.28209479177387814
 _SH_LO, _SH_HI = -4.0, 4.0
+#: What `write_4dgs(residual=...)` accepts.
+RESIDUAL_CHOICES = ("all", "background", "none")
+#: How far (times its largest scale) a Gaussian may be from D_theta at a stored frame before it
+#: gets a residual (docs/export.md measures 0.05 to 0.5 on bouncingballs).
+TOLERANCE = 0.05
+#: The pull of `_fit_into_gamut`'s SH refit towards the old coefficients (per view): of 1e-3,
+#: 1e-2 and 1e-1, 1e-3 kept bouncingballs' 20 test views (directions no fit saw) nearest the
+#: run's render (a sweep, not recorded; docs/export.md measures the fit against the clip).
+COLOUR_RIDGE = 1e-3
 
 
 def fourdgs_module() -> Any:
@@ -100,8 +119,10 @@ def fourdgs_module() -> Any:
 
 @dataclass
 class FourDGSReport:
-    """What `write_4dgs` wrote: the file, its size, the Gaussians (base and, with keyframes,
-    all copies), objects, tracks, whether embeddings went in (and why not), seconds."""
+    """What `write_4dgs` wrote: the file, its size, the Gaussians and the records (a Gaussian
+    with a residual has one per segment), objects, tracks, how many Gaussians hold a residual,
+    each one's largest distance from D_theta with its track alone [N] (world units,
+    `_state_error`), whether embeddings went in (and why not), seconds."""
 
     path: Path
     bytes: int
@@ -109,7 +130,8 @@ class FourDGSReport:
     records: int
     objects: list[str]
     tracks: int
-    keyframes: int
+    residual_gaussians: int
+    deviation: np.ndarray
     embeddings: str | None
     note: str = ""
     seconds: float = 0.0
@@ -197,16 +219,71 @@ def _sh_bytes(sh_rest: np.ndarray) -> np.ndarray:
     return np.clip(np.rint((flat - _SH_LO) / (_SH_HI - _SH_LO) * 255.0), 0, 255).astype(np.uint8)
 
 
-def _keyframe_times(times: np.ndarray, k: int) -> np.ndarray:
-    idx = np.unique(np.rint(np.linspace(0, len(times) - 1, k + 1)).astype(int))
-    return np.asarray(times, dtype=np.float64)[idx]
+def _camera_centres(run: Run) -> np.ndarray:
+    """The run's training camera centres, float64 [C, 3] (world space)."""
+    out = []
+    for c in run.cameras:
+        v = np.asarray(c["viewmat"], dtype=np.float64).reshape(4, 4)
+        out.append(-v[:3, :3].T @ v[:3, 3])
+    return np.asarray(out).reshape(-1, 3)
 
 
-def write_4dgs(path: str | Path, run: Run, *, keyframes: int = 0, profile: str = "default",
-               background_track: bool = False) -> FourDGSReport:  # fmt: skip
-    """Write `run` as a `.4dgs` file at `path` (atomically); what was written. `keyframes` K > 0
-    keeps D_theta's residual over M_phi at K + 1 stored frames (K copies of every Gaussian; see
-    the module docstring). ExportError when `fourdgs` is missing or the run cannot be written."""
+def _fit_into_gamut(
+    rgb: np.ndarray, sh_rest: np.ndarray, means: np.ndarray, centres: np.ndarray,
+    ridge: float = COLOUR_RIDGE, chunk: int = 2048,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Colours the format's grid holds: the DC colour `rgb` [N, 3] clipped to [0, 1], and for
+    each Gaussian that clipped, its SH rest [N, K, 3] refit so that its colour seen from the
+    camera `centres` [C, 3] stays what it was (ridge least squares per Gaussian and channel over
+    the C view directions from `means` [N, 3], pulled towards the old rest by `ridge` times C;
+    bands 1.. are orthogonal to a constant on the whole sphere, not over the views a capture
+    has). Returns the clipped RGB, the new rest and the clipped Gaussians' mask [N]."""
+    import torch
+
+    from sync4d import raster
+
+    clipped_rgb = np.clip(rgb, 0.0, 1.0)
+    mask = (clipped_rgb != rgb).any(axis=1)
+    rest = sh_rest.copy()
+    k = sh_rest.shape[1]
+    if not k or not mask.any() or not len(centres):
+        return clipped_rgb, rest, mask
+    degree = int(round(math.sqrt(k + 1))) - 1
+    idx = np.flatnonzero(mask)
+    c = len(centres)
+    eye = torch.eye(k + 1, dtype=torch.float64)
+    for s in range(0, len(idx), chunk):
+        sel = idx[s:s + chunk]
+        dirs = (means[sel, None, :] - centres[None]).reshape(-1, 3)
+        basis = raster.spherical_harmonics(
+            degree, torch.as_tensor(dirs), eye.expand(len(dirs), k + 1, k + 1).contiguous(),
+            threads=1).numpy().reshape(len(sel), c, k + 1)  # fmt: skip
+        b0, br = basis[:, :, :1], basis[:, :, 1:]
+        dc_old = (rgb[sel] - 0.5) / _SH_C0
+        dc_new = (clipped_rgb[sel] - 0.5) / _SH_C0
+        # keep B0 dc + Br rest: Br rest' = Br rest + B0 (dc - dc'), ridge towards rest
+        target = br @ rest[sel] + b0 * (dc_old - dc_new)[:, None, :]
+        lhs = np.swapaxes(br, 1, 2) @ br + ridge * c * np.eye(k)
+        rhs = np.swapaxes(br, 1, 2) @ target + ridge * c * rest[sel]
+        rest[sel] = np.linalg.solve(lhs, rhs)
+    return clipped_rgb, rest, mask
+
+
+def write_4dgs(
+    path: str | Path, run: Run, *, tolerance: float = TOLERANCE, residual: str = "all",
+    refine: bool = True, fit_colours: bool = True, profile: str = "default",
+    background_track: bool = False,
+) -> FourDGSReport:  # fmt: skip
+    """Write `run` as a `.4dgs` file at `path` (atomically); what was written. `residual`:
+    which Gaussians may hold D_theta's residual over their track ("all", "background": the
+    untracked ones only, so the objects move by their tracks alone, "none"); those whose track
+    alone leaves them further than `tolerance` times their largest scale from D_theta at some
+    stored frame get piecewise-linear records instead of one (see the module docstring).
+    `refine`: M_phi's poses refined to D_theta (else as stored); `fit_colours`: the SH rest of
+    Gaussians whose colour the format clips refit over the run's views. ExportError when
+    `fourdgs` is missing or the run cannot be written."""
+    import torch
+
     fd = fourdgs_module()
     start = _time.perf_counter()
     path = Path(path)
@@ -220,13 +297,19 @@ def write_4dgs(path: str | Path, run: Run, *, keyframes: int = 0, profile: str =
         scales0 = torch.exp(model.log_scales).detach().double().numpy()
         alpha = torch.sigmoid(model.opacity_logits).detach().double().numpy()
         rgb = 0.5 + _SH_C0 * model.sh_dc[:, 0, :].detach().double().numpy()
-        clipped = float(((rgb < 0.0) | (rgb > 1.0)).any(axis=1).mean())
-        rgb = np.clip(rgb, 0.0, 1.0)  # the format's colour grid holds [0, 1] only
         sh_rest = model.sh_rest.detach().double().numpy()
     for name, arr in (("means", means0), ("quats", quats0), ("scales", scales0), ("rgb", rgb),
                       ("sh_rest", sh_rest), ("opacity", alpha)):  # fmt: skip
         if not np.isfinite(arr).all():
             raise ExportError(path, f"cannot write: {name} holds NaN or inf (a diverged fit?)")
+    # The format's colour grid holds [0, 1] only: clip, and carry what clipping loses into the
+    # SH rest over the run's views.
+    if fit_colours:
+        rgb, sh_rest, clip_mask = _fit_into_gamut(rgb, sh_rest, means0, _camera_centres(run))
+    else:
+        clip_mask = ((rgb < 0.0) | (rgb > 1.0)).any(axis=1)
+        rgb = np.clip(rgb, 0.0, 1.0)
+    clipped = float(clip_mask.mean())
     degree = model.sh_degree if sh_rest.shape[1] else 0
     sh = _sh_bytes(sh_rest) if degree else None
 
@@ -258,7 +341,8 @@ def write_4dgs(path: str | Path, run: Run, *, keyframes: int = 0, profile: str =
             "sync4d.time": "normalised: scene second t is the run's time t in [0, 1]",
             "sync4d.quaternions": "x, y, z, w (sync4d's are w, x, y, z)",
             "sync4d.colours_clipped": f"{clipped:.6f} of the Gaussians' DC colours clipped to "
-            "[0, 1]"}  # fmt: skip
+            "[0, 1]" + ("; their SH rest refit over the run's camera views" if fit_colours
+                        else "")}  # fmt: skip
     if fld is not None:
         static = np.asarray(fld.static, dtype=np.float64)
         for i, lab in enumerate(fld.labels):
@@ -268,6 +352,8 @@ def write_4dgs(path: str | Path, run: Run, *, keyframes: int = 0, profile: str =
                      "sync4d.encoder.dim": str(enc.get("dim", static.shape[1])),
                      "sync4d.encoder.fingerprint": str(enc.get("fingerprint", "")),
                      "sync4d.embeddings": "Field.static: each object's appearance embedding"})
+    if run.checkpoint.is_file():  # (a Run built in memory has none)
+        meta["sync4d.checkpoint.sha256"] = file_sha256(run.checkpoint)
     coords = coordinate_system(run)
     if coords:
         meta["coordinate_system"] = coords
@@ -288,58 +374,86 @@ def write_4dgs(path: str | Path, run: Run, *, keyframes: int = 0, profile: str =
                             entries=entries) if entries else None)  # fmt: skip
     layer = fd.ObjectLayer(table=table, tracks=tracks) if table or tracks else None
 
-    # The base state (one copy per Gaussian), or K copies holding D_theta's residual.
-    if keyframes and (times is None or len(times) < 2):
-        raise ExportError(path, "--4dgs-keyframes needs a Phase 2 run (its stored frames)")
+    # The base state (one record per Gaussian), or for a Gaussian its track alone keeps no
+    # closer than `tolerance` times its size to D_theta, piecewise-linear records.
+    if residual not in RESIDUAL_CHOICES:
+        raise ExportError(path, f"residual {residual!r}: give one of {', '.join(RESIDUAL_CHOICES)}")
+    if not tolerance >= 0.0:
+        raise ExportError(path, f"tolerance {tolerance}: give a number >= 0 (0: every stored "
+                          "frame exact; larger: fewer records)")
     tracked = (np.isin(file_ids, [tr.object_id for tr in tracks]) if tracks
                else np.zeros(n, bool))  # fmt: skip
     lab = np.where(tracked, labels, 0)  # the M_phi row that moves each Gaussian
+    needs = np.zeros(n, bool)
+    deviation = np.zeros(n)
+    order = np.arange(n)  # the Gaussian each record is a copy of
     if times is None:  # a Phase 1 run: the canonical Gaussians, nothing moves them
         pos, vel, rots, scl = means0, np.zeros_like(means0), _quat_wxyz_to_xyzw(quats0), scales0
-        mu, lo, hi, rep = np.zeros(n), np.zeros(n), np.full(n, np.inf), 1
+        mu, lo, hi = np.zeros(n), np.zeros(n), np.full(n, np.inf)
     else:
-        frames = times if not keyframes else _keyframe_times(times, int(keyframes))
-        cs, qs, ss = [], [], []
-        for t in frames:
-            c, q, sc = _in_object_frame(model, rot, trans, times, float(t), lab, tracked)
-            if keyframes:
-                cs.append(c), qs.append(q), ss.append(sc)
-            else:  # running sums for the rest state (least squares over the stored frames)
-                if not cs:
-                    cs, qs, ss = [np.zeros_like(c)], [q.copy()], [np.zeros_like(sc)]
-                    first = q
-                else:
-                    qs[0] += np.where((np.sum(q * first, axis=1) < 0)[:, None], -q, q)
-                cs[0] += c
-                ss[0] += np.log(sc)
-        if keyframes:
-            kk = len(frames) - 1
-            pos = np.concatenate(cs[:kk])
-            vel = np.concatenate([(cs[j + 1] - cs[j]) / (frames[j + 1] - frames[j])
-                                  for j in range(kk)])  # fmt: skip
-            rots, scl = np.concatenate(qs[:kk]), np.concatenate(ss[:kk])
-            mu = lo = np.repeat(frames[:kk], n)
-            hi = np.repeat(np.r_[frames[1:kk], np.inf], n)
-            rep = kk
-        else:
-            f = float(len(frames))
-            pos, rots, scl = cs[0] / f, qs[0], np.exp(ss[0] / f)
-            rots = rots / np.maximum(np.linalg.norm(rots, axis=1, keepdims=True), 1e-30)
-            vel = np.zeros_like(pos)
-            mu, lo, hi, rep = np.zeros(n), np.zeros(n), np.full(n, np.inf), 1
-    count = n * rep
+        wc, wq, ws = _world_states(model, times)
+        if refine and tracks:
+            rot, trans = _refine_tracks(wc, alpha, labels, rot, trans,
+                                        sorted({int(k) for k in lab[tracked]}))  # fmt: skip
+            for tr in tracks:
+                k = tr.object_id if tr.object_id < rot.shape[0] else 0
+                tr.rotations = [_matrix_to_quat_xyzw(r).tolist() for r in rot[k]]
+                tr.translations = trans[k].tolist()
+        _to_object_frame(wc, wq, rot, trans, lab, tracked)
+        # the rest: least squares over the stored frames (mean centre, sign-aligned mean
+        # quaternion, geometric mean scale)
+        pos = wc.mean(axis=0, dtype=np.float64)
+        rots = wq.sum(axis=0, dtype=np.float64)
+        rots /= np.maximum(np.linalg.norm(rots, axis=1, keepdims=True), 1e-30)
+        scl = np.exp(np.log(ws).mean(axis=0, dtype=np.float64))
+        for j in range(len(times)):
+            deviation = np.maximum(deviation, _state_error(pos, rots, scl, wc[j], wq[j], ws[j]))
+        limit = tolerance * scl.max(axis=1)
+        needs = {"all": deviation > limit, "background": (deviation > limit) & ~tracked,
+                 "none": np.zeros(n, bool)}[residual]  # fmt: skip
+        vel = np.zeros_like(pos)
+        mu, lo, hi = np.zeros(n), np.zeros(n), np.full(n, np.inf)
+        if needs.any():
+            idx = np.flatnonzero(needs)
+            parts = [np.flatnonzero(~needs)]
+            cols: dict[str, list[np.ndarray]] = {k: [a[~needs]] for k, a in
+                (("pos", pos), ("vel", vel), ("rot", rots), ("scl", scl), ("mu", mu),
+                 ("lo", lo), ("hi", hi))}  # fmt: skip
+            last = len(times) - 1
+            for sub, a, b in _segments(times, wc[:, idx], wq[:, idx], ws[:, idx], limit[idx]):
+                g = idx[sub]
+                m = len(g)
+                parts.append(g)
+                cols["pos"].append(wc[a, g].astype(np.float64))
+                cols["vel"].append((wc[b, g] - wc[a, g]).astype(np.float64)
+                                   / (times[b] - times[a]))  # fmt: skip
+                cols["rot"].append(wq[a, g].astype(np.float64))
+                cols["scl"].append(ws[a, g].astype(np.float64))
+                cols["mu"].append(np.full(m, times[a]))
+                cols["lo"].append(np.full(m, times[a] if a else min(0.0, times[0])))
+                cols["hi"].append(np.full(m, times[b] if b < last else np.inf))
+            order = np.concatenate(parts)
+            pos, vel, rots, scl, mu, lo, hi = (np.concatenate(cols[k]) for k in
+                                               ("pos", "vel", "rot", "scl", "mu", "lo", "hi"))
+    count = len(order)
     g = fd.GaussianSet(
         positions=pos.astype(np.float32), scales=scl.astype(np.float32),
         rotations=rots.astype(np.float32),
-        colors=np.tile(np.concatenate([rgb, alpha[:, None]], axis=1), (rep, 1)).astype(np.float32),
+        colors=np.concatenate([rgb, alpha[:, None]], axis=1)[order].astype(np.float32),
         motions=vel.astype(np.float32), mu_t=mu.astype(np.float32),
         sigma_t=np.full(count, np.inf, dtype=np.float32), win_lo=lo, win_hi=hi,
-        sh=None if sh is None else np.tile(sh, (rep, 1)), sh_degree=degree,
-        object_id=np.tile(file_ids, rep).astype(np.uint32),
+        sh=None if sh is None else sh[order], sh_degree=degree,
+        object_id=file_ids[order].astype(np.uint32),
     )  # fmt: skip
+    nres = int(needs.sum())
+    meta["sync4d.tracks"] = ("M_phi's poses refined to D_theta (weighted Procrustes)" if refine
+                             else "M_phi's poses as stored")  # fmt: skip
     meta["sync4d.residual"] = (
-        f"D_theta's residual over M_phi at {rep + 1} stored frames ({rep} copies per Gaussian)"
-        if keyframes else "none: the tracks alone move the objects (D_theta's residual left out)"
+        f"D_theta's residual ({residual}) as {count - n + nres} piecewise-linear records for "
+        f"the {nres} Gaussians their track alone keeps further than {tolerance:g} times their "
+        "largest scale from D_theta at some stored frame"
+        if nres else f"none ({residual}): the tracks alone move the objects (D_theta's residual "
+        "left out)"
     )  # fmt: skip
     opts = fd.WriteOptions(profile=profile, metadata=meta, objects=layer,
                            scene_profile="objects" if table is not None else "",
@@ -353,29 +467,140 @@ def write_4dgs(path: str | Path, run: Run, *, keyframes: int = 0, profile: str =
     write_atomic(path, lambda tmp: tmp.write_bytes(data))
     return FourDGSReport(
         path=path, bytes=size, gaussians=n, records=count,
-        objects=[e.label for e in entries], tracks=len(tracks), keyframes=rep if keyframes else 0,
+        objects=[e.label for e in entries], tracks=len(tracks), residual_gaussians=nres,
+        deviation=deviation,
         embeddings=None if fld is None else f"{len(emb)} objects, {fld.encoder.get('kind')} "
         f"encoder, {len(next(iter(emb.values())))} dims" if emb else None,
         note=why or "", seconds=_time.perf_counter() - start, metadata=meta,
     )  # fmt: skip
 
 
-def _in_object_frame(
-    model: Any, rot: np.ndarray, trans: np.ndarray, times: np.ndarray, t: float,
-    lab: np.ndarray, tracked: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """D_theta's Gaussians at the stored frame `t` in their object's frame (M_phi's pose there
-    undone: ``R^T (x - T)``, ``R^-1 (x) q``; untracked ones as they are): centres [N, 3],
-    quaternions [N, 4] x, y, z, w, scales [N, 3], float64."""
-    j = int(np.argmin(np.abs(times - t)))
+def _refine_tracks(
+    centres: np.ndarray, weights: np.ndarray, labels: np.ndarray, rot: np.ndarray,
+    trans: np.ndarray, objects: list[int], iters: int = 6,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """M_phi's poses refined to D_theta: for each of `objects`, from M_phi's rotations [K, T, 3,
+    3] and translations [K, T, 3], `iters` rounds of robust weighted generalised Procrustes:
+    the rest shape as the mean of the object's points with the poses undone, then per frame
+    the rigid motion (Kabsch) that takes it nearest D_theta's `centres` [T, N, 3], each point
+    weighted by `weights` [N] (opacity) times a Cauchy weight ``1 / (1 + (r / 2 r_med)^2)`` of
+    its RMS distance r over the frames, so the few Gaussians that leave the object (a shadow
+    given to it, a squash) do not drag its pose. New arrays, float64."""
+    rot, trans = rot.copy(), trans.copy()
+    for k in objects:
+        sel = labels == k
+        if sel.sum() < 3:
+            continue
+        x = centres[:, sel].astype(np.float64)  # [T, n, 3]
+        r, b = rot[k], trans[k]
+        robust = np.ones(int(sel.sum()))
+        for _ in range(iters):
+            rest = np.einsum("tji,tnj->ni", r, x - b[:, None]) / len(x)
+            w = weights[sel] * robust
+            w = w / max(float(w.sum()), 1e-30)
+            pc = w @ rest
+            xc = np.einsum("n,tnj->tj", w, x)
+            h = np.einsum("n,ni,tnj->tij", w, rest - pc, x - xc[:, None])
+            u, _, vt = np.linalg.svd(h)
+            d = np.sign(np.linalg.det(np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)))
+            vt[:, -1] *= d[:, None]
+            r = np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)
+            b = xc - r @ pc
+            dist = np.sqrt(np.mean(np.sum((np.einsum("tij,nj->tni", r, rest) + b[:, None] - x)
+                                          ** 2, axis=2), axis=0))  # fmt: skip
+            robust = 1.0 / (1.0 + (dist / max(2.0 * float(np.median(dist)), 1e-12)) ** 2)
+        rot[k], trans[k] = r, b
+    return rot, trans
+
+
+def _world_states(model: Any, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """D_theta's Gaussians at every stored frame: centres [T, N, 3], quaternions [T, N, 4]
+    (x, y, z, w) and scales [T, N, 3], float32 (52 bytes per Gaussian and frame)."""
+    import torch
+
+    cs, qs, ss = [], [], []
     with torch.no_grad():
-        m, q, sc = model.at_time(float(times[j]))
-    m, q = m.double().numpy(), _quat_wxyz_to_xyzw(q.double().numpy())
-    r_g, b_g = rot[lab, j], trans[lab, j]
-    base = np.where(tracked[:, None], np.einsum("nji,nj->ni", r_g, m - b_g), m)
-    rq = np.stack([_matrix_to_quat_xyzw(r) for r in rot[:, j]]) * np.array([-1.0, -1.0, -1.0, 1.0])
-    qb = np.where(tracked[:, None], _quat_mul_xyzw(rq[lab], q), q)
-    return base, qb, sc.double().numpy()
+        for t in times:
+            m, q, sc = model.at_time(float(t))
+            cs.append(m.float().numpy())
+            qs.append(_quat_wxyz_to_xyzw(q.double().numpy()).astype(np.float32))
+            ss.append(sc.float().numpy())
+    return np.stack(cs), np.stack(qs), np.stack(ss)
+
+
+def _to_object_frame(
+    centres: np.ndarray, quats: np.ndarray, rot: np.ndarray, trans: np.ndarray, lab: np.ndarray,
+    tracked: np.ndarray,
+) -> None:  # fmt: skip
+    """Undo each tracked Gaussian's object pose in place, frame by frame: centres ``R^T (x -
+    T)``, quaternions ``R^-1 (x) q`` (sign-aligned with frame 0); untracked ones stay."""
+    for j in range(len(centres)):
+        r, b = rot[lab, j], trans[lab, j]
+        c = centres[j].astype(np.float64)
+        centres[j] = np.where(tracked[:, None], np.einsum("nji,nj->ni", r, c - b), c)
+        rq = np.stack([_matrix_to_quat_xyzw(m) for m in rot[:, j]]) * np.array([-1, -1, -1, 1.0])
+        q = np.where(tracked[:, None], _quat_mul_xyzw(rq[lab], quats[j].astype(np.float64)),
+                     quats[j])  # fmt: skip
+        if j:
+            q = np.where((np.sum(q * quats[0], axis=1) < 0)[:, None], -q, q)
+        quats[j] = q
+
+
+def _quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of quaternions [..., 4] (x, y, z, w; normalised here)."""
+    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-30)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                     2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                     2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+                    axis=-1).reshape(*q.shape[:-1], 3, 3)  # fmt: skip
+
+
+def _shape(q: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """A Gaussian's extent as the symmetric square root of its covariance, ``R diag(s) R^T``
+    [..., 3, 3], from quaternions (x, y, z, w) [..., 4] and scales [..., 3]."""
+    r = _quat_xyzw_to_matrix(q)
+    return (r * s[..., None, :]) @ np.swapaxes(r, -1, -2)
+
+
+def _state_error(
+    c: np.ndarray, q: np.ndarray, s: np.ndarray, c_ref: np.ndarray, q_ref: np.ndarray,
+    s_ref: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """How far a written state (`c`, `q`, `s`: centres, x, y, z, w quaternions, scales, [..., n,
+    3|4|3]) is from D_theta's (`*_ref`), in world units [..., n]: the centres' distance plus
+    the Frobenius distance of the extents (`_shape`: a scale's change counts as itself, a turn
+    as the angle times the difference of the scales it mixes, so a sphere may turn freely)."""
+    return (np.linalg.norm(c - c_ref, axis=-1)
+            + np.linalg.norm(_shape(q, s) - _shape(q_ref, s_ref), axis=(-2, -1)))  # fmt: skip
+
+
+def _segments(
+    times: np.ndarray, c: np.ndarray, q: np.ndarray, s: np.ndarray, limit: np.ndarray,
+) -> list[tuple[np.ndarray, int, int]]:  # fmt: skip
+    """Piecewise-linear paths for Gaussians whose object-frame states `c`, `q`, `s` [T, m, ...]
+    at the stored `times` [T] need more than one record: a segment from stored frame a to b
+    holds the state at a, its centre moving linearly to b's; it is split at the middle frame
+    while some frame in between is further than `limit` [m] (world units, `_state_error`)
+    from D_theta's. Returns (Gaussian indices into m, a, b) per segment group."""
+    out: list[tuple[np.ndarray, int, int]] = []
+    work = [(np.arange(c.shape[1]), 0, len(times) - 1)]
+    while work:
+        idx, a, b = work.pop()
+        if b - a <= 1:
+            out.append((idx, a, b))
+            continue
+        w = ((times[a:b + 1] - times[a]) / (times[b] - times[a]))[:, None, None]
+        lin = c[a, idx] + w * (c[b, idx] - c[a, idx])
+        err = _state_error(lin, q[a, idx], s[a, idx], c[a:b + 1, idx], q[a:b + 1, idx],
+                           s[a:b + 1, idx]).max(axis=0)  # fmt: skip
+        fine = err <= limit[idx]
+        if fine.any():
+            out.append((idx[fine], a, b))
+        if not fine.all():
+            mid = (a + b) // 2
+            work += [(idx[~fine], a, mid), (idx[~fine], mid, b)]
+    return out
 
 
 def read_4dgs(path: str | Path) -> Any:
@@ -386,6 +611,39 @@ def read_4dgs(path: str | Path) -> Any:
         return fd.read(str(path))
     except (fd.FourdgsError, OSError, ValueError) as e:
         raise ExportError(path, f"not a readable .4dgs file ({type(e).__name__}: {e})") from None
+
+
+def read_summary(path: str | Path) -> dict[str, Any]:
+    """A `.4dgs` file's Header and object layer without its Gaussians (milliseconds, by the
+    format's indexed reader): ``bytes``, ``records``, ``duration_sec``, ``profile``,
+    ``metadata`` (the Header's attributes: sync4d's ``sync4d.*`` keys), ``objects`` (id,
+    label, whether it has an embedding) and ``tracks`` (the object ids with one). ExportError
+    naming the file when it is missing or no readable `.4dgs`."""
+    fourdgs_module()
+    from fourdgs.exceptions import FourdgsError
+    from fourdgs.indexed_reader import open_indexed, read_objects
+    from fourdgs.readable import FileReadable
+
+    path = Path(path)
+    if not path.is_file():
+        raise ExportError(path, "no such file; write it with `sync4d export RUN --4dgs "
+                          f"{path}`")  # fmt: skip
+    try:
+        src = FileReadable(str(path))
+        scene = open_indexed(src)
+        layer = read_objects(src, scene)
+    except (FourdgsError, OSError, ValueError) as e:
+        raise ExportError(path, f"not a readable .4dgs file ({type(e).__name__}: {e})") from None
+    head = scene.header
+    table = layer.table.entries if layer is not None and layer.table is not None else []
+    return {
+        "bytes": path.stat().st_size, "records": int(head.gaussian_count),
+        "duration_sec": float(head.duration_sec), "profile": str(head.profile),
+        "metadata": {str(k): str(v) for k, v in dict(head.attributes or {}).items()},
+        "objects": [{"id": int(e.object_id), "label": str(e.label),
+                     "embedding": e.embedding is not None} for e in table],
+        "tracks": sorted(int(t.object_id) for t in (layer.tracks if layer else [])),
+    }  # fmt: skip
 
 
 def validate_4dgs(path: str | Path) -> list[str]:
@@ -401,6 +659,8 @@ def splats_from_4dgs(scene: Any, t: float) -> dict[str, torch.Tensor | int]:
     (`Scene.state_at`: base state, then the object's track), as float32 tensors in sync4d's
     conventions: `means` [n, 3], `quats` [n, 4] w, x, y, z, `scales` [n, 3], `opacities` [n],
     `sh` [n, (d + 1)^2, 3], `degree` d, `object_ids` [n]."""
+    import torch
+
     g = scene.gaussians
     st = scene.state_at(float(t))
     idx = st["indices"]
@@ -432,6 +692,8 @@ def render_4dgs(
 ) -> torch.Tensor:  # fmt: skip
     """The image [H, W, 3] of a read `.4dgs` scene at `t` from `camera` (a `sync4d.data.Camera`)
     through sync4d's rasterizer, as `DeformableGaussians.render` builds its call."""
+    import torch
+
     from sync4d import raster
 
     s = splats_from_4dgs(scene, t)

@@ -118,8 +118,23 @@ class Frames(BaseModel):
     t1: float
 
 
+class ExportedFile(BaseModel):
+    """A file exported from this run that the server was started with (`--4dgs`)."""
+
+    format: str = Field(description="'4dgs': the open .4dgs container (objects, tracks, "
+                        "embeddings; fourdgs reads it)")
+    path: str = Field(description="absolute path on the server's machine")
+    bytes: int
+    records: int = Field(description="Gaussian records (a Gaussian with a residual has several)")
+    objects: list[str] = Field(description="names in its object table")
+    tracks: int = Field(description="objects with a rigid track")
+    embeddings: str | None = Field(description="the encoder of its object embeddings, or null")
+    residual: str = Field(description="what of D_theta's non-rigid motion it keeps")
+
+
 class DescribeResult(BaseModel):
-    """The scene in brief, the LLM prompt, and (full=true) the whole scene description."""
+    """The scene in brief, the LLM prompt, the files exported from the run the server names,
+    and (full=true) the whole scene description."""
 
     run: RunRef
     frames: Frames
@@ -130,6 +145,7 @@ class DescribeResult(BaseModel):
     cameras: dict[str, int] = Field(description="stored cameras per split (render's camera)")
     prompt: str
     resources: list[str]
+    files: list[ExportedFile] = []
     scene: Scene | None = None
 
 

@@ -102,9 +102,15 @@ class RunTools:
     with, if it moved (as `query --encoder`; or an `Encoder`); `threads`: torch's threads for
     renders and the description (default: torch's own)."""
 
-    def __init__(self, run_dir: str | Path, encoder: str | Encoder | None = None,
-                 threads: int | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, run_dir: str | Path, encoder: str | Encoder | None = None,
+        threads: int | None = None, fourdgs: str | Path | None = None,
+    ) -> None:  # fmt: skip
         self.run_dir = Path(run_dir)
+        #: A `.4dgs` file exported from this run (`sync4d export RUN --4dgs FILE`) that
+        #: `describe` names; checked by `check`.
+        self.fourdgs = None if fourdgs is None else Path(fourdgs)
+        self._files: list[dict] = []
         self.encoder = encoder
         self.threads = threads
         self._field_lock = threading.Lock()
@@ -135,6 +141,37 @@ class RunTools:
             raise ToolProblem(f"{self.run_dir}: no {CHECKPOINT_NAME} (not a run folder, or its "
                               f"training never saved); train it with `sync4d fit DATA --out "
                               f"{self.run_dir}`")  # fmt: skip
+        if self.fourdgs is not None:
+            self._files = [self._fourdgs_file(self.fourdgs)]
+
+    def _fourdgs_file(self, path: Path) -> dict:
+        """What `describe` says of the `.4dgs` file at `path`: ToolProblem unless it is a
+        readable `.4dgs` written from this run's checkpoint as it is now."""
+        from sync4d.export.errors import ExportError
+        from sync4d.export.fourdgs import read_summary
+        from sync4d.files import file_sha256
+
+        again = f"`sync4d export {self.run_dir} --4dgs {path}`"
+        try:
+            info = read_summary(path)
+        except ExportError as e:
+            raise ToolProblem(f"--4dgs: {e}") from None
+        meta = info["metadata"]
+        sha = meta.get("sync4d.checkpoint.sha256")
+        if sha is None:
+            raise ToolProblem(f"--4dgs {path}: not written by sync4d export (no checkpoint "
+                              f"hash in its header); write it with {again}")  # fmt: skip
+        if sha != file_sha256(self.run_dir / CHECKPOINT_NAME):
+            raise ToolProblem(f"--4dgs {path}: written from another checkpoint (another run, or "
+                              f"this one before it trained on); write it again with {again}")
+        return {
+            "format": "4dgs", "path": str(path.resolve()), "bytes": info["bytes"],
+            "records": info["records"], "objects": [o["label"] for o in info["objects"]],
+            "tracks": len(info["tracks"]),
+            "embeddings": meta.get("sync4d.encoder.kind") if any(
+                o["embedding"] for o in info["objects"]) else None,
+            "residual": meta.get("sync4d.residual", ""),
+        }  # fmt: skip
 
     def prepare(self, renders: bool = True) -> threading.Thread:
         """Build, on a background thread, what the first calls need: the scene description
@@ -270,8 +307,9 @@ class RunTools:
     # -- the tools ------------------------------------------------------------------------
     def describe(self, full: bool = False) -> dict:
         """The scene in brief: run, frames, units, the objects (extent, motion segments,
-        language slots), the number of events, the cameras, the LLM prompt; `full`: also the
-        whole scene description (tracks of every frame, events, metadata: the `Scene`)."""
+        language slots), the number of events, the cameras, the LLM prompt, the files exported
+        from the run that the server was given (`--4dgs`); `full`: also the whole scene
+        description (tracks of every frame, events, metadata: the `Scene`)."""
         scene = self.scene()
         meta = scene.metadata
         times = meta.frames.times
@@ -288,6 +326,7 @@ class RunTools:
             "cameras": splits,
             "prompt": self.prompt(),
             "resources": [SCENE_URI, PROMPT_URI],
+            "files": list(self._files),
             "scene": scene if full else None,
         }  # fmt: skip
         self._answered.set()

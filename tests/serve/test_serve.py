@@ -43,12 +43,12 @@ def run_dir(tmp_path_factory) -> Path:
     return oracle_run_folder(tmp_path_factory.mktemp("serve"), QUERIES)
 
 
-def _stdio(run: Path) -> Client:
-    """A client of `python -m sync4d serve RUN` over stdio."""
+def _stdio(run: Path, *extra: str) -> Client:
+    """A client of `python -m sync4d serve RUN [extra]` over stdio."""
     env = {**ENV, "SYNC4D_SERVE_CACHE": os.environ["SYNC4D_SERVE_CACHE"]}  # conftest.py
     params = StdioServerParameters(command=sys.executable,
-                                   args=["-m", "sync4d", "serve", str(run), "--threads", "1"],
-                                   env=env)  # fmt: skip
+                                   args=["-m", "sync4d", "serve", str(run), "--threads", "1",
+                                         *extra], env=env)  # fmt: skip
     return Client(params, read_timeout_seconds=120)
 
 
@@ -262,6 +262,40 @@ def test_refusals_before_serving(run_dir, tmp_path, capsys):
         assert main(["serve", str(run_dir), "--http", str(port)]) == 2
     err = capsys.readouterr().err
     assert f"port {port} on 127.0.0.1 is in use" in err and "--http" in err
+
+
+def test_describe_names_the_4dgs_file(run_dir, tmp_path, capsys):
+    """`serve RUN --4dgs FILE`: `describe` (over stdio, as an agent asks it) names the .4dgs
+    file exported from the run; one of another checkpoint, or no .4dgs, is refused at start."""
+    pytest.importorskip("fourdgs", reason="needs fourdgs (pip install 'sync4d[4dgs]')")
+    out = tmp_path / "run.4dgs"
+    assert main(["export", str(run_dir), "--4dgs", str(out), "--threads", "1"]) == 0
+    capsys.readouterr()
+
+    async def session() -> dict:
+        async with _stdio(run_dir, "--4dgs", str(out)) as c:
+            return (await c.call_tool("describe", {})).structured_content
+
+    files = asyncio.run(session())["files"]
+    assert len(files) == 1 and files[0]["format"] == "4dgs"
+    assert files[0]["path"] == str(out.resolve()) and files[0]["bytes"] == out.stat().st_size
+    assert files[0]["objects"] == ["background", "red ball", "blue box", "green pillar"]
+    assert files[0]["tracks"] == 3 and files[0]["embeddings"] == "test-colour"
+    done = subprocess.run(  # the example, as a user runs it with FOURDGS set
+        ["sh", str(ROOT / "examples" / "serve.sh"), str(run_dir), "the red ball"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=300,
+        env={**os.environ, **ENV, "PYTHON": sys.executable, "FOURDGS": str(out)})  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert f"file: {out.resolve()} (4dgs" in done.stdout
+    other = tmp_path / "other"
+    shutil.copytree(run_dir, other)
+    with open(other / "checkpoint.safetensors", "ab") as f:  # another checkpoint's bytes
+        f.write(b" ")
+    assert main(["serve", str(other), "--4dgs", str(out)]) == 2
+    assert "written from another checkpoint" in capsys.readouterr().err
+    (tmp_path / "not.4dgs").write_bytes(b"PLY junk")
+    assert main(["serve", str(run_dir), "--4dgs", str(tmp_path / "not.4dgs")]) == 2
+    assert "not a readable .4dgs file" in capsys.readouterr().err
 
 
 def test_addresses():
