@@ -207,8 +207,10 @@ def _fourdgs(args: argparse.Namespace, run, out: list[str]) -> None:
     if args.fourdgs_snapshot:
         t = 0.0 if args.time is None else args.time
         n = fd.snapshot(args.fourdgs_snapshot, fd.read_4dgs(rep.path), t)
-        out.append(f"4dgs snapshot: {args.fourdgs_snapshot} ({n:,} bytes, t = {t:g}; no viewer "
-                   "was checked to open it)")
+        usd = Path(args.fourdgs_snapshot).suffix.lower() in (".usd", ".usda", ".usdc")
+        checked = ("OpenUSD's runtime opens it" if usd else "fourdgs' glTF importer reads it")
+        out.append(f"4dgs snapshot: {args.fourdgs_snapshot} ({n:,} bytes, t = {t:g}; {checked} "
+                   "in sync4d's tests; no graphical viewer was checked)")
 
 
 def main(args: argparse.Namespace) -> int:

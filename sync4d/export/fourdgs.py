@@ -55,8 +55,9 @@ record valid over ``[0, inf)``; the checkpoint's SHA-256 in ``sync4d.checkpoint.
 Reading back (`read_4dgs`, `splats_from_4dgs`) uses the format's own object-layer rule
 (`fourdgs.Scene.state_at`: the base state, then the object's track composed once); `render_4dgs`
 renders that state with sync4d's rasterizer. `snapshot` writes one instant as glTF
-(``KHR_gaussian_splatting``) or USD through the package's converters, with the tracks composed
-first (the package's converters alone would leave objects at rest).
+(``KHR_gaussian_splatting``, +y up baked into the Gaussians and their SH) or USD through the
+package's converters, with the tracks composed first (the package's converters alone would
+leave objects at rest).
 """
 
 from __future__ import annotations
@@ -705,35 +706,82 @@ def render_4dgs(
                             threads=threads).features  # fmt: skip
 
 
+#: The rotation (a matrix) that carries each coordinate system the converters know into glTF's
+#: +y up, right-handed frame (fourdgs.gltf's node rotations, written as matrices).
+_TO_Y_UP = {
+    "y-up-right-handed": np.eye(3),
+    "z-up-right-handed": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+}
+
+
+def _sh_rotation(degree: int, r: np.ndarray, samples: int = 512) -> np.ndarray:
+    """The matrix X [K, K] (K = (degree + 1)^2 - 1, bands 1..degree) that turns a Gaussian's SH
+    rest coefficients c into those of the Gaussian turned by the rotation `r` [3, 3]: the
+    colour the turned one shows towards r d is the one the old showed towards d,
+    ``Y(r d) . (X c) = Y(d) . c`` (sync4d's SH basis, fitted over `samples` directions; exact,
+    a rotation keeps each band)."""
+    import torch
+
+    from sync4d import raster
+
+    k = (degree + 1) ** 2
+    d = np.random.default_rng(0).normal(size=(samples, 3))
+    eye = torch.eye(k, dtype=torch.float64).expand(samples, k, k).contiguous()
+
+    def basis(dirs: np.ndarray) -> np.ndarray:
+        return raster.spherical_harmonics(degree, torch.as_tensor(dirs), eye,
+                                          threads=1).numpy()[:, 1:]  # fmt: skip
+
+    x, *_ = np.linalg.lstsq(basis(d @ r.T), basis(d), rcond=None)  # B(r d) X = B(d)
+    return x
+
+
 def snapshot(out: str | Path, scene: Any, t: float) -> int:
     """Write the read `.4dgs` `scene` at time `t` as one static instant: glTF
-    (``KHR_gaussian_splatting``; ``.glb`` or ``.gltf`` + ``.bin``) or USD (``.usd``/``.usda``/
-    ``.usdc``, needs ``usd-core``) through `fourdgs`' converters, with the object tracks composed
-    first; the bytes written. ExportError when the scene declares no coordinate system the
-    converters know, or the converter refuses."""
+    (``KHR_gaussian_splatting``; ``.glb`` or ``.gltf`` + ``.bin``; +y up baked into the
+    Gaussians, SH rotated by `_sh_rotation`) or USD (``.usd``/``.usda``/``.usdc``, needs
+    ``usd-core``; the run's up axis as the stage's) through `fourdgs`' converters, with the
+    object tracks composed first; the bytes written. ExportError when the scene declares no
+    coordinate system the converters know, or the converter refuses."""
     fd = fourdgs_module()
     out = Path(out)
     attrs = dict(getattr(scene.header, "attributes", {}) or {})
     coords = attrs.get("coordinate_system")
-    if coords is None:
+    if coords not in _TO_Y_UP:
         raise ExportError(out, "the run's cameras give no +y or +z up axis, so the file declares "
                           "no coordinate system and the glTF / USD converters cannot place it")
     g = scene.gaussians
     st = scene.state_at(float(t))
     idx = st["indices"]
     m = len(idx)
+    centres = np.asarray(st["centers"], dtype=np.float64)
+    quats = np.asarray(st["orientations"], dtype=np.float64)
+    sh = None if g.sh is None else g.sh[idx]
+    suffix = out.suffix.lower()
+    if suffix in (".glb", ".gltf") and coords != "y-up-right-handed":
+        # Bake glTF's +y up into the Gaussians (positions, orientations and SH) rather than
+        # leave fourdgs' node rotation: a viewer then needs no transform, and SH of degree > 0
+        # under a rotating node are what fourdgs' own importer refuses to read.
+        r = _TO_Y_UP[coords]
+        centres = centres @ r.T
+        quats = _quat_mul_xyzw(_matrix_to_quat_xyzw(r), quats)
+        if sh is not None and g.sh_degree:
+            k = sh.shape[1] // 3
+            rest = sh.astype(np.float64).reshape(m, 3, k) * ((_SH_HI - _SH_LO) / 255.0) + _SH_LO
+            rest = rest @ _sh_rotation(int(g.sh_degree), r)[:k, :k].T
+            sh = _sh_bytes(rest.transpose(0, 2, 1))
+        coords = "y-up-right-handed"
     still = fd.GaussianSet(
-        positions=np.asarray(st["centers"], dtype=np.float32),
+        positions=centres.astype(np.float32),
         scales=g.scales[idx].astype(np.float32),
-        rotations=np.asarray(st["orientations"], dtype=np.float32),
+        rotations=quats.astype(np.float32),
         colors=np.concatenate([g.colors[idx, :3], np.clip(st["opacity"], 0, 1)[:, None]],
                               axis=1).astype(np.float32),
         motions=np.zeros((m, 3), np.float32), mu_t=np.zeros(m, np.float32),
         sigma_t=np.full(m, np.inf, np.float32), win_lo=np.full(m, -np.inf),
-        win_hi=np.full(m, np.inf), sh=None if g.sh is None else g.sh[idx], sh_degree=g.sh_degree,
+        win_hi=np.full(m, np.inf), sh=sh, sh_degree=g.sh_degree,
         object_id=np.asarray(st["object_id"], dtype=np.uint32),
     )  # fmt: skip
-    suffix = out.suffix.lower()
     try:
         if suffix in (".glb", ".gltf"):
             return fd.to_gltf(str(out), still, float(t), cutoff=scene.header.cutoff,

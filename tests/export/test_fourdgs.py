@@ -11,6 +11,7 @@ the objects (D_theta = the truth), M_phi fitted to them, so its tracks alone rep
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
 from pathlib import Path
 
@@ -253,17 +254,73 @@ def test_run_without_phase2_or_field(oracle, tmp_path: Path) -> None:
         write_4dgs(tmp_path / "bad.4dgs", run, tolerance=float("nan"))
 
 
+def _sh_colours(sh_u8: np.ndarray, degree: int, dirs: np.ndarray) -> np.ndarray:
+    """The SH rest's colour part [N, 3] of the format's u8 SH codes [N, 3K] toward `dirs`."""
+    from sync4d import raster
+
+    n, k = len(sh_u8), sh_u8.shape[1] // 3
+    rest = sh_u8.astype(np.float64).reshape(n, 3, k).transpose(0, 2, 1) * (8.0 / 255.0) - 4.0
+    coeffs = torch.as_tensor(np.concatenate([np.zeros((n, 1, 3)), rest], axis=1))
+    return raster.spherical_harmonics(degree, torch.as_tensor(dirs), coeffs, threads=1).numpy()
+
+
 def test_gltf_snapshot_composes_the_tracks(oracle, tmp_path: Path) -> None:
+    """One instant as glTF, read back by fourdgs' own importer: the tracks composed, z-up baked
+    into +y up (positions, orientations and degree-3 SH), so each Gaussian shows toward r d the
+    colour it showed toward d; as USD (when usd-core is installed), opened by OpenUSD."""
     run, _ = oracle
     sc = read_4dgs(write_4dgs(tmp_path / "o.4dgs", run).path)
-    if "coordinate_system" not in sc.header.attributes:
-        sc.header.attributes["coordinate_system"] = "z-up-right-handed"
+    sc.header.attributes["coordinate_system"] = "z-up-right-handed"
+    rng = np.random.default_rng(4)
+    g = sc.gaussians
+    g.sh_degree, g.sh = 3, rng.integers(96, 160, (g.count, 45)).astype(np.uint8)
     assert snapshot(tmp_path / "s.glb", sc, 0.5) > 0
-    back = fourdgs.from_gltf(str(tmp_path / "s.glb"))
-    got = back.gaussians if hasattr(back, "gaussians") else back
-    assert got.count == sc.gaussians.count
+    got = fourdgs.from_gltf(str(tmp_path / "s.glb")).gaussians
+    st = sc.state_at(0.5)
+    r = fd._TO_Y_UP["z-up-right-handed"]
+    want = np.asarray(st["centers"]) @ r.T
+    assert got.count == len(want)
+    # the writer's glTF keeps the state's order
+    order = back = np.arange(len(want))
+    assert np.allclose(got.positions, want, atol=1e-4)
+    turned = fd._quat_xyzw_to_matrix(got.rotations[back].astype(np.float64))
+    was = r @ fd._quat_xyzw_to_matrix(np.asarray(st["orientations"], np.float64)[order])
+    assert np.allclose(np.abs(np.einsum("nij,nij->nj", turned, was)), 1.0, atol=1e-3)
+    d = rng.normal(size=(len(want), 3))
+    before = _sh_colours(g.sh[st["indices"]][order], 3, d)
+    after = _sh_colours(got.sh[back], 3, d @ r.T)
+    assert np.abs(after - before).max() < 0.2  # one 8-bit step (8/255) per coefficient
+    assert np.abs(after - before).mean() < 0.02
     with pytest.raises(ExportError, match="glTF"):
         snapshot(tmp_path / "s.obj", sc, 0.5)
+    if importlib.util.find_spec("pxr") is not None:
+        from pxr import Usd
+
+        assert snapshot(tmp_path / "s.usda", sc, 0.5) > 0
+        stage = Usd.Stage.Open(str(tmp_path / "s.usda"))
+        prims = [p.GetTypeName() for p in stage.Traverse()]
+        assert "ParticleField3DGaussianSplat" in prims
+        assert fourdgs.from_usd(str(tmp_path / "s.usda")).gaussians.count == len(want)
+
+
+def test_sh_rotation_turns_the_colours_with_the_gaussian() -> None:
+    """`_sh_rotation`: coefficients X c show toward r d what c showed toward d (every band)."""
+    from sync4d import raster
+
+    rng = np.random.default_rng(6)
+    q = rng.normal(size=4)
+    r = fd._quat_xyzw_to_matrix(q)
+    c = rng.normal(size=(15, 3))
+    x = fd._sh_rotation(3, r)
+    d = rng.normal(size=(200, 3))
+    full = np.concatenate([np.zeros((1, 3)), c])
+    turned = np.concatenate([np.zeros((1, 3)), x @ c])
+
+    def colour(coeffs: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        k = torch.as_tensor(np.broadcast_to(coeffs, (len(dirs), 16, 3)).copy())
+        return raster.spherical_harmonics(3, torch.as_tensor(dirs), k, threads=1).numpy()
+
+    assert np.allclose(colour(turned, d @ r.T), colour(full, d), atol=1e-9)
 
 
 def test_export_command(tmp_path: Path, capsys) -> None:
