@@ -41,7 +41,7 @@ from pydantic import (
     create_model,
 )
 
-from sync4d.phase3.kinematics import FEATURE_NAMES
+from sync4d.phase3.kinematics import FEATURE_DESCRIPTIONS, FEATURE_NAMES
 from sync4d.phase3.states import MOTION_STATES
 
 __all__ = ["EVENT_KINDS", "EVIDENCE", "FORMAT", "SEGMENT_STATES", "SLOT_SOURCES", "VERSION",
@@ -314,7 +314,8 @@ class ObjectRecord(_Record):
 Kinematics = create_model(
     "Kinematics", __base__=_Record, __module__=__name__,
     __doc__="The 28 kinematic dimensions of an object per frame (Appendix B), by name.",
-    **{name: (list[NumberOrNull], ...) for name in FEATURE_NAMES},  # type: ignore[call-overload]
+    **{name: (list[NumberOrNull], Field(description=FEATURE_DESCRIPTIONS[name]))
+       for name in FEATURE_NAMES},  # type: ignore[call-overload]
 )  # fmt: skip
 
 

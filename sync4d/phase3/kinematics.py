@@ -53,6 +53,37 @@ FEATURE_NAMES = (
     "relative_speed", "speed_rank", "is_fastest", "time_fraction", "nearest_distance",
     "nearest_closing_speed", "hand_distance", "hand_closing_speed",
 )  # fmt: skip
+#: What each of the 28 dimensions is, by name (units: world units and normalised time; the
+#: module's docstring has how each is computed).
+FEATURE_DESCRIPTIONS = {
+    "speed": "0: |v|, the speed of M_phi's object centroid (world units per unit time)",
+    "accel": "1: |a|, the magnitude of its acceleration",
+    "angular_velocity": "2: angle of R(f) R(f-1)^T over the frame gap (radians per unit time)",
+    "residual_mean": "3: mean |r| of its Gaussians, r = D_theta's position - M_phi's (Eq. 6)",
+    "rigid_share": "4: rho, the mean of |x~ - x0| / (|x~ - x0| + |r|) over its Gaussians: the "
+                   "share of their motion that M_phi carries",
+    "visible": "5: the largest fraction of its projected Gaussians that the label map of one "
+               "view gives to it (0 unseen)",
+    "vx": "6: velocity, x", "vy": "7: velocity, y", "vz": "8: velocity, z",
+    "ax": "9: acceleration, x", "ay": "10: acceleration, y", "az": "11: acceleration, z",
+    "speed_delta": "12: speed minus the previous frame's (0 at the first)",
+    "rigid_share_delta": "13: rho minus the previous frame's (0 at the first)",
+    "speed_ema": "14: causal moving average of the speed (5-frame time constant)",
+    "accel_ema": "15: causal moving average of |a| (5-frame time constant)",
+    "rotation_angle": "16: |w|, the angle of M_phi's rotation from the canonical pose, kept "
+                      "continuous in time (radians, up to a full turn)",
+    "translation": "17: |t|, the length of M_phi's translation b",
+    "residual_std": "18: standard deviation of |r| over its Gaussians",
+    "affine_delta": "19: |A - I|_F, how far M_phi's linear part is from the identity (affine)",
+    "relative_speed": "20: speed over s_ref, the 95th percentile of every object's speed",
+    "speed_rank": "21: the fraction of the other objects slower than this one",
+    "is_fastest": "22: 1 where this object is the fastest (ties within 1 % of s_ref), else 0",
+    "time_fraction": "23: the frame's index over T - 1",
+    "nearest_distance": "24: distance between centroids to the nearest other object",
+    "nearest_closing_speed": "25: time derivative of dim 24 (negative: closing in)",
+    "hand_distance": "26: distance to the hand object's centroid (0 without one, or the hand)",
+    "hand_closing_speed": "27: time derivative of dim 26",
+}
 #: The dims that relate an object to another one (rank, nearest, hand): 0 with one object.
 RELATIONAL_DIMS = (21, 24, 25, 26, 27)
 #: Time constant (frames) of the smoothed speed and acceleration (dims 14, 15).
