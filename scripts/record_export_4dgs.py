@@ -19,11 +19,14 @@ object-layer state (`Scene.state_at`) with sync4d's rasterizer:
 
 The run folder is only read (`sync4d export` writes only the files it names).
 
-    OMP_NUM_THREADS=1 python scripts/record_export_4dgs.py RUN
+    OMP_NUM_THREADS=1 python scripts/record_export_4dgs.py RUN --masks   # bouncingballs
+    OMP_NUM_THREADS=1 python scripts/record_export_4dgs.py RUN --views 20 \
+        --out docs/bench/export-4dgs-basketball.json
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import datetime
 import io
@@ -133,12 +136,32 @@ def _mask_axis_ratios(run, bins: tuple[float, ...] = (0.0, 0.2, 0.4, 0.5, 0.55, 
     return out
 
 
+def _source(run_dir: str) -> object:
+    """How the run was trained (the `fit` invocations in its run.json)."""
+    try:
+        return json.loads((Path(run_dir) / "run.json").read_text()).get("command")
+    except (OSError, ValueError):
+        return None
+
+
 def _strip(views: list[dict]) -> list[dict]:
     return [{"time": v["time"], **{n: {"psnr": v[n]["psnr"]} for n in BACKGROUNDS}}
             for v in views]  # fmt: skip
 
 
-def main(run_dir: str) -> int:
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run", help="a run folder with Phase 2 (and 3 for the embeddings)")
+    ap.add_argument("--out", type=Path, default=OUT, help=f"the record (default {OUT})")
+    ap.add_argument("--views", type=int, default=0,
+                    help="score N test views, evenly picked (default: all)")
+    ap.add_argument("--masks", action="store_true",
+                    help="also the instance masks' axis ratios by time (balls that squash)")
+    args = ap.parse_args(argv)
+    return record(args.run, args.out, args.views, args.masks)
+
+
+def record(run_dir: str, out_path: Path, views: int, masks: bool) -> int:
     from sync4d.export.fourdgs import write_4dgs
     from sync4d.phase3.encoders.encoder import load_encoder
     from sync4d.phase3.store import load_field
@@ -148,6 +171,8 @@ def main(run_dir: str) -> int:
     model = run.model
     scene = run.scene()
     tests = list(scene.test) if scene is not None else []
+    if views and len(tests) > views:
+        tests = [tests[i] for i in np.unique(np.linspace(0, len(tests) - 1, views).astype(int))]
     if not tests:
         print(f"{run_dir}: the run's dataset has no test views to score against", file=sys.stderr)
         return 2
@@ -212,16 +237,17 @@ def main(run_dir: str) -> int:
         with contextlib.redirect_stdout(io.StringIO()):
             assert cli(["export", run_dir, "--sequence", f"{seq}/", "--threads", "1"]) == 0
         seq_bytes = _size(seq)
-    record = {
+    rec = {
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": f"OMP_NUM_THREADS=1 python scripts/record_export_4dgs.py RUN (RUN: {run_dir}, "
-                   "a copy of /tmp/s4d/bb-cfg; exports: sync4d export RUN --4dgs FILE "
+        "command": "OMP_NUM_THREADS=1 python scripts/record_export_4dgs.py "
+                   + " ".join(sys.argv[1:]) + " (exports: sync4d export RUN --4dgs FILE "
                    "[--4dgs-residual R] [--4dgs-tolerance T], write_4dgs for the ablations, "
                    "and --sequence DIR/)",
         "machine": machine_info(),
-        "run": {"run": run_dir, "gaussians": model.num_gaussians, "frames": len(run.times),
+        "run": {"run": run_dir, "fit": _source(run_dir), "gaussians": model.num_gaussians,
+                "frames": len(run.times),
                 "objects": {str(k): v for k, v in run.names.items()},
-                "train_background": "random",
+                "train_background": run.settings["config"]["phase1"].get("train_background"),
                 "resolution": f"{tests[0].camera.width}x{tests[0].camera.height}",
                 "phase1_iterations": run.settings["config"]["phase1"]["iterations"]},
         "test_views": len(tests),
@@ -230,13 +256,13 @@ def main(run_dir: str) -> int:
         "run_psnr_mean": {n: float(np.mean([v[n]["psnr"] for v in run_views]))
                           for n in BACKGROUNDS},
         "files": files,
-        "mask_axis_ratio_by_time": _mask_axis_ratios(run),
+        **({"mask_axis_ratio_by_time": _mask_axis_ratios(run)} if masks else {}),
         "ply_sequence": {"frames": len(run.times), "bytes": seq_bytes, "mb": seq_bytes / 1e6},
     }
-    OUT.write_text(json.dumps(record, indent=1) + "\n")
-    print(f"wrote {OUT}")
+    out_path.write_text(json.dumps(rec, indent=1) + "\n")
+    print(f"wrote {out_path}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1]))
+    sys.exit(main(sys.argv[1:]))

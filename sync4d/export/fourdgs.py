@@ -288,6 +288,11 @@ def write_4dgs(
     fd = fourdgs_module()
     start = _time.perf_counter()
     path = Path(path)
+    if residual not in RESIDUAL_CHOICES:
+        raise ExportError(path, f"residual {residual!r}: give one of {', '.join(RESIDUAL_CHOICES)}")
+    if not tolerance >= 0.0:
+        raise ExportError(path, f"tolerance {tolerance}: give a number >= 0 (0: every stored "
+                          "frame exact; larger: fewer records)")
     model = run.model
     n = model.num_gaussians
     labels = (np.zeros(n, dtype=np.int64) if run.labels is None
@@ -375,13 +380,8 @@ def write_4dgs(
                             entries=entries) if entries else None)  # fmt: skip
     layer = fd.ObjectLayer(table=table, tracks=tracks) if table or tracks else None
 
-    # The base state (one record per Gaussian), or for a Gaussian its track alone keeps no
-    # closer than `tolerance` times its size to D_theta, piecewise-linear records.
-    if residual not in RESIDUAL_CHOICES:
-        raise ExportError(path, f"residual {residual!r}: give one of {', '.join(RESIDUAL_CHOICES)}")
-    if not tolerance >= 0.0:
-        raise ExportError(path, f"tolerance {tolerance}: give a number >= 0 (0: every stored "
-                          "frame exact; larger: fewer records)")
+    # The base state: one record per Gaussian, or piecewise-linear records for one that its
+    # track alone leaves further than `tolerance` times its size from D_theta.
     tracked = (np.isin(file_ids, [tr.object_id for tr in tracks]) if tracks
                else np.zeros(n, bool))  # fmt: skip
     lab = np.where(tracked, labels, 0)  # the M_phi row that moves each Gaussian
