@@ -19,10 +19,10 @@ printf 'a red ball\na blue ball\na green ball\na red object\na blue box\n' > "$O
 "$PY" -m sync4d export "$RUN" --sequence "$OUT/sequence/"
 "$PY" -m sync4d export "$RUN" --sequence "$OUT/sequence.ply"
 # The open .4dgs container (an optional writer: pip install 'sync4d[4dgs]'): objects, their
-# tracks and Phase 3's embeddings, D_theta's residual where a track alone is further than 0.1
-# sizes; one instant as glTF. Then the same with the objects moved by their tracks alone.
+# tracks and Phase 3's embeddings, D_theta's residual where a track alone is a pixel off (the
+# default is a quarter); one instant as glTF. Then the objects moved by their tracks alone.
 if "$PY" -c "import fourdgs" 2>/dev/null; then
-    "$PY" -m sync4d export "$RUN" --4dgs "$OUT/scene.4dgs" --4dgs-tolerance 0.1 \
+    "$PY" -m sync4d export "$RUN" --4dgs "$OUT/scene.4dgs" --4dgs-tolerance 1 \
         --4dgs-snapshot "$OUT/t0.5.glb" --time 0.5
     "$PY" -m sync4d export "$RUN" --4dgs "$OUT/rigid.4dgs" --4dgs-residual background
 else

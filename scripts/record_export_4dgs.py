@@ -54,10 +54,11 @@ VARIANTS: tuple[tuple[str, str, list[str], dict], ...] = (
     ("none", "tracks alone, still background", ["--4dgs-residual", "none"], {}),
     ("background", "tracks alone move the objects, background residual",
      ["--4dgs-residual", "background"], {}),
-    *((f"all-{t}", f"residual, tolerance {t}", ["--4dgs-tolerance", str(t)], {})
-      for t in (0.5, 0.25, 0.1, 0.05, 0.03)),
-    ("stored-poses", "residual, tolerance 0.05, M_phi's poses as stored", [], {"refine": False}),
-    ("clipped", "residual, tolerance 0.05, colours clipped (no SH refit)", [],
+    *((f"all-{t}", f"residual, tolerance {t} px", ["--4dgs-tolerance", str(t)], {})
+      for t in (1.0, 0.5, 0.25, 0.1, 0.05)),
+    ("stored-poses", "residual, tolerance 0.25 px, M_phi's poses as stored", [],
+     {"refine": False}),
+    ("clipped", "residual, tolerance 0.25 px, colours clipped (no SH refit)", [],
      {"fit_colours": False}),
 )  # fmt: skip
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
@@ -208,7 +209,7 @@ def record(run_dir: str, out_path: Path, views: int, masks: bool) -> int:
                 sc, f.camera, f.time, near=model.near, background=bg, threads=1))
             records = int(sc.gaussians.count)
             emb = {}
-            if i == 0:
+            if i == 0 and (run.path / "phase3").is_dir():  # embeddings: a run with Phase 3
                 field = load_field(run.path)
                 enc = load_encoder(field.encoder["kind"])
                 rows = [e for e in sc.objects.table.entries if e.embedding is not None]

@@ -37,7 +37,7 @@ from sync4d.options import (
 
 #: `--4dgs-tolerance`'s default: `sync4d.export.fourdgs.TOLERANCE` (a test keeps them equal;
 #: imported there with torch, so not here).
-TOLERANCE = 0.05
+TOLERANCE = 0.25
 
 __all__ = ["add_arguments", "main", "read_vocab"]
 
@@ -90,9 +90,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "the background stands still)")
     p.add_argument("--4dgs-tolerance", dest="fourdgs_tolerance", type=non_negative_float,
                    default=None, metavar="T",
-                   help="with --4dgs: how far, in times its own size, a Gaussian may be from "
-                   f"D_theta at a stored frame before it gets a residual (default {TOLERANCE}; "
-                   "0: every stored frame; larger: a smaller file)")
+                   help="with --4dgs: how far a Gaussian may be from D_theta at a stored frame "
+                   "before it gets a residual, in pixels of the training camera that sees it "
+                   f"largest, times its opacity (default {TOLERANCE}; 0: every stored frame "
+                   "exact; larger: a smaller file)")
     p.add_argument("--4dgs-snapshot", dest="fourdgs_snapshot", default=None,
                    metavar="FILE.glb|FILE.usd",
                    help="with --4dgs: the file's state at --time T (default 0) as glTF "

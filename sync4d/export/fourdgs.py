@@ -10,7 +10,7 @@ What is kept (`write_4dgs`):
   Phase 1 run the canonical Gaussians; unit rotations, linear scales, opacity
   (``sigmoid(logit)``), SH bands 1..3 and the DC colour as the format's RGB
   ``0.5 + SH_C0 * sh_dc``, which its grid holds in [0, 1] only: a colour outside is clipped and
-  the Gaussian's SH rest refit so that it looks the same from the run's cameras
+  the Gaussian's SH rest refit so that it looks the same from the run's training cameras
   (`_fit_into_gamut`; the share clipped is in the Header's metadata);
 - Phase 2's object of every Gaussian in the format's ``object_id`` stream (0 = background);
 - one Object Track per foreground object (``background_track``: also the background's, under a
@@ -25,11 +25,13 @@ What is kept (`write_4dgs`):
   embedding ``query`` ranks by) with the encoder named in the Header's metadata
   (``sync4d.encoder.kind``, ``.dim``, ``.fingerprint``);
 - D_theta's residual where a track alone is not close enough: a Gaussian that its track leaves
-  further than ``tolerance`` times its largest scale from D_theta at some stored frame
-  (`_state_error`: centre distance plus the Frobenius distance of the extents ``R diag(s)
-  R^T``) is written as piecewise-linear records of the format's temporal fields instead of
-  one: a record per segment between stored frames a and b, its object-frame state at a with
-  the centre moving linearly to b's, valid over ``[t_a, t_b)`` (the last open-ended); segments
+  further from D_theta at some stored frame (`_state_error`: centre distance plus the Frobenius
+  distance of the extents ``R diag(s) R^T``, world units) than ``tolerance`` pixels in the
+  training camera that sees it largest, divided by its opacity (a pixel error's share of the
+  image error: a faint Gaussian may stray further; one no training camera sees never counts),
+  is written as piecewise-linear records of the format's temporal fields instead of one: a
+  record per segment between stored frames a and b, its object-frame state at a with the
+  centre moving linearly to b's, valid over ``[t_a, t_b)`` (the last open-ended); segments
   are halved while a stored frame inside is further than the tolerance (`_segments`).
   ``residual="background"`` allows this only for untracked Gaussians (the objects then move by
   their tracks alone), ``"none"`` for none.
@@ -100,12 +102,14 @@ _SH_C0 = 0.28209479177387814
 _SH_LO, _SH_HI = -4.0, 4.0
 #: What `write_4dgs(residual=...)` accepts.
 RESIDUAL_CHOICES = ("all", "background", "none")
-#: How far (times its largest scale) a Gaussian may be from D_theta at a stored frame before it
-#: gets a residual (docs/export.md measures 0.05 to 0.5 on bouncingballs).
-TOLERANCE = 0.05
+#: How far a Gaussian may be from D_theta at a stored frame before it gets a residual: pixels
+#: in the training camera that sees it largest, times its opacity (docs/export.md measures it
+#: on bouncingballs and basketball).
+TOLERANCE = 0.25
 #: The pull of `_fit_into_gamut`'s SH refit towards the old coefficients (per view): of 1e-3,
-#: 1e-2 and 1e-1, 1e-3 kept bouncingballs' 20 test views (directions no fit saw) nearest the
-#: run's render (a sweep, not recorded; docs/export.md measures the fit against the clip).
+#: 1e-2 and 1e-1, 1e-3 kept bouncingballs' 20 test views nearest the run's render (a sweep
+#: whose fit also saw the test cameras, not recorded; docs/export.md measures the fit, over the
+#: training cameras alone, against the clip).
 COLOUR_RIDGE = 1e-3
 
 
@@ -122,8 +126,9 @@ def fourdgs_module() -> Any:
 class FourDGSReport:
     """What `write_4dgs` wrote: the file, its size, the Gaussians and the records (a Gaussian
     with a residual has one per segment), objects, tracks, how many Gaussians hold a residual,
-    each one's largest distance from D_theta with its track alone [N] (world units,
-    `_state_error`), whether embeddings went in (and why not), seconds."""
+    each one's largest distance from D_theta with its track alone [N] and the distance it was
+    allowed [N] (world units, `_state_error`; inf: no camera sees it), whether embeddings went
+    in (and why not), seconds."""
 
     path: Path
     bytes: int
@@ -133,6 +138,7 @@ class FourDGSReport:
     tracks: int
     residual_gaussians: int
     deviation: np.ndarray
+    limit: np.ndarray
     embeddings: str | None
     note: str = ""
     seconds: float = 0.0
@@ -220,13 +226,43 @@ def _sh_bytes(sh_rest: np.ndarray) -> np.ndarray:
     return np.clip(np.rint((flat - _SH_LO) / (_SH_HI - _SH_LO) * 255.0), 0, 255).astype(np.uint8)
 
 
-def _camera_centres(run: Run) -> np.ndarray:
-    """The run's training camera centres, float64 [C, 3] (world space)."""
-    out = []
+def _training_cameras(run: Run) -> list[dict]:
+    """The run's training cameras (its test views left out), each viewpoint once."""
+    seen: dict[bytes, dict] = {}
     for c in run.cameras:
+        if c.get("split", "train") == "train":
+            seen.setdefault(np.asarray(c["viewmat"], dtype=np.float64).tobytes(), c)
+    return list(seen.values())
+
+
+def _camera_centres(cameras: list[dict]) -> np.ndarray:
+    """The centres of `cameras`, float64 [C, 3] (world space)."""
+    out = []
+    for c in cameras:
         v = np.asarray(c["viewmat"], dtype=np.float64).reshape(4, 4)
         out.append(-v[:3, :3].T @ v[:3, 3])
     return np.asarray(out).reshape(-1, 3)
+
+
+def _pixels_per_unit(points: np.ndarray, cameras: list[dict], near: float,
+                     chunk: int = 65536) -> np.ndarray:  # fmt: skip
+    """How many pixels a world unit at each of `points` [N, 3] spans in the training camera that
+    sees it largest (focal length over depth, among the `cameras` that have it in front of
+    `near` and inside the image), float64 [N]; 0 where no camera sees it."""
+    out = np.zeros(len(points))
+    for c in cameras:
+        v = np.asarray(c["viewmat"], dtype=np.float64).reshape(4, 4)
+        for s in range(0, len(points), chunk):
+            x = points[s:s + chunk] @ v[:3, :3].T + v[:3, 3]
+            z = x[:, 2]
+            front = z > near
+            zs = np.where(front, z, 1.0)
+            u = c["fx"] * x[:, 0] / zs + c["cx"]
+            w = c["fy"] * x[:, 1] / zs + c["cy"]
+            seen = front & (u >= 0) & (u < c["width"]) & (w >= 0) & (w < c["height"])
+            ppu = np.where(seen, max(c["fx"], c["fy"]) / zs, 0.0)
+            out[s:s + chunk] = np.maximum(out[s:s + chunk], ppu)
+    return out
 
 
 def _fit_into_gamut(
@@ -278,8 +314,9 @@ def write_4dgs(
     """Write `run` as a `.4dgs` file at `path` (atomically); what was written. `residual`:
     which Gaussians may hold D_theta's residual over their track ("all", "background": the
     untracked ones only, so the objects move by their tracks alone, "none"); those whose track
-    alone leaves them further than `tolerance` times their largest scale from D_theta at some
-    stored frame get piecewise-linear records instead of one (see the module docstring).
+    alone leaves them further from D_theta at some stored frame than `tolerance` pixels (in the
+    training camera that sees them largest, over their opacity) get piecewise-linear records
+    instead of one (see the module docstring).
     `refine`: M_phi's poses refined to D_theta (else as stored); `fit_colours`: the SH rest of
     Gaussians whose colour the format clips refit over the run's views. ExportError when
     `fourdgs` is missing or the run cannot be written."""
@@ -311,7 +348,8 @@ def write_4dgs(
     # The format's colour grid holds [0, 1] only: clip, and carry what clipping loses into the
     # SH rest over the run's views.
     if fit_colours:
-        rgb, sh_rest, clip_mask = _fit_into_gamut(rgb, sh_rest, means0, _camera_centres(run))
+        rgb, sh_rest, clip_mask = _fit_into_gamut(rgb, sh_rest, means0,
+                                                   _camera_centres(_training_cameras(run)))
     else:
         clip_mask = ((rgb < 0.0) | (rgb > 1.0)).any(axis=1)
         rgb = np.clip(rgb, 0.0, 1.0)
@@ -381,18 +419,28 @@ def write_4dgs(
     layer = fd.ObjectLayer(table=table, tracks=tracks) if table or tracks else None
 
     # The base state: one record per Gaussian, or piecewise-linear records for one that its
-    # track alone leaves further than `tolerance` times its size from D_theta.
+    # track alone leaves further from D_theta than its limit.
     tracked = (np.isin(file_ids, [tr.object_id for tr in tracks]) if tracks
                else np.zeros(n, bool))  # fmt: skip
     lab = np.where(tracked, labels, 0)  # the M_phi row that moves each Gaussian
     needs = np.zeros(n, bool)
     deviation = np.zeros(n)
+    limit = np.full(n, np.inf)
     order = np.arange(n)  # the Gaussian each record is a copy of
     if times is None:  # a Phase 1 run: the canonical Gaussians, nothing moves them
         pos, vel, rots, scl = means0, np.zeros_like(means0), _quat_wxyz_to_xyzw(quats0), scales0
         mu, lo, hi = np.zeros(n), np.zeros(n), np.full(n, np.inf)
     else:
+        cameras = _training_cameras(run)
+        if not cameras and residual != "none":
+            raise ExportError(path, "the run records no training cameras (its checkpoint's "
+                              "metadata), so the residual's tolerance, in pixels, has none to "
+                              "measure in; write the tracks alone with --4dgs-residual none")
         wc, wq, ws = _world_states(model, times)
+        # how far each Gaussian may be from D_theta: `tolerance` pixels in the training camera
+        # that sees it largest, divided by its opacity (a faint one may stray further)
+        ppu = _pixels_per_unit(wc.mean(axis=0, dtype=np.float64), cameras, float(model.near))
+        limit = tolerance / np.maximum(alpha * ppu, 1e-12)
         if refine and tracks:
             rot, trans = _refine_tracks(wc, alpha, labels, rot, trans,
                                         sorted({int(k) for k in lab[tracked]}))  # fmt: skip
@@ -409,7 +457,6 @@ def write_4dgs(
         scl = np.exp(np.log(ws).mean(axis=0, dtype=np.float64))
         for j in range(len(times)):
             deviation = np.maximum(deviation, _state_error(pos, rots, scl, wc[j], wq[j], ws[j]))
-        limit = tolerance * scl.max(axis=1)
         needs = {"all": deviation > limit, "background": (deviation > limit) & ~tracked,
                  "none": np.zeros(n, bool)}[residual]  # fmt: skip
         vel = np.zeros_like(pos)
@@ -451,8 +498,9 @@ def write_4dgs(
                              else "M_phi's poses as stored")  # fmt: skip
     meta["sync4d.residual"] = (
         f"D_theta's residual ({residual}) as {count - n + nres} piecewise-linear records for "
-        f"the {nres} Gaussians their track alone keeps further than {tolerance:g} times their "
-        "largest scale from D_theta at some stored frame"
+        f"the {nres} Gaussians their track alone leaves further from D_theta at some stored "
+        f"frame than {tolerance:g} pixels (times their opacity) in the training camera that "
+        "sees them largest"
         if nres else f"none ({residual}): the tracks alone move the objects (D_theta's residual "
         "left out)"
     )  # fmt: skip
@@ -469,7 +517,7 @@ def write_4dgs(
     return FourDGSReport(
         path=path, bytes=size, gaussians=n, records=count,
         objects=[e.label for e in entries], tracks=len(tracks), residual_gaussians=nres,
-        deviation=deviation,
+        deviation=deviation, limit=limit,
         embeddings=None if fld is None else f"{len(emb)} objects, {fld.encoder.get('kind')} "
         f"encoder, {len(next(iter(emb.values())))} dims" if emb else None,
         note=why or "", seconds=_time.perf_counter() - start, metadata=meta,

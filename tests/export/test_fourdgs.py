@@ -126,28 +126,36 @@ def wobbling(oracle):
 
 
 def test_residual_keeps_each_gaussian_within_the_tolerance(wobbling, tmp_path: Path) -> None:
-    """Gaussians that leave their track get piecewise-linear records: at every stored frame
-    each is within the tolerance times its size of D_theta (plus the format's quantisation),
-    where the tracks alone leave the wobbling ones up to 0.05 units off; a larger tolerance
-    writes fewer records; `background` keeps the objects' Gaussians on their tracks alone."""
+    """Gaussians that leave their track get piecewise-linear records, those that the tracks
+    alone leave further than the tolerance (pixels in the camera that sees them largest,
+    times their opacity): the wobbling ones, up to 0.05 units (about a pixel) off, and no
+    steady one; a larger tolerance writes fewer records; a faint Gaussian may stray further;
+    `background` keeps the objects' Gaussians on their tracks alone."""
     run, which, _ = wobbling
     n = run.model.num_gaussians
-    size = torch.exp(run.model.log_scales).max(dim=1).values.detach().double().numpy()
+    alpha = torch.sigmoid(run.model.opacity_logits).detach().double().numpy()
     reps = {}
     for tol in (0.05, 0.2):
         rep = write_4dgs(tmp_path / f"t{tol}.4dgs", run, tolerance=tol)
         assert validate_4dgs(rep.path) == []
         reps[tol] = rep
         # the wobbling Gaussians, and no steady one, hold a residual
-        moving = rep.deviation > tol * size
+        moving = rep.deviation > rep.limit
         assert moving[which].mean() > 0.9 and not moving[~which].any()
         assert rep.residual_gaussians == int(moving.sum())
     assert reps[0.05].records > reps[0.2].records > n
+    # the allowed distance is the tolerance over opacity times pixels per unit
+    ratio = reps[0.2].limit / reps[0.05].limit
+    assert np.allclose(ratio[np.isfinite(ratio)], 4.0)
+    seen = np.isfinite(reps[0.05].limit)
+    assert seen.mean() > 0.9
+    lim_alpha = reps[0.05].limit[seen] * alpha[seen]  # 0.05 / pixels per unit
+    assert lim_alpha.max() < 0.05 and lim_alpha.min() > 0.0
     none = write_4dgs(tmp_path / "none.4dgs", run, residual="none")
     assert none.records == n and none.residual_gaussians == 0
     bg = write_4dgs(tmp_path / "bg.4dgs", run, residual="background", tolerance=0.05)
     labels = np.asarray(run.labels)
-    assert bg.residual_gaussians == int(((reps[0.05].deviation > 0.05 * size)
+    assert bg.residual_gaussians == int(((reps[0.05].deviation > reps[0.05].limit)
                                          & (labels == 0)).sum())  # fmt: skip
     # One live record per Gaussian at every stored time (the windows tile time), and the
     # file renders like the wobbling run only with its residual.
@@ -252,6 +260,10 @@ def test_run_without_phase2_or_field(oracle, tmp_path: Path) -> None:
         write_4dgs(tmp_path / "bad.4dgs", run, residual="some")
     with pytest.raises(ExportError, match="give a number >= 0"):
         write_4dgs(tmp_path / "bad.4dgs", run, tolerance=float("nan"))
+    blind = dataclasses.replace(run, cameras=[])  # the tolerance is in pixels: no cameras, no
+    with pytest.raises(ExportError, match="no training cameras.*--4dgs-residual none"):
+        write_4dgs(tmp_path / "blind.4dgs", blind)
+    assert write_4dgs(tmp_path / "blind.4dgs", blind, residual="none").tracks == 3
 
 
 def _sh_colours(sh_u8: np.ndarray, degree: int, dirs: np.ndarray) -> np.ndarray:

@@ -110,7 +110,7 @@ def oracle_phase2_run(
                         extra={"data": str(root), "cameras": camera_records(scene)})
     names = {0: "background", 1: "red ball", 2: "blue box", 3: "green pillar"}
     run = Run(path=run_dir, checkpoint=run_dir / "checkpoint.safetensors", kind="sync4d.phase2",
-              model=model, meta={}, background=[1.0, 1.0, 1.0], cameras=[],
+              model=model, meta={}, background=[1.0, 1.0, 1.0], cameras=camera_records(scene),
               settings={"data": str(root)}, motion=tr.motion, labels=labels, names=names,
               times=tr.times)  # fmt: skip
     return run, root
