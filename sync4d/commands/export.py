@@ -35,9 +35,11 @@ from sync4d.options import (
     positive_int,
 )
 
-#: `--4dgs-tolerance`'s default: `sync4d.export.fourdgs.TOLERANCE` (a test keeps them equal;
-#: imported there with torch, so not here).
+#: `--4dgs-tolerance`'s default and `--4dgs-residual`'s choices: `sync4d.export.fourdgs`'s
+#: `TOLERANCE` and `RESIDUAL_CHOICES` (a test keeps them equal; that module imports numpy, which
+#: parsing a command line does not).
 TOLERANCE = 0.25
+RESIDUAL_CHOICES = ("all", "background", "none")
 
 __all__ = ["add_arguments", "main", "read_vocab"]
 
@@ -83,7 +85,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "object table with Phase 3's embeddings); needs fourdgs: pip install "
                    "'sync4d[4dgs]'")
     p.add_argument("--4dgs-residual", dest="fourdgs_residual", default=None,
-                   choices=("all", "background", "none"),
+                   choices=RESIDUAL_CHOICES,
                    help="with --4dgs: which Gaussians may keep D_theta's residual over their "
                    "track as piecewise-linear records: all (default), background (the objects "
                    "move by their tracks alone), none (the tracks alone move the objects and "

@@ -226,6 +226,27 @@ def _sh_bytes(sh_rest: np.ndarray) -> np.ndarray:
     return np.clip(np.rint((flat - _SH_LO) / (_SH_HI - _SH_LO) * 255.0), 0, 255).astype(np.uint8)
 
 
+def _sh_values(codes: np.ndarray) -> np.ndarray:
+    """The format's u8 SH codes [N, 3K] (channel-major) as coefficients [N, K, 3], float64:
+    the inverse of `_sh_bytes` up to its rounding."""
+    n, k3 = codes.shape
+    vals = codes.astype(np.float64) * ((_SH_HI - _SH_LO) / 255.0) + _SH_LO
+    return vals.reshape(n, 3, k3 // 3).transpose(0, 2, 1)
+
+
+def _sh_basis(degree: int, dirs: np.ndarray) -> np.ndarray:
+    """sync4d's real SH basis up to `degree` at view directions `dirs` [M, 3] (normalised
+    inside), float64 [M, (degree + 1)^2]: the rasterizer's own SH with unit coefficients."""
+    import torch
+
+    from sync4d import raster
+
+    k = (degree + 1) ** 2
+    eye = torch.eye(k, dtype=torch.float64).expand(len(dirs), k, k).contiguous()
+    return raster.spherical_harmonics(degree, torch.as_tensor(dirs, dtype=torch.float64), eye,
+                                      threads=1).numpy()  # fmt: skip
+
+
 def _training_cameras(run: Run) -> list[dict]:
     """The run's training cameras (its test views left out), each viewpoint once."""
     seen: dict[bytes, dict] = {}
@@ -275,10 +296,6 @@ def _fit_into_gamut(
     the C view directions from `means` [N, 3], pulled towards the old rest by `ridge` times C;
     bands 1.. are orthogonal to a constant on the whole sphere, not over the views a capture
     has). Returns the clipped RGB, the new rest and the clipped Gaussians' mask [N]."""
-    import torch
-
-    from sync4d import raster
-
     clipped_rgb = np.clip(rgb, 0.0, 1.0)
     mask = (clipped_rgb != rgb).any(axis=1)
     rest = sh_rest.copy()
@@ -288,13 +305,10 @@ def _fit_into_gamut(
     degree = int(round(math.sqrt(k + 1))) - 1
     idx = np.flatnonzero(mask)
     c = len(centres)
-    eye = torch.eye(k + 1, dtype=torch.float64)
     for s in range(0, len(idx), chunk):
         sel = idx[s:s + chunk]
         dirs = (means[sel, None, :] - centres[None]).reshape(-1, 3)
-        basis = raster.spherical_harmonics(
-            degree, torch.as_tensor(dirs), eye.expand(len(dirs), k + 1, k + 1).contiguous(),
-            threads=1).numpy().reshape(len(sel), c, k + 1)  # fmt: skip
+        basis = _sh_basis(degree, dirs).reshape(len(sel), c, k + 1)
         b0, br = basis[:, :, :1], basis[:, :, 1:]
         dc_old = (rgb[sel] - 0.5) / _SH_C0
         dc_new = (clipped_rgb[sel] - 0.5) / _SH_C0
@@ -345,11 +359,11 @@ def write_4dgs(
                       ("sh_rest", sh_rest), ("opacity", alpha)):  # fmt: skip
         if not np.isfinite(arr).all():
             raise ExportError(path, f"cannot write: {name} holds NaN or inf (a diverged fit?)")
+    cameras = _training_cameras(run)
     # The format's colour grid holds [0, 1] only: clip, and carry what clipping loses into the
     # SH rest over the run's views.
     if fit_colours:
-        rgb, sh_rest, clip_mask = _fit_into_gamut(rgb, sh_rest, means0,
-                                                   _camera_centres(_training_cameras(run)))
+        rgb, sh_rest, clip_mask = _fit_into_gamut(rgb, sh_rest, means0, _camera_centres(cameras))
     else:
         clip_mask = ((rgb < 0.0) | (rgb > 1.0)).any(axis=1)
         rgb = np.clip(rgb, 0.0, 1.0)
@@ -431,7 +445,6 @@ def write_4dgs(
         pos, vel, rots, scl = means0, np.zeros_like(means0), _quat_wxyz_to_xyzw(quats0), scales0
         mu, lo, hi = np.zeros(n), np.zeros(n), np.full(n, np.inf)
     else:
-        cameras = _training_cameras(run)
         if not cameras and residual != "none":
             raise ExportError(path, "the run records no training cameras (its checkpoint's "
                               "metadata), so the residual's tolerance, in pixels, has none to "
@@ -455,8 +468,10 @@ def write_4dgs(
         rots = wq.sum(axis=0, dtype=np.float64)
         rots /= np.maximum(np.linalg.norm(rots, axis=1, keepdims=True), 1e-30)
         scl = np.exp(np.log(ws).mean(axis=0, dtype=np.float64))
+        rest_ext = _shape(rots, scl)
         for j in range(len(times)):
-            deviation = np.maximum(deviation, _state_error(pos, rots, scl, wc[j], wq[j], ws[j]))
+            deviation = np.maximum(deviation, _extent_error(pos, rest_ext, wc[j],
+                                                            _shape(wq[j], ws[j])))
         needs = {"all": deviation > limit, "background": (deviation > limit) & ~tracked,
                  "none": np.zeros(n, bool)}[residual]  # fmt: skip
         vel = np.zeros_like(pos)
@@ -531,10 +546,13 @@ def _refine_tracks(
     """M_phi's poses refined to D_theta: for each of `objects`, from M_phi's rotations [K, T, 3,
     3] and translations [K, T, 3], `iters` rounds of robust weighted generalised Procrustes:
     the rest shape as the mean of the object's points with the poses undone, then per frame
-    the rigid motion (Kabsch) that takes it nearest D_theta's `centres` [T, N, 3], each point
-    weighted by `weights` [N] (opacity) times a Cauchy weight ``1 / (1 + (r / 2 r_med)^2)`` of
-    its RMS distance r over the frames, so the few Gaussians that leave the object (a shadow
-    given to it, a squash) do not drag its pose. New arrays, float64."""
+    the rigid motion (`sync4d.geometry.kabsch`) that takes it nearest D_theta's `centres` [T, N,
+    3], each point weighted by `weights` [N] (opacity) times a Cauchy weight
+    ``1 / (1 + (r / 2 r_med)^2)`` of its RMS distance r over the frames, so the few Gaussians
+    that leave the object (a shadow given to it, a squash) do not drag its pose. New arrays,
+    float64."""
+    from sync4d.geometry import kabsch  # (torch: imported with the writer, not the reader)
+
     rot, trans = rot.copy(), trans.copy()
     for k in objects:
         sel = labels == k
@@ -546,15 +564,9 @@ def _refine_tracks(
         for _ in range(iters):
             rest = np.einsum("tji,tnj->ni", r, x - b[:, None]) / len(x)
             w = weights[sel] * robust
-            w = w / max(float(w.sum()), 1e-30)
-            pc = w @ rest
-            xc = np.einsum("n,tnj->tj", w, x)
-            h = np.einsum("n,ni,tnj->tij", w, rest - pc, x - xc[:, None])
-            u, _, vt = np.linalg.svd(h)
-            d = np.sign(np.linalg.det(np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)))
-            vt[:, -1] *= d[:, None]
-            r = np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)
-            b = xc - r @ pc
+            fits = [kabsch(rest, x[j], w) for j in range(len(x))]
+            r = np.stack([f[0] for f in fits])
+            b = np.stack([f[1] for f in fits])
             dist = np.sqrt(np.mean(np.sum((np.einsum("tij,nj->tni", r, rest) + b[:, None] - x)
                                           ** 2, axis=2), axis=0))  # fmt: skip
             robust = 1.0 / (1.0 + (dist / max(2.0 * float(np.median(dist)), 1e-12)) ** 2)
@@ -596,13 +608,14 @@ def _to_object_frame(
 
 
 def _quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] of quaternions [..., 4] (x, y, z, w; normalised here)."""
-    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-30)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-                     2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-                     2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-                    axis=-1).reshape(*q.shape[:-1], 3, 3)  # fmt: skip
+    """Rotation matrices [..., 3, 3] of quaternions [..., 4] (x, y, z, w; normalised here):
+    `sync4d.geometry.quat_to_matrix` in the file's order, float64."""
+    import torch
+
+    from sync4d.geometry import quat_to_matrix
+
+    wxyz = np.asarray(q, dtype=np.float64)[..., [3, 0, 1, 2]]
+    return quat_to_matrix(torch.as_tensor(wxyz)).numpy()
 
 
 def _shape(q: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -620,8 +633,13 @@ def _state_error(
     3|4|3]) is from D_theta's (`*_ref`), in world units [..., n]: the centres' distance plus
     the Frobenius distance of the extents (`_shape`: a scale's change counts as itself, a turn
     as the angle times the difference of the scales it mixes, so a sphere may turn freely)."""
-    return (np.linalg.norm(c - c_ref, axis=-1)
-            + np.linalg.norm(_shape(q, s) - _shape(q_ref, s_ref), axis=(-2, -1)))  # fmt: skip
+    return _extent_error(c, _shape(q, s), c_ref, _shape(q_ref, s_ref))
+
+
+def _extent_error(c: np.ndarray, e: np.ndarray, c_ref: np.ndarray,
+                  e_ref: np.ndarray) -> np.ndarray:  # fmt: skip
+    """`_state_error` on extents already made (`_shape`: [..., n, 3, 3])."""
+    return np.linalg.norm(c - c_ref, axis=-1) + np.linalg.norm(e - e_ref, axis=(-2, -1))
 
 
 def _segments(
@@ -633,6 +651,7 @@ def _segments(
     while some frame in between is further than `limit` [m] (world units, `_state_error`)
     from D_theta's. Returns (Gaussian indices into m, a, b) per segment group."""
     out: list[tuple[np.ndarray, int, int]] = []
+    ext = _shape(q, s).astype(np.float32)  # [T, m, 3, 3], once for every split
     work = [(np.arange(c.shape[1]), 0, len(times) - 1)]
     while work:
         idx, a, b = work.pop()
@@ -641,8 +660,8 @@ def _segments(
             continue
         w = ((times[a:b + 1] - times[a]) / (times[b] - times[a]))[:, None, None]
         lin = c[a, idx] + w * (c[b, idx] - c[a, idx])
-        err = _state_error(lin, q[a, idx], s[a, idx], c[a:b + 1, idx], q[a:b + 1, idx],
-                           s[a:b + 1, idx]).max(axis=0)  # fmt: skip
+        err = _extent_error(lin, ext[a, idx], c[a:b + 1, idx],
+                            ext[a:b + 1, idx]).max(axis=0)  # fmt: skip
         fine = err <= limit[idx]
         if fine.any():
             out.append((idx[fine], a, b))
@@ -718,9 +737,7 @@ def splats_from_4dgs(scene: Any, t: float) -> dict[str, torch.Tensor | int]:
     dc = (rgb - 0.5) / _SH_C0
     degree = int(g.sh_degree) if g.sh is not None else 0
     if degree:
-        coeffs = g.sh.shape[1] // 3
-        vals = g.sh[idx].astype(np.float64) * ((_SH_HI - _SH_LO) / 255.0) + _SH_LO
-        rest = vals.reshape(len(idx), 3, coeffs).transpose(0, 2, 1)[:, : (degree + 1) ** 2 - 1]
+        rest = _sh_values(g.sh[idx])[:, : (degree + 1) ** 2 - 1]
         sh = np.concatenate([dc[:, None], rest], axis=1)
     else:
         sh = dc[:, None]
@@ -768,19 +785,9 @@ def _sh_rotation(degree: int, r: np.ndarray, samples: int = 512) -> np.ndarray:
     colour the turned one shows towards r d is the one the old showed towards d,
     ``Y(r d) . (X c) = Y(d) . c`` (sync4d's SH basis, fitted over `samples` directions; exact,
     a rotation keeps each band)."""
-    import torch
-
-    from sync4d import raster
-
-    k = (degree + 1) ** 2
     d = np.random.default_rng(0).normal(size=(samples, 3))
-    eye = torch.eye(k, dtype=torch.float64).expand(samples, k, k).contiguous()
-
-    def basis(dirs: np.ndarray) -> np.ndarray:
-        return raster.spherical_harmonics(degree, torch.as_tensor(dirs), eye,
-                                          threads=1).numpy()[:, 1:]  # fmt: skip
-
-    x, *_ = np.linalg.lstsq(basis(d @ r.T), basis(d), rcond=None)  # B(r d) X = B(d)
+    x, *_ = np.linalg.lstsq(_sh_basis(degree, d @ r.T)[:, 1:], _sh_basis(degree, d)[:, 1:],
+                            rcond=None)  # B(r d) X = B(d)  # fmt: skip
     return x
 
 
@@ -815,9 +822,7 @@ def snapshot(out: str | Path, scene: Any, t: float) -> int:
         quats = _quat_mul_xyzw(_matrix_to_quat_xyzw(r), quats)
         if sh is not None and g.sh_degree:
             k = sh.shape[1] // 3
-            rest = sh.astype(np.float64).reshape(m, 3, k) * ((_SH_HI - _SH_LO) / 255.0) + _SH_LO
-            rest = rest @ _sh_rotation(int(g.sh_degree), r)[:k, :k].T
-            sh = _sh_bytes(rest.transpose(0, 2, 1))
+            sh = _sh_bytes(_sh_rotation(int(g.sh_degree), r)[:k, :k] @ _sh_values(sh))
         coords = "y-up-right-handed"
     still = fd.GaussianSet(
         positions=centres.astype(np.float32),

@@ -358,6 +358,7 @@ def test_command_default_tolerance_is_the_writers() -> None:
     from sync4d.commands import export
 
     assert export.TOLERANCE == fd.TOLERANCE
+    assert export.RESIDUAL_CHOICES == fd.RESIDUAL_CHOICES
 
 
 def test_refined_tracks_fit_d_theta_despite_stray_points() -> None:

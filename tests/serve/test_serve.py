@@ -8,6 +8,7 @@ the description, a track, the events and a render checked, the resources equal t
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import io
 import json
 import os
@@ -296,6 +297,16 @@ def test_describe_names_the_4dgs_file(run_dir, tmp_path, capsys):
     (tmp_path / "not.4dgs").write_bytes(b"PLY junk")
     assert main(["serve", str(run_dir), "--4dgs", str(tmp_path / "not.4dgs")]) == 2
     assert "not a readable .4dgs file" in capsys.readouterr().err
+    assert main(["serve", str(run_dir), "--4dgs", str(tmp_path / "missing.4dgs")]) == 2
+    assert "no such file; write it with `sync4d export RUN --4dgs" in capsys.readouterr().err
+    from sync4d.export.fourdgs import write_4dgs
+    from sync4d.runs import load_run
+
+    run = load_run(run_dir)  # a .4dgs with no checkpoint hash: not written by `export` on a run
+    foreign = write_4dgs(tmp_path / "foreign.4dgs", dataclasses.replace(
+        run, checkpoint=tmp_path / "nowhere.safetensors"))  # fmt: skip
+    assert main(["serve", str(run_dir), "--4dgs", str(foreign.path)]) == 2
+    assert "not written by sync4d export" in capsys.readouterr().err
 
 
 def test_addresses():
